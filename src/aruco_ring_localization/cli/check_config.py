@@ -1,0 +1,43 @@
+"""``aruco_ring check-config``: validate a ring file (and a map) and summarise them for people."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+
+from ..errors import ConfigError
+from ..marker_map import MarkerMap
+from ..rig import CameraRing, ring_summary
+
+COMMAND = "check-config"
+HELP = "validate ring/camera_info/map files and print a summary"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--ring", required=True, help="ring YAML file (e.g. config/ring.yaml)")
+    parser.add_argument("--map", dest="map_file", help="marker map YAML file to check as well")
+
+
+def run(args: argparse.Namespace) -> int:
+    ok = True
+    try:
+        ring = CameraRing.load(args.ring)
+        sys.stdout.write(f"ring {args.ring}: OK\n" + "\n".join(ring_summary(ring)) + "\n")
+    except ConfigError as exc:
+        sys.stdout.write(f"ring: ERROR {exc}\n")
+        ok = False
+    if args.map_file:
+        try:
+            m = MarkerMap.load(args.map_file)
+            sys.stdout.write(f"map {args.map_file}: OK, {len(m)} markers in frame '{m.frame_id}', "
+                             f"reference marker {m.reference_marker}, method '{m.method}'\n")
+            for e in m:
+                t = e.T_map_marker[:3, 3]
+                sys.stdout.write(f"  marker {e.marker_id:4d} size {e.size:.3f} m at ({t[0]:+.3f}, {t[1]:+.3f}, "
+                                 f"{t[2]:+.3f}) m, position std {1000 * float(np.max(e.position_std)):.1f} mm, "
+                                 f"{e.observations} observations\n")
+        except ConfigError as exc:
+            sys.stdout.write(f"map: ERROR {exc}\n")
+            ok = False
+    return 0 if ok else 1

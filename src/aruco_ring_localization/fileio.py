@@ -1,0 +1,66 @@
+"""Safe file writing: a file is replaced whole or not at all.
+
+:func:`atomic_write_text` writes to a temporary file in the same directory, flushes and fsyncs it,
+keeps the previous version as ``<name>.bak`` and renames the new one into place. A process killed
+at any instant leaves either the old file or the new one (and the ``.bak``), never half a file.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+
+from .errors import ConfigError
+
+logger = logging.getLogger(__name__)
+
+
+def atomic_write_text(path: str, text: str, keep_backup: bool = True) -> None:
+    """Write ``text`` to ``path`` atomically; the previous file becomes ``path + '.bak'``."""
+    path = os.path.abspath(str(path))
+    directory = os.path.dirname(path)
+    try:
+        os.makedirs(directory, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", suffix=".tmp", dir=directory)
+    except OSError as exc:
+        raise ConfigError(f"cannot create a file in {directory} ({exc})", path=path) from None
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as handle:
+            handle.write(text)
+            handle.flush()
+            os.fsync(handle.fileno())
+        if keep_backup and os.path.exists(path):
+            # A hard link keeps the old file reachable as .bak while the rename below replaces it,
+            # so there is no instant at which neither the old nor the new map exists.
+            bak = path + ".bak"
+            try:
+                if os.path.lexists(bak):
+                    os.unlink(bak)
+                os.link(path, bak)
+            except OSError:
+                import shutil
+
+                shutil.copy2(path, bak)
+        os.replace(tmp, path)
+        _fsync_dir(directory)
+    except BaseException as exc:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        if isinstance(exc, OSError):
+            raise ConfigError(f"cannot write file ({exc})", path=path) from None
+        raise
+
+
+def _fsync_dir(directory: str) -> None:
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)

@@ -1,0 +1,329 @@
+"""Rigid-body geometry: SE(3) as 4x4 arrays, SE(2) poses, rotation averaging.
+
+Conventions (see docs/formats.md and DESIGN §2):
+
+* A pose is a 4x4 homogeneous numpy array named ``T_<to>_<from>``: ``p_to = T_to_from @ p_from``.
+  ``T_map_base`` is the robot (``base_link``) in the map frame.
+* Quaternions are (x, y, z, w), as in ROS, and appear only where messages and files need them.
+* SE(2) poses are (x, y, yaw) with yaw in radians, wrapped to [-pi, pi).
+* Roll/pitch/yaw (``rpy``) are fixed-axis angles as in tf: ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``.
+
+Every function validates what it is given and raises :class:`GeometryError` (a ``ValueError``)
+with a message that names the argument, never returning NaN silently.
+"""
+from __future__ import annotations
+
+import logging
+from typing import Iterable, Optional, Sequence, Tuple
+
+import numpy as np
+
+from .errors import GeometryError
+
+logger = logging.getLogger(__name__)
+
+_ORTHO_TOL = 1e-5
+
+
+def _as_array(value, shape: Tuple[int, ...], name: str) -> np.ndarray:
+    """Return ``value`` as a finite float64 array of ``shape`` or raise GeometryError."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise GeometryError(f"{name}: expected numbers, got {type(value).__name__} ({exc})") from None
+    if arr.shape != shape:
+        raise GeometryError(f"{name}: expected shape {shape}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise GeometryError(f"{name}: contains NaN or infinite values")
+    return arr
+
+
+def validate_rotation(R, name: str = "rotation", tol: float = _ORTHO_TOL) -> np.ndarray:
+    """Check that ``R`` is a 3x3 proper rotation (orthonormal, det +1) and return it as float64."""
+    R = _as_array(R, (3, 3), name)
+    err = np.abs(R.T @ R - np.eye(3)).max()
+    if err > tol:
+        raise GeometryError(f"{name}: not orthonormal (max |R^T R - I| = {err:.2e})")
+    if np.linalg.det(R) < 0.0:
+        raise GeometryError(f"{name}: determinant is negative (a reflection, not a rotation)")
+    return R
+
+
+def validate_transform(T, name: str = "transform", tol: float = _ORTHO_TOL) -> np.ndarray:
+    """Check that ``T`` is a 4x4 rigid transform and return it as a float64 array."""
+    T = _as_array(T, (4, 4), name)
+    validate_rotation(T[:3, :3], f"{name} (rotation block)", tol)
+    if np.abs(T[3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > 1e-9:
+        raise GeometryError(f"{name}: last row must be [0, 0, 0, 1], got {T[3].tolist()}")
+    return T
+
+
+def make_transform(R=None, t=None) -> np.ndarray:
+    """Build a 4x4 transform from a 3x3 rotation ``R`` (default identity) and translation ``t`` (m)."""
+    T = np.eye(4)
+    if R is not None:
+        T[:3, :3] = validate_rotation(R, "R")
+    if t is not None:
+        T[:3, 3] = _as_array(t, (3,), "t")
+    return T
+
+
+def inverse(T) -> np.ndarray:
+    """Inverse of a rigid transform (uses R^T, exact for rotations): ``inverse(T_a_b) = T_b_a``."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise GeometryError(f"inverse: expected a 4x4 transform, got shape {T.shape}")
+    R_t = T[:3, :3].T
+    out = np.eye(4)
+    out[:3, :3] = R_t
+    out[:3, 3] = -R_t @ T[:3, 3]
+    return out
+
+
+def compose(*transforms) -> np.ndarray:
+    """Chain transforms left to right: ``compose(T_a_b, T_b_c) = T_a_c``."""
+    if not transforms:
+        return np.eye(4)
+    out = np.asarray(transforms[0], dtype=np.float64)
+    for T in transforms[1:]:
+        out = out @ np.asarray(T, dtype=np.float64)
+    return out
+
+
+def transform_points(T, points) -> np.ndarray:
+    """Apply ``T`` (4x4) to an (N, 3) array of points; returns (N, 3)."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    T = np.asarray(T, dtype=np.float64)
+    return pts @ T[:3, :3].T + T[:3, 3]
+
+
+# --- rotation parametrisations -------------------------------------------------------------
+
+def rotation_from_rvec(rvec) -> np.ndarray:
+    """Rodrigues rotation vector (axis * angle, rad) -> 3x3 rotation matrix."""
+    r = _as_array(np.ravel(rvec), (3,), "rvec")
+    theta = float(np.linalg.norm(r))
+    if theta < 1e-12:
+        K = _skew(r)
+        return np.eye(3) + K  # first order; exact enough below 1e-12 rad
+    k = r / theta
+    K = _skew(k)
+    return np.eye(3) + np.sin(theta) * K + (1.0 - np.cos(theta)) * (K @ K)
+
+
+def rvec_from_rotation(R) -> np.ndarray:
+    """3x3 rotation matrix -> Rodrigues rotation vector (3,), angle in [0, pi]."""
+    q = quaternion_from_matrix(R)
+    xyz, w = q[:3], q[3]
+    if w < 0.0:
+        xyz, w = -xyz, -w
+    s = float(np.linalg.norm(xyz))
+    if s < 1e-12:
+        return 2.0 * xyz  # small-angle limit
+    angle = 2.0 * np.arctan2(s, w)
+    return xyz / s * angle
+
+
+def _skew(v) -> np.ndarray:
+    x, y, z = v
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def transform_from_rvec_tvec(rvec, tvec) -> np.ndarray:
+    """OpenCV (rvec, tvec) -> 4x4 transform (``T_cam_obj`` for solvePnP output)."""
+    T = np.eye(4)
+    T[:3, :3] = rotation_from_rvec(rvec)
+    T[:3, 3] = _as_array(np.ravel(tvec), (3,), "tvec")
+    return T
+
+
+def rvec_tvec_from_transform(T) -> Tuple[np.ndarray, np.ndarray]:
+    """4x4 transform -> (rvec (3,), tvec (3,)) as OpenCV expects them."""
+    T = validate_transform(T, "T")
+    return rvec_from_rotation(T[:3, :3]), T[:3, 3].copy()
+
+
+def quaternion_from_matrix(M) -> np.ndarray:
+    """Rotation part of a 3x3 or 4x4 matrix -> unit quaternion (x, y, z, w) with w >= 0."""
+    M = np.asarray(M, dtype=np.float64)
+    if M.shape == (4, 4):
+        M = M[:3, :3]
+    R = _as_array(M, (3, 3), "rotation")
+    # Shepperd's method: pick the largest diagonal combination for numerical stability.
+    tr = np.trace(R)
+    if tr > 0.0:
+        s = np.sqrt(tr + 1.0) * 2.0
+        q = np.array([(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s])
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2]) * 2.0
+        q = np.array([0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s])
+    elif R[1, 1] > R[2, 2]:
+        s = np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2]) * 2.0
+        q = np.array([(R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s])
+    else:
+        s = np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1]) * 2.0
+        q = np.array([(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s, (R[1, 0] - R[0, 1]) / s])
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0.0 else q
+
+
+def matrix_from_quaternion(q, name: str = "quaternion") -> np.ndarray:
+    """Quaternion (x, y, z, w) -> 3x3 rotation. It must have a norm near 1 (0.9 .. 1.1)."""
+    q = _as_array(np.ravel(q), (4,), name)
+    n = float(np.linalg.norm(q))
+    if not 0.9 < n < 1.1:
+        raise GeometryError(f"{name}: norm {n:.4f} is not close to 1 (expected a unit quaternion x, y, z, w)")
+    x, y, z, w = q / n
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def transform_from_translation_quaternion(t, q, name: str = "transform") -> np.ndarray:
+    """(x, y, z) and quaternion (x, y, z, w) -> 4x4 transform."""
+    T = np.eye(4)
+    T[:3, :3] = matrix_from_quaternion(q, f"{name} rotation")
+    T[:3, 3] = _as_array(np.ravel(t), (3,), f"{name} translation")
+    return T
+
+
+def matrix_from_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """Fixed-axis roll, pitch, yaw (rad) -> 3x3 rotation ``Rz(yaw) Ry(pitch) Rx(roll)``."""
+    cr, sr = np.cos(roll), np.sin(roll)
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    return np.array([
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ])
+
+
+def rpy_from_matrix(M) -> Tuple[float, float, float]:
+    """3x3 or 4x4 -> fixed-axis (roll, pitch, yaw) in rad, inverse of :func:`matrix_from_rpy`."""
+    R = np.asarray(M, dtype=np.float64)[:3, :3]
+    pitch = float(np.arctan2(-R[2, 0], np.hypot(R[0, 0], R[1, 0])))
+    if abs(abs(pitch) - np.pi / 2) < 1e-9:
+        # Gimbal lock: roll and yaw share one axis; put it all in yaw.
+        roll = 0.0
+        yaw = float(np.arctan2(-R[0, 1], R[1, 1]))
+    else:
+        roll = float(np.arctan2(R[2, 1], R[2, 2]))
+        yaw = float(np.arctan2(R[1, 0], R[0, 0]))
+    return roll, pitch, yaw
+
+
+def rot_z(yaw: float) -> np.ndarray:
+    """3x3 rotation about z by ``yaw`` rad."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def rotation_angle(R) -> float:
+    """Angle (rad, in [0, pi]) of the rotation ``R`` (3x3 or the rotation block of a 4x4)."""
+    R = np.asarray(R, dtype=np.float64)[:3, :3]
+    c = (np.trace(R) - 1.0) / 2.0
+    return float(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+# --- SE(2) ---------------------------------------------------------------------------------
+
+def wrap_angle(angle):
+    """Wrap an angle (or array of angles) in rad to [-pi, pi)."""
+    return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi if np.ndim(angle) else \
+        float((angle + np.pi) % (2.0 * np.pi) - np.pi)
+
+
+def angle_diff(a, b):
+    """Smallest signed difference ``a - b`` of two angles, in [-pi, pi)."""
+    return wrap_angle(np.asarray(a) - np.asarray(b)) if np.ndim(a) or np.ndim(b) else wrap_angle(a - b)
+
+
+def se2_from_transform(T) -> np.ndarray:
+    """Project a 3D pose onto the ground plane: returns (x, y, yaw).
+
+    yaw is the heading of the frame's x axis projected on the x-y plane, which stays correct for
+    small roll and pitch (a robot on a slightly uneven plate).
+    """
+    T = np.asarray(T, dtype=np.float64)
+    return np.array([T[0, 3], T[1, 3], float(np.arctan2(T[1, 0], T[0, 0]))])
+
+
+def transform_from_se2(x: float, y: float, yaw: float, z: float = 0.0) -> np.ndarray:
+    """(x, y, yaw) -> 4x4 transform at height ``z`` with a rotation about z only."""
+    T = np.eye(4)
+    T[:3, :3] = rot_z(yaw)
+    T[:3, 3] = (x, y, z)
+    return T
+
+
+def circular_mean(angles, weights=None) -> float:
+    """Weighted mean of angles (rad) on the circle; raises if they cancel out."""
+    a = np.asarray(angles, dtype=np.float64).ravel()
+    w = np.ones_like(a) if weights is None else np.asarray(weights, dtype=np.float64).ravel()
+    s, c = float(np.sum(w * np.sin(a))), float(np.sum(w * np.cos(a)))
+    if np.hypot(s, c) < 1e-12:
+        raise GeometryError("circular_mean: the angles cancel out, their mean is undefined")
+    return float(np.arctan2(s, c))
+
+
+# --- averaging -----------------------------------------------------------------------------
+
+def _check_weights(n: int, weights: Optional[Sequence[float]]) -> np.ndarray:
+    if n == 0:
+        raise GeometryError("cannot average an empty list of poses")
+    if weights is None:
+        return np.full(n, 1.0 / n)
+    w = np.asarray(weights, dtype=np.float64).ravel()
+    if w.shape != (n,):
+        raise GeometryError(f"weights: expected {n} values, got {w.shape[0]}")
+    if not np.all(np.isfinite(w)) or np.any(w < 0.0) or w.sum() <= 0.0:
+        raise GeometryError("weights: must be finite, non-negative and not all zero")
+    return w / w.sum()
+
+
+def average_rotations(rotations: Iterable, weights: Optional[Sequence[float]] = None) -> np.ndarray:
+    """Weighted mean rotation (3x3) of several rotations.
+
+    Uses the quaternion method of Markley et al. (2007): the mean is the eigenvector of
+    ``sum w_i q_i q_i^T`` with the largest eigenvalue, which is insensitive to the sign of each
+    quaternion and equals the chordal L2 mean. Averaging Euler angles would be wrong near +-pi.
+    """
+    quats = np.array([quaternion_from_matrix(R) for R in rotations])
+    w = _check_weights(len(quats), weights)
+    M = (quats * w[:, None]).T @ quats
+    _, vecs = np.linalg.eigh(M)
+    return matrix_from_quaternion(vecs[:, -1])
+
+
+def average_transforms(transforms: Iterable, weights: Optional[Sequence[float]] = None) -> np.ndarray:
+    """Weighted mean of rigid transforms: rotation by :func:`average_rotations`, translation
+    by the weighted arithmetic mean. Exact for identical inputs."""
+    Ts = [validate_transform(T, f"transforms[{i}]") for i, T in enumerate(transforms)]
+    w = _check_weights(len(Ts), weights)
+    out = np.eye(4)
+    out[:3, :3] = average_rotations([T[:3, :3] for T in Ts], w)
+    out[:3, 3] = np.sum([wi * T[:3, 3] for wi, T in zip(w, Ts)], axis=0)
+    return out
+
+
+def pose_distance(T_a, T_b) -> Tuple[float, float]:
+    """(translation distance in m, rotation angle in rad) between two poses."""
+    D = inverse(T_a) @ np.asarray(T_b, dtype=np.float64)
+    return float(np.linalg.norm(D[:3, 3])), rotation_angle(D)
+
+
+def so3_exp(w) -> np.ndarray:
+    """Exponential map so(3) -> SO(3) (alias of :func:`rotation_from_rvec`)."""
+    return rotation_from_rvec(w)
+
+
+def se3_perturb(T, delta) -> np.ndarray:
+    """Left-multiply ``T`` by a small motion ``delta = (wx, wy, wz, tx, ty, tz)``: used by solvers."""
+    d = np.asarray(delta, dtype=np.float64).ravel()
+    D = np.eye(4)
+    D[:3, :3] = rotation_from_rvec(d[:3])
+    D[:3, 3] = d[3:6]
+    return D @ np.asarray(T, dtype=np.float64)

@@ -1,0 +1,304 @@
+"""The marker map: the pose of every mapped marker in the map frame.
+
+:class:`MarkerMap` holds, per marker id, ``T_map_marker`` (4x4), the marker's side length, its
+uncertainty and how often it was observed, plus the definition of the map frame. Look-ups are by
+id (a dict), so the cost of using the map grows with the markers in view, not with its size.
+
+File format (YAML, written atomically with the previous file kept as ``.bak``; docs/formats.md)::
+
+    format_version: 1
+    frame_id: map
+    reference_marker: 3
+    frame_definition: "origin on the floor below marker 3's centre, z up, x along marker 3's x made horizontal"
+    method: refined
+    created: "2026-11-22T10:00:00Z"
+    markers:
+      - id: 3
+        size: 0.2                           # side of the black square, m
+        translation: [1.0, 2.0, 1.2]        # m, in frame_id
+        rotation: [0.5, 0.5, 0.5, 0.5]      # quaternion x, y, z, w
+        position_std: [0.001, 0.001, 0.001] # m, 1 sigma per axis of the map frame
+        rotation_std: [0.002, 0.002, 0.002] # rad, 1 sigma about the marker's x, y, z
+        observations: 120
+
+fiducial_slam's ``map.txt`` (one marker a line: ``id x y z rx ry rz variance nObs [links...]``,
+angles fixed-axis roll/pitch/yaw in degrees) is imported and exported too.
+"""
+from __future__ import annotations
+
+import datetime
+import logging
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any, Dict, Iterable, Iterator, List, Mapping, Optional
+
+import numpy as np
+import yaml
+
+from . import geometry as geo
+from .camera import load_yaml_file
+from .errors import ConfigError, GeometryError
+from .fileio import atomic_write_text
+from .markers import marker_corners
+
+logger = logging.getLogger(__name__)
+
+MAP_FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class MarkerEntry:
+    """One mapped marker.
+
+    Attributes:
+        marker_id: ArUco id.
+        T_map_marker: (4, 4) pose of the marker frame in the map frame.
+        size: side of the black square, m.
+        position_std: (3,) 1-sigma position uncertainty along the map axes, m.
+        rotation_std: (3,) 1-sigma rotation uncertainty about the marker's axes, rad.
+        observations: number of corner observations that went into the estimate.
+    """
+
+    marker_id: int
+    T_map_marker: np.ndarray
+    size: float
+    position_std: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    rotation_std: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    observations: int = 0
+
+    def corners_in_map(self) -> np.ndarray:
+        """(4, 3) corners in the map frame, aruco_detect order."""
+        return geo.transform_points(self.T_map_marker, marker_corners(self.size))
+
+
+class MarkerMap:
+    """Marker poses in one map frame, with the frame's definition.
+
+    Args:
+        entries: the markers.
+        frame_id: name of the map frame (``map``; ``aruco_map`` beside gmapping).
+        reference_marker: id that fixes the frame (the gauge), or None.
+        frame_definition: human-readable definition of the frame.
+        method: how it was built (``paper``, ``refined``, ``imported``, ...).
+    """
+
+    def __init__(self, entries: Iterable[MarkerEntry] = (), frame_id: str = "map",
+                 reference_marker: Optional[int] = None, frame_definition: str = "", method: str = "",
+                 created: str = ""):
+        self._entries: Dict[int, MarkerEntry] = {}
+        self._corners: Dict[int, np.ndarray] = {}
+        self.frame_id = frame_id
+        self.reference_marker = reference_marker
+        self.frame_definition = frame_definition
+        self.method = method
+        self.created = created
+        for e in entries:
+            self.add(e)
+
+    def add(self, entry: MarkerEntry) -> None:
+        """Add or replace a marker (validated)."""
+        T = geo.validate_transform(entry.T_map_marker, f"marker {entry.marker_id} pose")
+        if not (isinstance(entry.size, (int, float)) and math.isfinite(entry.size) and entry.size > 0):
+            raise GeometryError(f"marker {entry.marker_id}: size must be a positive length, got {entry.size!r}")
+        entry = replace(entry, marker_id=int(entry.marker_id), T_map_marker=T,
+                        position_std=np.asarray(entry.position_std, dtype=float).reshape(3),
+                        rotation_std=np.asarray(entry.rotation_std, dtype=float).reshape(3))
+        self._entries[entry.marker_id] = entry
+        self._corners[entry.marker_id] = entry.corners_in_map()
+
+    def remove(self, marker_id: int) -> None:
+        self._entries.pop(marker_id, None)
+        self._corners.pop(marker_id, None)
+
+    def __contains__(self, marker_id: object) -> bool:
+        return marker_id in self._entries
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def __iter__(self) -> Iterator[MarkerEntry]:
+        return iter(self._entries[k] for k in sorted(self._entries))
+
+    def __getitem__(self, marker_id: int) -> MarkerEntry:
+        return self._entries[marker_id]
+
+    def get(self, marker_id: int) -> Optional[MarkerEntry]:
+        return self._entries.get(marker_id)
+
+    @property
+    def ids(self) -> List[int]:
+        return sorted(self._entries)
+
+    def corners(self, marker_id: int) -> np.ndarray:
+        """(4, 3) corners of a mapped marker in the map frame (cached; do not modify)."""
+        return self._corners[marker_id]
+
+    def T_map_marker(self, marker_id: int) -> np.ndarray:
+        return self._entries[marker_id].T_map_marker
+
+    # --- YAML -------------------------------------------------------------------------------
+
+    def to_dict(self) -> Dict[str, Any]:
+        markers = []
+        for e in self:
+            markers.append({
+                "id": e.marker_id,
+                "size": float(e.size),
+                "translation": [float(v) for v in e.T_map_marker[:3, 3]],
+                "rotation": [float(v) for v in geo.quaternion_from_matrix(e.T_map_marker)],
+                "position_std": [float(v) for v in e.position_std],
+                "rotation_std": [float(v) for v in e.rotation_std],
+                "observations": int(e.observations),
+            })
+        return {
+            "format_version": MAP_FORMAT_VERSION,
+            "frame_id": self.frame_id,
+            "reference_marker": self.reference_marker,
+            "frame_definition": self.frame_definition,
+            "method": self.method,
+            "created": self.created or _now_iso(),
+            "markers": markers,
+        }
+
+    def save(self, path: str) -> None:
+        """Write the map as YAML, atomically; the previous file is kept as ``<path>.bak``."""
+        text = "# aruco_ring_localization marker map (docs/formats.md)\n" + \
+            yaml.safe_dump(self.to_dict(), sort_keys=False, default_flow_style=None)
+        atomic_write_text(path, text)
+        logger.info("saved %d markers to %s", len(self), path)
+
+    @classmethod
+    def load(cls, path: str) -> "MarkerMap":
+        """Load a YAML map; any problem raises ConfigError naming the file and the key."""
+        return cls.from_dict(load_yaml_file(path), source=str(path))
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str = "<map>") -> "MarkerMap":
+        if not isinstance(data, Mapping):
+            raise ConfigError(f"expected a mapping at the top level, got {type(data).__name__}", path=source)
+        version = data.get("format_version")
+        if version is None:
+            raise ConfigError("missing (is this a marker map file? fiducial_slam map.txt files are "
+                              "read with 'aruco_ring import-map')", path=source, key="format_version")
+        if version != MAP_FORMAT_VERSION:
+            raise ConfigError(f"unsupported format_version {version!r}: this version reads {MAP_FORMAT_VERSION}",
+                              path=source, key="format_version")
+        frame_id = data.get("frame_id", "map")
+        if not isinstance(frame_id, str) or not frame_id:
+            raise ConfigError("expected a non-empty frame name", path=source, key="frame_id")
+        ref = data.get("reference_marker")
+        if ref is not None and (isinstance(ref, bool) or not isinstance(ref, int)):
+            raise ConfigError(f"expected a marker id or null, got {ref!r}", path=source, key="reference_marker")
+        markers = data.get("markers")
+        if not isinstance(markers, list):
+            raise ConfigError("expected a list of markers", path=source, key="markers")
+        out = cls(frame_id=frame_id, reference_marker=ref,
+                  frame_definition=str(data.get("frame_definition", "")),
+                  method=str(data.get("method", "")), created=str(data.get("created", "")))
+        for i, m in enumerate(markers):
+            entry = _entry_from_dict(m, source, f"markers[{i}]")
+            if entry.marker_id in out:
+                raise ConfigError(f"duplicate marker id {entry.marker_id}", path=source, key=f"markers[{i}].id")
+            out.add(entry)
+        if ref is not None and ref not in out:
+            raise ConfigError(f"reference marker {ref} is not among the markers", path=source, key="reference_marker")
+        return out
+
+    # --- fiducial_slam ------------------------------------------------------------------------
+
+    def to_fiducial_slam_text(self) -> str:
+        """fiducial_slam ``map.txt``: ``id x y z rx ry rz variance nObs`` (angles in degrees).
+
+        ``variance`` is the mean of the position variances (m^2), the closest quantity to
+        fiducial_slam's. Marker sizes are not part of that format.
+        """
+        lines = []
+        for e in self:
+            r, p, y = (math.degrees(a) for a in geo.rpy_from_matrix(e.T_map_marker))
+            t = e.T_map_marker[:3, 3]
+            var = float(np.mean(np.square(e.position_std)))
+            lines.append(f"{e.marker_id} {t[0]:.6f} {t[1]:.6f} {t[2]:.6f} {r:.6f} {p:.6f} {y:.6f} "
+                         f"{var:.9f} {int(e.observations)}")
+        return "\n".join(lines) + "\n"
+
+    def export_fiducial_slam(self, path: str) -> None:
+        atomic_write_text(path, self.to_fiducial_slam_text())
+
+    @classmethod
+    def from_fiducial_slam_text(cls, text: str, marker_size: float, source: str = "<map.txt>",
+                                frame_id: str = "map") -> "MarkerMap":
+        """Read fiducial_slam's map.txt. Sizes are not stored there, so ``marker_size`` applies to all."""
+        out = cls(frame_id=frame_id, method="imported from fiducial_slam",
+                  frame_definition="as in the imported fiducial_slam map")
+        for lineno, line in enumerate(text.splitlines(), start=1):
+            line = line.strip()
+            if not line or line.startswith("#"):
+                continue
+            fields = line.split()
+            key = f"line {lineno}"
+            if len(fields) < 9:
+                raise ConfigError(f"expected 'id x y z rx ry rz variance nObs [links]', got {len(fields)} fields",
+                                  path=source, key=key)
+            try:
+                mid = int(fields[0])
+                x, y, z, rx, ry, rz, var = (float(v) for v in fields[1:8])
+                nobs = int(float(fields[8]))
+            except ValueError:
+                raise ConfigError("a field is not a number", path=source, key=key) from None
+            values = np.array([x, y, z, rx, ry, rz, var])
+            if not np.all(np.isfinite(values)) or var < 0:
+                raise ConfigError("non-finite value or negative variance", path=source, key=key)
+            if mid in out:
+                raise ConfigError(f"duplicate marker id {mid}", path=source, key=key)
+            T = np.eye(4)
+            T[:3, :3] = geo.matrix_from_rpy(math.radians(rx), math.radians(ry), math.radians(rz))
+            T[:3, 3] = (x, y, z)
+            std = math.sqrt(var)
+            out.add(MarkerEntry(mid, T, marker_size, np.full(3, std), np.zeros(3), nobs))
+        if not len(out):
+            raise ConfigError("no markers found", path=source)
+        return out
+
+    @classmethod
+    def import_fiducial_slam(cls, path: str, marker_size: float, frame_id: str = "map") -> "MarkerMap":
+        try:
+            with open(path, "r", encoding="utf-8") as handle:
+                text = handle.read()
+        except OSError as exc:
+            raise ConfigError(f"cannot read file ({exc})", path=str(path)) from None
+        return cls.from_fiducial_slam_text(text, marker_size, source=str(path), frame_id=frame_id)
+
+
+def _entry_from_dict(m: Any, source: str, key: str) -> MarkerEntry:
+    if not isinstance(m, Mapping):
+        raise ConfigError("expected a mapping", path=source, key=key)
+    mid = m.get("id")
+    if isinstance(mid, bool) or not isinstance(mid, int) or mid < 0:
+        raise ConfigError(f"expected a non-negative integer id, got {mid!r}", path=source, key=f"{key}.id")
+    size = m.get("size")
+    if isinstance(size, bool) or not isinstance(size, (int, float)) or not math.isfinite(size) or size <= 0:
+        raise ConfigError(f"expected a positive side length in metres, got {size!r}", path=source, key=f"{key}.size")
+    from .rig import read_transform  # local import: rig imports camera, not marker_map
+
+    T = read_transform({"translation": m.get("translation"), "rotation": m.get("rotation")}, source, key)
+    pos_std = _read_std(m, "position_std", source, key)
+    rot_std = _read_std(m, "rotation_std", source, key)
+    nobs = m.get("observations", 0)
+    if isinstance(nobs, bool) or not isinstance(nobs, int) or nobs < 0:
+        raise ConfigError(f"expected a non-negative integer, got {nobs!r}", path=source, key=f"{key}.observations")
+    return MarkerEntry(mid, T, float(size), pos_std, rot_std, nobs)
+
+
+def _read_std(m: Mapping[str, Any], name: str, source: str, key: str) -> np.ndarray:
+    value = m.get(name, [0.0, 0.0, 0.0])
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ConfigError("expected three numbers", path=source, key=f"{key}.{name}") from None
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
+        raise ConfigError(f"expected three non-negative numbers, got {value!r}", path=source, key=f"{key}.{name}")
+    return arr
+
+
+def _now_iso() -> str:
+    return datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")

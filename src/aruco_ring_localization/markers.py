@@ -1,0 +1,128 @@
+"""Marker geometry in aruco_detect's conventions, per-id sizes and ignore lists.
+
+Marker frame: origin at the centre of the black square, x to the right, y toward the top edge,
+z out of the printed face. Corners are numbered as aruco_detect and OpenCV number them:
+0 top-left, 1 top-right, 2 bottom-right, 3 bottom-left, at (-L/2, +L/2), (+L/2, +L/2),
+(+L/2, -L/2), (-L/2, -L/2) for a marker of side L (the black square, in metres).
+
+Sizes per id use aruco_detect's ``fiducial_len_override`` syntax, ``"1-10: 0.05, 12: 0.06"``;
+ignore lists use its ``ignore_fiducials`` syntax, ``"1,4,9-12"``.
+"""
+from __future__ import annotations
+
+import logging
+import re
+from typing import Dict, FrozenSet, Mapping, Optional
+
+import numpy as np
+
+from .errors import ConfigError
+
+logger = logging.getLogger(__name__)
+
+_CORNER_SIGNS = np.array([[-1.0, 1.0], [1.0, 1.0], [1.0, -1.0], [-1.0, -1.0]])
+
+#: Largest id in OpenCV's predefined dictionaries (ARUCO_ORIGINAL has 1024, 5X5_1000 has 1000, ...).
+MAX_MARKER_ID = 4095
+
+
+def marker_corners(length: float) -> np.ndarray:
+    """(4, 3) corners of a marker of side ``length`` (m) in its own frame, aruco_detect order."""
+    if not np.isfinite(length) or length <= 0.0:
+        raise ConfigError(f"marker side must be a positive length in metres, got {length!r}")
+    out = np.zeros((4, 3))
+    out[:, :2] = _CORNER_SIGNS * (length / 2.0)
+    return out
+
+
+def _parse_id_range(token: str, what: str, source: str) -> range:
+    m = re.fullmatch(r"\s*(\d+)\s*(?:-\s*(\d+)\s*)?", token)
+    if not m:
+        raise ConfigError(f"cannot read {token.strip()!r} as an id or an id range 'a-b'", key=what, path=source or None)
+    lo = int(m.group(1))
+    hi = int(m.group(2)) if m.group(2) is not None else lo
+    if hi < lo:
+        raise ConfigError(f"empty id range {token.strip()!r} (end before start)", key=what, path=source or None)
+    if hi > MAX_MARKER_ID:
+        raise ConfigError(f"id {hi} is above the largest marker id {MAX_MARKER_ID}", key=what, path=source or None)
+    return range(lo, hi + 1)
+
+
+def parse_id_list(text: str, key: str = "ignore_fiducials", source: str = "") -> FrozenSet[int]:
+    """Parse ``"1,4,9-12"`` into a set of ids. Empty text gives an empty set."""
+    if text is None:
+        return frozenset()
+    if isinstance(text, (list, tuple)):
+        text = ",".join(str(t) for t in text)
+    text = str(text).strip()
+    if not text:
+        return frozenset()
+    ids = set()
+    for token in text.split(","):
+        if token.strip():
+            ids.update(_parse_id_range(token, key, source))
+    return frozenset(ids)
+
+
+def parse_size_overrides(text: str, key: str = "fiducial_len_override", source: str = "") -> Dict[int, float]:
+    """Parse ``"1-10: 0.05, 12: 0.06"`` into ``{id: side in metres}``; later entries win."""
+    if text is None:
+        return {}
+    text = str(text).strip()
+    if not text:
+        return {}
+    out: Dict[int, float] = {}
+    for token in text.split(","):
+        if not token.strip():
+            continue
+        if ":" not in token:
+            raise ConfigError(f"entry {token.strip()!r} needs the form 'ids: length'", key=key, path=source or None)
+        ids_text, len_text = token.split(":", 1)
+        try:
+            length = float(len_text)
+        except ValueError:
+            raise ConfigError(f"length {len_text.strip()!r} is not a number", key=key, path=source or None) from None
+        if not np.isfinite(length) or length <= 0.0:
+            raise ConfigError(f"length {length} for ids {ids_text.strip()} must be positive", key=key,
+                              path=source or None)
+        for i in _parse_id_range(ids_text, key, source):
+            out[i] = length
+    return out
+
+
+class MarkerSizes:
+    """Side length (m) of each marker id: a default plus per-id overrides."""
+
+    def __init__(self, default: float, overrides: Optional[Mapping[int, float]] = None):
+        if not np.isfinite(default) or default <= 0.0:
+            raise ConfigError(f"default marker side must be positive, got {default!r}", key="fiducial_len")
+        self.default = float(default)
+        self.overrides: Dict[int, float] = {int(k): float(v) for k, v in (overrides or {}).items()}
+
+    @classmethod
+    def parse(cls, default: float, override_text: str = "") -> "MarkerSizes":
+        return cls(default, parse_size_overrides(override_text))
+
+    def __call__(self, marker_id: int) -> float:
+        return self.overrides.get(int(marker_id), self.default)
+
+    def corners(self, marker_id: int) -> np.ndarray:
+        """(4, 3) corners of marker ``marker_id`` in its own frame."""
+        return marker_corners(self(marker_id))
+
+
+def quad_is_degenerate(corners_px, min_area_px: float = 4.0) -> bool:
+    """True when four image corners do not form a usable convex quadrilateral.
+
+    Rejects non-finite values, self-intersecting or non-convex quads and quads smaller than
+    ``min_area_px`` square pixels. These come from bad detections or corrupted messages.
+    """
+    c = np.asarray(corners_px, dtype=np.float64)
+    if c.shape != (4, 2) or not np.all(np.isfinite(c)):
+        return True
+    e = np.roll(c, -1, axis=0) - c
+    cross = e[:, 0] * np.roll(e, -1, axis=0)[:, 1] - e[:, 1] * np.roll(e, -1, axis=0)[:, 0]
+    if not (np.all(cross > 0) or np.all(cross < 0)):
+        return True
+    area = 0.5 * abs(np.sum(c[:, 0] * np.roll(c[:, 1], -1) - np.roll(c[:, 0], -1) * c[:, 1]))
+    return bool(area < min_area_px)
