@@ -302,3 +302,26 @@ def _read_std(m: Mapping[str, Any], name: str, source: str, key: str) -> np.ndar
 
 def _now_iso() -> str:
     return datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def map_frame_from_reference(T_x_marker: np.ndarray, floor_z: float = 0.0) -> np.ndarray:
+    """Pose ``T_x_map`` of the map frame fixed to a reference marker, given in a frame x with z up.
+
+    The map frame (DESIGN §2): origin on the floor (z = ``floor_z`` in x) below the reference
+    marker's centre, z up (x's z), x axis = the marker's x axis made horizontal, y = z cross x.
+    Works for markers on walls (x horizontal) and, as long as the marker's x is not vertical,
+    for tilted ones. Raises GeometryError when the marker's x axis is (nearly) vertical.
+    """
+    T = geo.validate_transform(T_x_marker, "reference marker pose")
+    x_axis = T[:3, 0].copy()
+    x_axis[2] = 0.0
+    n = float(np.linalg.norm(x_axis))
+    if n < 1e-3:
+        raise GeometryError("reference marker's x axis is vertical: the map's x axis is undefined")
+    x_axis /= n
+    z_axis = np.array([0.0, 0.0, 1.0])
+    y_axis = np.cross(z_axis, x_axis)
+    out = np.eye(4)
+    out[:3, :3] = np.stack([x_axis, y_axis, z_axis], axis=1)
+    out[:3, 3] = (T[0, 3], T[1, 3], floor_z)
+    return out
