@@ -1,0 +1,32 @@
+# Every target runs in bash with the workspace environment (.ws/env.sh) sourced.
+# `make setup` installs and builds everything (idempotent); the others set up first.
+SHELL := /bin/bash
+.SHELLFLAGS := -eu -o pipefail -c
+.DEFAULT_GOAL := help
+
+ENV := source .ws/env.sh
+PYTEST_ARGS ?= -q
+
+.PHONY: help setup test bench demo clean
+
+help:
+	@echo "make demo   set up if needed, then run the demo"
+	@echo "make test   set up if needed, then all tests (unit + rostest), one summary line"
+	@echo "make bench  set up if needed, then the benchmarks (docs/benchmarks.md, results/bench/)"
+	@echo "make setup  install apt packages, the venv and the catkin workspace (.venv/, .ws/)"
+	@echo "make clean  remove the venv, the workspace and results/"
+
+setup:
+	@bash tools/setup.sh
+
+test: setup
+	@$(ENV) && python -m pytest $(PYTEST_ARGS) test/unit test/integration
+
+bench: setup
+	@$(ENV) && python bench/run.py
+
+demo: setup
+	@$(ENV) && bash tools/demo.sh
+
+clean:
+	rm -rf .venv .ws results .pytest_cache .hypothesis

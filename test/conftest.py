@@ -1,0 +1,36 @@
+"""pytest configuration shared by test/unit and test/integration.
+
+- Puts ``src/`` first on ``sys.path`` so the pure core imports without a built workspace.
+- Registers a Hypothesis profile without deadlines (a loaded CI machine must not turn slow
+  examples into failures) and with derandomized example generation, so that runs are
+  reproducible like everything else here; ``HYPOTHESIS_PROFILE=dev`` keeps random exploration.
+- Fails the run loudly when nothing was collected: a test command that runs 0 tests must not
+  look green.
+"""
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SRC = str(REPO / "src")
+if SRC not in sys.path:
+    sys.path.insert(0, SRC)
+
+try:
+    from hypothesis import settings
+
+    settings.register_profile("ci", deadline=None, derandomize=True, print_blob=True)
+    settings.register_profile("dev", deadline=None)
+    settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
+except ImportError:  # hypothesis is optional for running a subset by hand
+    pass
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    if not session.items and not session.config.option.collectonly:
+        raise pytest.UsageError(
+            "no tests were collected: check the paths given to pytest (test/unit test/integration)")
