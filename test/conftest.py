@@ -32,5 +32,7 @@ except ImportError:  # hypothesis is optional for running a subset by hand
 
 def pytest_collection_finish(session: pytest.Session) -> None:
     if not session.items and not session.config.option.collectonly:
+        missing = [a for a in session.config.args if not Path(a.split("::")[0]).exists()]
         raise pytest.UsageError(
-            "no tests were collected: check the paths given to pytest (test/unit test/integration)")
+            f"no tests were collected from {' '.join(session.config.args)}"
+            + (f" (not found: {' '.join(missing)})" if missing else ""))

@@ -119,7 +119,7 @@ workspace_digest() {
   {
     echo "python=$VENV/bin/python3"
     cd "$REPO"
-    ls -1 scripts test/integration 2>/dev/null || true
+    ls -1 scripts test/integration/*.test 2>/dev/null || true
     sha256sum package.xml CMakeLists.txt setup.py
     find fiducial_msgs -type f | LC_ALL=C sort | xargs sha256sum
     for link in "$WS"/src/*; do echo "$link -> $(readlink "$link" || true)"; done
