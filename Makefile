@@ -6,13 +6,15 @@ SHELL := /bin/bash
 
 ENV := source .ws/env.sh
 PYTEST_ARGS ?= -q
+BENCH_ARGS ?=
 
 .PHONY: help setup test bench demo clean
 
 help:
 	@echo "make demo   set up if needed, then run the demo"
 	@echo "make test   set up if needed, then all tests (unit + rostest), one summary line"
-	@echo "make bench  set up if needed, then the benchmarks (docs/benchmarks.md, results/bench/)"
+	@echo "make bench  set up if needed, then the benchmarks (docs/benchmarks.md, results/bench/);"
+	@echo "           BENCH_ARGS=\"--quick --only NAME\" passes options to bench/run.py"
 	@echo "make setup  install apt packages, the venv and the catkin workspace (.venv/, .ws/)"
 	@echo "make clean  remove the venv, the workspace and results/"
 
@@ -23,7 +25,7 @@ test: setup
 	@$(ENV) && python -m pytest $(PYTEST_ARGS) test/unit test/integration
 
 bench: setup
-	@$(ENV) && python bench/run.py
+	@$(ENV) && python bench/run.py $(BENCH_ARGS)
 
 demo: setup
 	@$(ENV) && bash tools/demo.sh
