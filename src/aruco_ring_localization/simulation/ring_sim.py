@@ -1,0 +1,242 @@
+"""The ring simulator: what the 8 cameras see from a robot pose (:class:`RingSimulator`).
+
+Two output modes share one visibility model:
+
+* *corners mode* (:meth:`RingSimulator.observe`): the true projections of the visible markers'
+  corners through each camera's real lens model, plus Gaussian pixel noise, as a
+  :class:`~aruco_ring_localization.frames.RingFrame` (what 8 detectors would publish);
+* *image mode* (:meth:`RingSimulator.render`): a rendered mono8 image per camera (see
+  :mod:`.render`) that goes through the real detector.
+
+A marker is visible in a camera when all four corners are in front of it (z > ``min_depth``) and
+inside the image (``margin`` px from the border), its face points toward the camera (angle
+between the face normal and the ray to the camera < ``max_view_angle``), it is within
+``max_range`` and at least ``min_marker_px`` pixels wide (square root of the image area), and no
+nearer marker's printed sheet (marker + quiet zone) overlaps its sheet in the image.
+
+The simulator knows the TRUE rig (:func:`perturb_ring` of the calibrated ring file): what the
+estimators are given is the calibrated one, so no result relies on a perfect calibration.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Dict, List, Optional, Sequence, Tuple, Union
+
+import cv2
+import numpy as np
+
+from .. import geometry as geo
+from ..frames import CameraFrame, MarkerObservation, RingFrame
+from ..markers import marker_corners
+from ..rig import CameraRing, RingCamera
+from .scene import Scene
+
+logger = logging.getLogger(__name__)
+
+PoseLike = Union[np.ndarray, Sequence[float]]
+
+
+def perturb_ring(ring: CameraRing, trans_std: float = 0.002, rot_std_deg: float = 0.2, seed: int = 0) -> CameraRing:
+    """The 'true' rig: every camera's extrinsics moved by a seeded calibration error.
+
+    Each camera's optical frame is displaced by a Gaussian translation (``trans_std`` m per axis)
+    and rotated by a Gaussian rotation vector (``rot_std_deg`` deg per axis), both expressed in
+    the camera's own frame (so a rotation does not swing the camera about base_link).
+    """
+    rng = np.random.default_rng(seed)
+    extr = {}
+    for cam in ring.cameras:
+        D = np.eye(4)
+        D[:3, :3] = geo.rotation_from_rvec(rng.normal(0.0, np.radians(rot_std_deg), 3))
+        D[:3, 3] = rng.normal(0.0, trans_std, 3)
+        extr[cam.name] = cam.T_base_cam @ D
+    return ring.with_extrinsics(extr)
+
+
+def as_transform(pose: PoseLike) -> np.ndarray:
+    """A 4x4 ``T_world_base``, or an SE(2) ``(x, y, yaw)`` made into one (on the floor)."""
+    a = np.asarray(pose, dtype=np.float64)
+    if a.shape == (4, 4):
+        return a
+    if a.shape == (3,):
+        return geo.transform_from_se2(a[0], a[1], a[2])
+    raise ValueError(f"expected a 4x4 pose or (x, y, yaw), got shape {a.shape}")
+
+
+@dataclass(frozen=True)
+class VisibleMarker:
+    """One marker as a camera sees it (noise-free).
+
+    Attributes:
+        marker_id: ArUco id.
+        corners: (4, 2) true raw-pixel corners, aruco_detect order.
+        distance: camera centre to marker centre, m.
+        view_angle: angle between the face normal and the ray to the camera, rad.
+        pixel_size: square root of the marker's image area, px.
+        T_cam_marker: (4, 4) true pose of the marker in the camera optical frame.
+    """
+
+    marker_id: int
+    corners: np.ndarray
+    distance: float
+    view_angle: float
+    pixel_size: float
+    T_cam_marker: np.ndarray
+
+
+class RingSimulator:
+    """Simulate the ring's detections (corners mode) or images (image mode) in a scene.
+
+    Args:
+        scene: the hall.
+        true_ring: the true rig (e.g. ``perturb_ring(CameraRing.load(...))``).
+        pixel_noise: standard deviation of the corner noise in corners mode, px.
+        max_range: markers farther than this (m) are not detected.
+        seed: seed of the simulator's random generator (noise, rendering).
+        min_marker_px: markers smaller than this (sqrt of image area, px) are not detected.
+        max_view_angle: markers seen more obliquely than this (rad) are not detected.
+        margin: corners must be this many pixels inside the image.
+        min_depth: corners must be at least this far in front of the camera, m.
+    """
+
+    def __init__(self, scene: Scene, true_ring: CameraRing, pixel_noise: float = 0.3, max_range: float = 8.0,
+                 seed: int = 0, min_marker_px: float = 15.0, max_view_angle: float = np.radians(75.0),
+                 margin: float = 3.0, min_depth: float = 0.05):
+        self.scene = scene
+        self.ring = true_ring
+        self.pixel_noise = float(pixel_noise)
+        self.max_range = float(max_range)
+        self.min_marker_px = float(min_marker_px)
+        self.max_view_angle = float(max_view_angle)
+        self.margin = float(margin)
+        self.min_depth = float(min_depth)
+        self.rng = np.random.default_rng(seed)
+        self.seed = seed
+        self._renderer = None
+        ids = [m.marker_id for m in scene.markers]
+        self._ids = np.array(ids, dtype=int)
+        # Per marker: corners (4, 3) and printed sheet corners (4, 3) in the world, centre, normal.
+        modules = _dictionary_modules(scene.dictionary)
+        sheet_scale = (modules + 2.0 * scene.quiet_zone_modules) / modules
+        self._corners_w = np.stack([m.corners_world() for m in scene.markers])
+        self._sheet_w = np.stack([geo.transform_points(m.T_world_marker, marker_corners(m.size * sheet_scale))
+                                  for m in scene.markers])
+        self._centres_w = np.stack([m.T_world_marker[:3, 3] for m in scene.markers])
+        self._normals_w = np.stack([m.normal for m in scene.markers])
+
+    # --- geometry --------------------------------------------------------------------------------
+
+    def T_world_cam(self, T_world_base: PoseLike, camera: Union[str, RingCamera]) -> np.ndarray:
+        """True pose of a camera's optical frame in the world."""
+        cam = self.ring[camera] if isinstance(camera, str) else camera
+        return as_transform(T_world_base) @ cam.T_base_cam
+
+    def camera_view(self, T_world_base: PoseLike, camera: Union[str, RingCamera]) -> List[VisibleMarker]:
+        """The markers one camera sees from the robot pose, nearest first (noise-free)."""
+        cam = self.ring[camera] if isinstance(camera, str) else camera
+        T_world_cam = self.T_world_cam(T_world_base, cam)
+        T_cam_world = geo.inverse(T_world_cam)
+        R, t = T_cam_world[:3, :3], T_cam_world[:3, 3]
+        corners_c = self._corners_w @ R.T + t            # (M, 4, 3)
+        sheet_c = self._sheet_w @ R.T + t
+        centres_c = self._centres_w @ R.T + t            # (M, 3)
+        normals_c = self._normals_w @ R.T
+        dist = np.linalg.norm(centres_c, axis=1)
+        # Occluders: any sheet entirely in front of the camera (seen from the back or not).
+        in_front_sheet = np.all(sheet_c[:, :, 2] > self.min_depth, axis=1)
+        cos_a = -np.einsum("ij,ij->i", normals_c, centres_c) / np.maximum(dist, 1e-9)
+        angles = np.arccos(np.clip(cos_a, -1.0, 1.0))
+        ok = (np.all(corners_c[:, :, 2] > self.min_depth, axis=1) & (dist <= self.max_range)
+              & (angles < self.max_view_angle))
+        candidates = []
+        idx = np.flatnonzero(ok)
+        if idx.size:
+            pxs = cam.model.project(corners_c[idx].reshape(-1, 3)).reshape(-1, 4, 2)
+            inside = cam.model.in_image(pxs.reshape(-1, 2), self.margin).reshape(-1, 4).all(axis=1)
+            for k, px, good in zip(idx, pxs, inside):
+                if not good:
+                    continue
+                size = float(np.sqrt(_polygon_area(px)))
+                if size >= self.min_marker_px:
+                    candidates.append((k, px, float(angles[k]), size))
+        out = []
+        for k, px, angle, size in candidates:
+            if self._occluded(k, sheet_c, in_front_sheet, dist):
+                continue
+            T_cam_marker = T_cam_world @ self.scene.markers[k].T_world_marker
+            out.append(VisibleMarker(int(self._ids[k]), px, float(dist[k]), angle, size, T_cam_marker))
+        out.sort(key=lambda v: v.distance)
+        return out
+
+    def _occluded(self, k: int, sheet_c: np.ndarray, in_front: np.ndarray, dist: np.ndarray) -> bool:
+        """True when a nearer marker's sheet overlaps marker k's sheet (in the normalised image plane,
+        where the projection of a quad in front of the camera stays convex)."""
+        poly_k = (sheet_c[k, :, :2] / sheet_c[k, :, 2:3]).astype(np.float32)
+        for j in np.flatnonzero(in_front & (dist < dist[k])):
+            if j == k:
+                continue
+            poly_j = (sheet_c[j, :, :2] / sheet_c[j, :, 2:3]).astype(np.float32)
+            area, _ = cv2.intersectConvexConvex(_ccw(poly_k), _ccw(poly_j))
+            if area > 1e-9:
+                return True
+        return False
+
+    def visible(self, T_world_base: PoseLike) -> Dict[str, List[Tuple[int, np.ndarray]]]:
+        """{camera name: [(marker_id, true corners (4, 2) raw px)]} for every ring camera (nearest first)."""
+        return {cam.name: [(v.marker_id, v.corners) for v in self.camera_view(T_world_base, cam)]
+                for cam in self.ring.cameras}
+
+    # --- corners mode ----------------------------------------------------------------------------
+
+    def observe(self, T_world_base: PoseLike, stamp: float = 0.0,
+                rng: Optional[np.random.Generator] = None) -> RingFrame:
+        """A ring frame of noisy detections (corners mode).
+
+        Corner noise is Gaussian (``pixel_noise`` px per coordinate), drawn from ``rng`` or from the
+        simulator's own seeded generator. Every camera reports (possibly an empty list), in
+        aruco_detect order within an image (ascending id is not guaranteed by aruco_detect either).
+        """
+        gen = rng if rng is not None else self.rng
+        frame = RingFrame(stamp=float(stamp))
+        for cam in self.ring.cameras:
+            obs = []
+            for marker_id, corners in self.visible_camera(T_world_base, cam):
+                noisy = corners + gen.normal(0.0, self.pixel_noise, corners.shape) if self.pixel_noise > 0 \
+                    else corners.copy()
+                obs.append(MarkerObservation(marker_id, noisy))
+            frame.cameras[cam.name] = CameraFrame(camera=cam.name, stamp=float(stamp), observations=obs)
+        return frame
+
+    def visible_camera(self, T_world_base: PoseLike, camera: Union[str, RingCamera]) -> List[Tuple[int, np.ndarray]]:
+        """[(marker_id, true corners)] for one camera."""
+        return [(v.marker_id, v.corners) for v in self.camera_view(T_world_base, camera)]
+
+    # --- image mode ------------------------------------------------------------------------------
+
+    def render(self, T_world_base: PoseLike, rng: Optional[np.random.Generator] = None,
+               cameras: Optional[Sequence[str]] = None) -> Dict[str, np.ndarray]:
+        """{camera name: mono8 image (height, width)} rendered from the true pose (image mode)."""
+        if self._renderer is None:
+            from .render import RingRenderer
+            self._renderer = RingRenderer(self.scene, self.ring, seed=self.seed)
+        gen = rng if rng is not None else self.rng
+        names = list(cameras) if cameras is not None else self.ring.names
+        T = as_transform(T_world_base)
+        return {name: self._renderer.render_camera(self, T, name, gen) for name in names}
+
+
+def _dictionary_modules(dictionary: int) -> int:
+    """Modules across a marker of the dictionary, black border included (5x5 -> 7)."""
+    return int(cv2.aruco.getPredefinedDictionary(dictionary).markerSize) + 2
+
+
+def _polygon_area(poly: np.ndarray) -> float:
+    x, y = poly[:, 0], poly[:, 1]
+    return 0.5 * abs(float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)))
+
+
+def _ccw(poly: np.ndarray) -> np.ndarray:
+    x, y = poly[:, 0], poly[:, 1]
+    signed = float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+    return poly if signed > 0 else poly[::-1].copy()
