@@ -122,7 +122,9 @@ workspace_digest() {
     ls -1 scripts test/integration/*.test 2>/dev/null || true
     sha256sum package.xml CMakeLists.txt setup.py
     find fiducial_msgs -type f | LC_ALL=C sort | xargs sha256sum
-    for link in "$WS"/src/*; do echo "$link -> $(readlink "$link" || true)"; done
+    for link in aruco_ring_localization fiducial_msgs; do
+      echo "$link -> $(readlink "$WS/src/$link" || true)"
+    done
   } | sha256sum | cut -d' ' -f1
 }
 
