@@ -99,7 +99,8 @@ def _rms(errors: np.ndarray) -> float:
     return float(np.sqrt(np.mean(errors ** 2))) if errors.size else 0.0
 
 
-def solve_marker_ippe(corners_px, size: float, model: CameraModel, refine: bool = False) -> MarkerPoseCandidates:
+def solve_marker_ippe(corners_px, size: float, model: CameraModel, refine: bool = False,
+                      normalized: Optional[np.ndarray] = None) -> MarkerPoseCandidates:
     """Both poses of one square marker from its 4 detected corners (IPPE_SQUARE).
 
     Args:
@@ -111,6 +112,7 @@ def solve_marker_ippe(corners_px, size: float, model: CameraModel, refine: bool 
             close to optimal for a square, and on a nearly face-on marker the refinement can
             pull both solutions into the same minimum, hiding the ambiguity; when that happens
             (solutions closer than 0.5 deg) the unrefined pair is kept.
+        normalized: optional (4, 2) ``model.normalize(corners_px)`` when the caller has it.
 
     Returns:
         :class:`MarkerPoseCandidates` with ``T_cam_marker`` poses, best first.
@@ -120,7 +122,7 @@ def solve_marker_ippe(corners_px, size: float, model: CameraModel, refine: bool 
     """
     px = _check_pixels(corners_px, 4, "corners_px")
     obj = marker_corners(size)
-    xy = model.normalize(px).reshape(-1, 1, 2)
+    xy = (model.normalize(px) if normalized is None else np.asarray(normalized, dtype=np.float64)).reshape(-1, 1, 2)
     try:
         n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, xy, _EYE3, _NO_DIST, flags=cv2.SOLVEPNP_IPPE_SQUARE)
     except cv2.error as exc:
@@ -156,15 +158,17 @@ def solve_marker_ippe(corners_px, size: float, model: CameraModel, refine: bool 
     return MarkerPoseCandidates(poses=poses, errors=errors, ambiguity=float(ambiguity))
 
 
-def solve_points(object_pts, image_px, model: CameraModel,
-                 T_init: Optional[np.ndarray] = None) -> Tuple[np.ndarray, float]:
+def solve_points(object_pts, image_px, model: CameraModel, T_init: Optional[np.ndarray] = None,
+                 normalized: Optional[np.ndarray] = None) -> Tuple[np.ndarray, float]:
     """Camera pose from N >= 4 3D-2D correspondences (e.g. all corners of several markers).
 
     Args:
         object_pts: (N, 3) points in the object frame (the map), m.
         image_px: (N, 2) their raw pixels.
         model: the camera.
-        T_init: optional (4, 4) initial ``T_cam_obj``; without it SQPNP (global) is used.
+        T_init: optional (4, 4) initial ``T_cam_obj``; without it SQPNP (global) is used. With
+            it, ITERATIVE (Levenberg-Marquardt from the guess) and no separate refinement.
+        normalized: optional (N, 2) ``model.normalize(image_px)`` when the caller has it.
 
     Returns:
         (``T_cam_obj`` (4, 4), RMS reprojection error in pixels).
@@ -178,7 +182,7 @@ def solve_points(object_pts, image_px, model: CameraModel,
     px = _check_pixels(image_px, obj.shape[0], "image_px")
     if obj.shape[0] < 4:
         raise MeasurementError(f"PnP needs at least 4 points, got {obj.shape[0]}")
-    xy = model.normalize(px).reshape(-1, 1, 2)
+    xy = (model.normalize(px) if normalized is None else np.asarray(normalized, dtype=np.float64)).reshape(-1, 1, 2)
     try:
         if T_init is not None:
             rvec0, tvec0 = geo.rvec_tvec_from_transform(T_init)
@@ -187,9 +191,10 @@ def solve_points(object_pts, image_px, model: CameraModel,
                                           flags=cv2.SOLVEPNP_ITERATIVE)
         else:
             ok, rvec, tvec = cv2.solvePnP(obj, xy, _EYE3, _NO_DIST, flags=cv2.SOLVEPNP_SQPNP)
+            if ok:
+                rvec, tvec = cv2.solvePnPRefineLM(obj, xy, _EYE3, _NO_DIST, rvec, tvec, criteria=_LM_CRITERIA)
         if not ok:
             raise MeasurementError(f"PnP found no pose for {obj.shape[0]} points")
-        rvec, tvec = cv2.solvePnPRefineLM(obj, xy, _EYE3, _NO_DIST, rvec, tvec, criteria=_LM_CRITERIA)
     except cv2.error as exc:
         raise MeasurementError(f"PnP failed on {obj.shape[0]} points: {exc}") from None
     try:
