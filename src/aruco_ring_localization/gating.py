@@ -1,0 +1,160 @@
+"""Outlier gate on fused pose measurements (paper Algorithm 1, step 4).
+
+A measurement (x, y, yaw) is compared with the pose predicted for its stamp (the filter's
+prediction, which carries the previous poses, or the last accepted pose moved by the motion
+command). It is rejected when it lies farther than what the robot could have moved:
+
+    allowed_distance = base_distance + speed_margin * |v| * dt + 0.5 * max_acceleration * dt^2
+    allowed_angle    = base_angle + speed_margin * |w| * dt + 0.5 * max_angular_acceleration * dt^2
+
+with ``v`` and ``w`` the commanded (``cmd_vel``) or measured (odometry twist) speeds, whichever is
+larger, and ``dt`` the time since the last accepted measurement: the thresholds grow with the
+elapsed time and the speed.
+
+No lock-out: after ``recovery_count`` consecutive rejected measurements that agree with each other
+(each within ``recovery_distance`` / ``recovery_angle`` of the previous one, plus the motion
+allowed in between), the gate accepts the last one as a re-initialisation (a kidnapped robot, a bad
+initial pose, a long outage) and logs it.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import List, Optional, Tuple
+
+import numpy as np
+
+from . import geometry as geo
+from .errors import ConfigError
+
+logger = logging.getLogger(__name__)
+
+ACCEPTED = "accepted"
+INITIALIZED = "initialized"
+REJECTED_JUMP = "jump"
+REINITIALIZED = "reinitialized"
+
+
+@dataclass(frozen=True)
+class GateParams:
+    """Thresholds of :class:`MotionGate` (documented in config/localization.yaml).
+
+    Attributes:
+        enabled: False accepts everything.
+        base_distance: allowed position jump at dt = 0 and rest, m (measurement noise, latency).
+        base_angle: allowed yaw jump at dt = 0 and rest, rad.
+        speed_margin: factor on the speed x dt term (commands are not followed exactly).
+        max_acceleration: m/s^2; max_angular_acceleration: rad/s^2 (unknown motion over dt).
+        recovery_count: consecutive mutually consistent rejections that re-initialise.
+        recovery_distance: m; recovery_angle: rad — how close consecutive rejected measurements
+            must be to count as consistent.
+    """
+
+    enabled: bool = True
+    base_distance: float = 0.15
+    base_angle: float = float(np.radians(10.0))
+    speed_margin: float = 1.5
+    max_acceleration: float = 1.0
+    max_angular_acceleration: float = 2.0
+    recovery_count: int = 5
+    recovery_distance: float = 0.10
+    recovery_angle: float = float(np.radians(5.0))
+
+    def __post_init__(self) -> None:
+        for name in ("base_distance", "base_angle", "recovery_distance", "recovery_angle"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"must be positive, got {getattr(self, name)!r}", key=name)
+        if self.recovery_count < 1:
+            raise ConfigError(f"must be >= 1, got {self.recovery_count!r}", key="recovery_count")
+
+
+@dataclass
+class GateDecision:
+    """Outcome of :meth:`MotionGate.check`.
+
+    Attributes:
+        accepted: use the measurement (True also for INITIALIZED and REINITIALIZED).
+        reason: ACCEPTED, INITIALIZED, REJECTED_JUMP or REINITIALIZED.
+        distance, angle: the jump from the prediction, m and rad.
+        allowed_distance, allowed_angle: the thresholds in force.
+    """
+
+    accepted: bool
+    reason: str
+    distance: float = 0.0
+    angle: float = 0.0
+    allowed_distance: float = float("inf")
+    allowed_angle: float = float("inf")
+
+    @property
+    def reinitialize(self) -> bool:
+        return self.reason in (INITIALIZED, REINITIALIZED)
+
+
+class MotionGate:
+    """Reject pose measurements inconsistent with the previous poses and the motion command."""
+
+    def __init__(self, params: Optional[GateParams] = None):
+        self.params = params or GateParams()
+        self.last_accepted_stamp: Optional[float] = None
+        self._rejected: List[Tuple[float, np.ndarray]] = []
+        self.rejected_total = 0
+        self.reinitializations = 0
+
+    def reset(self) -> None:
+        """Forget the history: the next measurement is accepted as an initialisation."""
+        self.last_accepted_stamp = None
+        self._rejected.clear()
+
+    def thresholds(self, dt: float, speed: float = 0.0, yaw_rate: float = 0.0) -> Tuple[float, float]:
+        """(allowed distance m, allowed angle rad) after ``dt`` s at the given speeds."""
+        p = self.params
+        dt = max(float(dt), 0.0)
+        d = p.base_distance + p.speed_margin * abs(speed) * dt + 0.5 * p.max_acceleration * dt * dt
+        a = p.base_angle + p.speed_margin * abs(yaw_rate) * dt + 0.5 * p.max_angular_acceleration * dt * dt
+        return d, a
+
+    def check(self, z, stamp: float, predicted=None, speed: float = 0.0, yaw_rate: float = 0.0) -> GateDecision:
+        """Decide on measurement ``z = (x, y, yaw)`` at ``stamp`` (s).
+
+        Args:
+            predicted: (x, y, yaw) expected at ``stamp``, or None when there is no track yet.
+            speed: |linear speed| from cmd_vel or odometry, m/s; yaw_rate: rad/s.
+        """
+        z = np.asarray(z, dtype=np.float64).reshape(3)
+        if predicted is None or self.last_accepted_stamp is None:
+            self._accept(stamp)
+            return GateDecision(True, INITIALIZED)
+        if not self.params.enabled:
+            self._accept(stamp)
+            return GateDecision(True, ACCEPTED)
+        pred = np.asarray(predicted, dtype=np.float64).reshape(3)
+        dt = stamp - self.last_accepted_stamp
+        allowed_d, allowed_a = self.thresholds(dt, speed, yaw_rate)
+        dist = float(np.hypot(z[0] - pred[0], z[1] - pred[1]))
+        ang = abs(float(geo.angle_diff(z[2], pred[2])))
+        if dist <= allowed_d and ang <= allowed_a:
+            self._accept(stamp)
+            return GateDecision(True, ACCEPTED, dist, ang, allowed_d, allowed_a)
+        # Rejected: does it agree with the previous rejected ones (a consistent new truth)?
+        self.rejected_total += 1
+        if self._rejected:
+            t_prev, z_prev = self._rejected[-1]
+            step_d, step_a = self.thresholds(stamp - t_prev, speed, yaw_rate)
+            consistent = (np.hypot(*(z[:2] - z_prev[:2])) <= self.params.recovery_distance + step_d - self.params.base_distance
+                          and abs(geo.angle_diff(z[2], z_prev[2])) <= self.params.recovery_angle + step_a - self.params.base_angle)
+            if not consistent:
+                self._rejected.clear()
+        self._rejected.append((float(stamp), z))
+        if len(self._rejected) >= self.params.recovery_count:
+            logger.warning("%d consecutive consistent measurements disagree with the track by %.2f m / %.1f deg: "
+                           "re-initialising at (%.2f, %.2f, %.1f deg)", len(self._rejected), dist, np.degrees(ang),
+                           z[0], z[1], np.degrees(z[2]))
+            self.reinitializations += 1
+            self._accept(stamp)
+            return GateDecision(True, REINITIALIZED, dist, ang, allowed_d, allowed_a)
+        return GateDecision(False, REJECTED_JUMP, dist, ang, allowed_d, allowed_a)
+
+    def _accept(self, stamp: float) -> None:
+        self.last_accepted_stamp = float(stamp)
+        self._rejected.clear()

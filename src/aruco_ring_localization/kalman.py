@@ -1,0 +1,249 @@
+"""The paper's linear Kalman filter on the robot's planar pose (paper §II-E-1), with filterpy.
+
+State (9,), in the paper's order::
+
+    s = (x, y, x', y', x'', y'', phi, phi', phi'')      m, m/s, m/s^2, rad, rad/s, rad/s^2
+
+in the map frame (x', y' are world-frame velocities), a constant-acceleration model per axis.
+Measurement (3,): ``z = (x, y, phi)`` from the localizer.
+
+Cycle (filterpy.kalman.KalmanFilter):
+
+* predict to the measurement's stamp, ``dt = stamp - last stamp`` (seconds, from the messages)::
+
+      # x = F x              F: per axis [[1, dt, dt^2/2], [0, 1, dt], [0, 0, 1]]
+      # P = F P F^T + Q      Q: discrete white-jerk noise, spectral density q (per axis)
+
+* update with ``z`` and its covariance ``R`` (3x3; the estimator's covariance when it has one,
+  never below ``min_measurement_std``)::
+
+      # y = z - H x          yaw component wrapped to (-pi, pi]: z's yaw is moved next to the
+      #                      prediction first, so the innovation never jumps by 2 pi
+      # S = H P H^T + R
+      # K = P H^T S^-1
+      # x = x + K y
+      # P = (I - K H) P (I - K H)^T + K R K^T      (Joseph form: filterpy's update)
+
+* no measurement: predict only (the covariance grows).
+* a stamp earlier than the last one by more than ``time_jump_tolerance`` (a bag that loops,
+  a clock reset) resets the filter; the next measurement re-initialises it.
+
+The Mahalanobis distance ``y^T S^-1 y`` of a candidate measurement is available for gating.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+from filterpy.kalman import KalmanFilter
+
+from . import geometry as geo
+from .errors import ConfigError
+
+logger = logging.getLogger(__name__)
+
+# State indices (the paper's order).
+IX, IY, IVX, IVY, IAX, IAY, IPHI, IW, IALPHA = range(9)
+_AXES = ((IX, IVX, IAX), (IY, IVY, IAY), (IPHI, IW, IALPHA))
+
+
+@dataclass(frozen=True)
+class FilterParams:
+    """Noise parameters of :class:`PoseFilter` (documented in config/localization.yaml).
+
+    Attributes:
+        jerk_noise_xy: spectral density of the white jerk driving x and y, m^2/s^5.
+        jerk_noise_yaw: same for the yaw, rad^2/s^5.
+        measurement_std_xy: position measurement std when the estimator gives no covariance, m.
+        measurement_std_yaw: yaw measurement std when the estimator gives none, rad.
+        min_measurement_std_xy, min_measurement_std_yaw: floors applied to any measurement
+            covariance (the estimator's covariance ignores map and calibration errors), m, rad.
+        initial_std_velocity: initial std of the velocities, m/s and rad/s.
+        initial_std_acceleration: initial std of the accelerations, m/s^2 and rad/s^2.
+        time_jump_tolerance: a stamp this much (s) earlier than the last one resets the filter.
+        max_dt: predictions longer than this (s) are clamped (a long gap; covariance still grows).
+    """
+
+    jerk_noise_xy: float = 0.5
+    jerk_noise_yaw: float = 0.5
+    measurement_std_xy: float = 0.02
+    measurement_std_yaw: float = 0.01
+    min_measurement_std_xy: float = 0.003
+    min_measurement_std_yaw: float = 0.002
+    initial_std_velocity: float = 0.5
+    initial_std_acceleration: float = 1.0
+    time_jump_tolerance: float = 0.5
+    max_dt: float = 5.0
+
+    def __post_init__(self) -> None:
+        for name in ("jerk_noise_xy", "jerk_noise_yaw", "measurement_std_xy", "measurement_std_yaw",
+                     "initial_std_velocity", "initial_std_acceleration", "max_dt"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"must be positive, got {getattr(self, name)!r}", key=name)
+
+
+def transition_matrix(dt: float) -> np.ndarray:
+    """F (9, 9) of the constant-acceleration model over ``dt`` seconds."""
+    F = np.eye(9)
+    for p, v, a in _AXES:
+        F[p, v] = dt
+        F[p, a] = 0.5 * dt * dt
+        F[v, a] = dt
+    return F
+
+
+def process_noise(dt: float, q_xy: float, q_yaw: float) -> np.ndarray:
+    """Q (9, 9): discrete white-jerk noise for one axis, ``q *
+    [[dt^5/20, dt^4/8, dt^3/6], [dt^4/8, dt^3/3, dt^2/2], [dt^3/6, dt^2/2, dt]]``."""
+    block = np.array([[dt ** 5 / 20, dt ** 4 / 8, dt ** 3 / 6],
+                      [dt ** 4 / 8, dt ** 3 / 3, dt ** 2 / 2],
+                      [dt ** 3 / 6, dt ** 2 / 2, dt]])
+    Q = np.zeros((9, 9))
+    for (p, v, a), q in zip(_AXES, (q_xy, q_xy, q_yaw)):
+        idx = np.array([p, v, a])
+        Q[np.ix_(idx, idx)] = q * block
+    return Q
+
+
+class PoseFilter:
+    """The 9-state linear Kalman filter on (x, y, phi); see the module docstring."""
+
+    def __init__(self, params: Optional[FilterParams] = None):
+        self.params = params or FilterParams()
+        self.kf = KalmanFilter(dim_x=9, dim_z=3)
+        H = np.zeros((3, 9))
+        H[0, IX] = H[1, IY] = H[2, IPHI] = 1.0
+        self.kf.H = H
+        self.stamp: Optional[float] = None
+        self.resets = 0
+
+    # --- state ------------------------------------------------------------------------------
+
+    @property
+    def initialized(self) -> bool:
+        return self.stamp is not None
+
+    @property
+    def pose(self) -> np.ndarray:
+        """(x, y, phi) of the current estimate."""
+        x = self.kf.x.ravel()
+        return np.array([x[IX], x[IY], geo.wrap_angle(float(x[IPHI]))])
+
+    @property
+    def velocity(self) -> np.ndarray:
+        """(x', y', phi') in the map frame."""
+        x = self.kf.x.ravel()
+        return np.array([x[IVX], x[IVY], x[IW]])
+
+    @property
+    def body_twist(self) -> np.ndarray:
+        """(v_forward, v_left, omega) in the robot frame (for nav_msgs/Odometry's twist)."""
+        vx, vy, w = self.velocity
+        c, s = np.cos(self.pose[2]), np.sin(self.pose[2])
+        return np.array([c * vx + s * vy, -s * vx + c * vy, w])
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """3x3 covariance of (x, y, phi)."""
+        idx = np.array([IX, IY, IPHI])
+        return self.kf.P[np.ix_(idx, idx)].copy()
+
+    @property
+    def velocity_covariance(self) -> np.ndarray:
+        """3x3 covariance of (x', y', phi')."""
+        idx = np.array([IVX, IVY, IW])
+        return self.kf.P[np.ix_(idx, idx)].copy()
+
+    # --- cycle ------------------------------------------------------------------------------
+
+    def reset(self, pose=None, stamp: Optional[float] = None, covariance: Optional[np.ndarray] = None) -> None:
+        """Forget everything; with ``pose`` (x, y, phi) start there at rest."""
+        self.resets += 1
+        if pose is None:
+            self.stamp = None
+            return
+        p = self.params
+        x = np.zeros((9, 1))
+        x[IX, 0], x[IY, 0], x[IPHI, 0] = pose[0], pose[1], geo.wrap_angle(float(pose[2]))
+        P = np.diag([0.0, 0.0, p.initial_std_velocity ** 2, p.initial_std_velocity ** 2,
+                     p.initial_std_acceleration ** 2, p.initial_std_acceleration ** 2, 0.0,
+                     p.initial_std_velocity ** 2, p.initial_std_acceleration ** 2])
+        R = self._measurement_covariance(covariance)
+        P[IX, IX], P[IY, IY], P[IPHI, IPHI] = R[0, 0], R[1, 1], R[2, 2]
+        P[IX, IY] = P[IY, IX] = R[0, 1]
+        self.kf.x = x
+        self.kf.P = P
+        self.stamp = float(stamp) if stamp is not None else 0.0
+
+    def check_time(self, stamp: float) -> bool:
+        """Reset (and return True) when ``stamp`` jumped back beyond the tolerance."""
+        if self.stamp is not None and stamp < self.stamp - self.params.time_jump_tolerance:
+            logger.warning("time jumped back from %.3f to %.3f s: resetting the pose filter", self.stamp, stamp)
+            self.reset()
+            return True
+        return False
+
+    def predict(self, stamp: float) -> None:
+        """Advance the state to ``stamp`` (s). Stamps slightly in the past are ignored."""
+        if self.stamp is None or self.check_time(stamp):
+            return
+        dt = float(stamp) - self.stamp
+        if dt <= 0.0:
+            return
+        dt = min(dt, self.params.max_dt)
+        # x = F x ; P = F P F^T + Q
+        self.kf.predict(F=transition_matrix(dt), Q=process_noise(dt, self.params.jerk_noise_xy,
+                                                                 self.params.jerk_noise_yaw))
+        self.kf.x[IPHI, 0] = geo.wrap_angle(float(self.kf.x[IPHI, 0]))
+        self.stamp = float(stamp)
+
+    def predicted(self, stamp: float) -> np.ndarray:
+        """(x, y, phi) predicted at ``stamp`` without changing the filter."""
+        if self.stamp is None:
+            raise ValueError("the filter is not initialised")
+        dt = min(max(float(stamp) - self.stamp, 0.0), self.params.max_dt)
+        x = transition_matrix(dt) @ self.kf.x.ravel()
+        return np.array([x[IX], x[IY], geo.wrap_angle(float(x[IPHI]))])
+
+    def _measurement_covariance(self, covariance: Optional[np.ndarray]) -> np.ndarray:
+        p = self.params
+        if covariance is None:
+            R = np.diag([p.measurement_std_xy ** 2, p.measurement_std_xy ** 2, p.measurement_std_yaw ** 2])
+        else:
+            R = 0.5 * (np.asarray(covariance, dtype=np.float64) + np.asarray(covariance, dtype=np.float64).T)
+        # Floors: the estimator's covariance only knows the pixel noise.
+        floor = np.diag([p.min_measurement_std_xy ** 2, p.min_measurement_std_xy ** 2, p.min_measurement_std_yaw ** 2])
+        return R + floor
+
+    def _wrapped(self, z) -> np.ndarray:
+        """z (3,) with its yaw moved to within pi of the predicted yaw (so y = z - Hx never jumps)."""
+        z = np.asarray(z, dtype=np.float64).reshape(3).copy()
+        phi = float(self.kf.x[IPHI, 0])
+        z[2] = phi + geo.angle_diff(z[2], phi)
+        return z
+
+    def mahalanobis(self, z, covariance: Optional[np.ndarray] = None) -> float:
+        """sqrt(y^T S^-1 y) of measurement ``z`` against the current (predicted) state."""
+        R = self._measurement_covariance(covariance)
+        H = self.kf.H
+        # y = z - H x ; S = H P H^T + R
+        y = self._wrapped(z) - (H @ self.kf.x).ravel()
+        S = H @ self.kf.P @ H.T + R
+        return float(np.sqrt(y @ np.linalg.solve(S, y)))
+
+    def update(self, z, stamp: float, covariance: Optional[np.ndarray] = None) -> None:
+        """Predict to ``stamp`` and correct with ``z = (x, y, phi)`` (covariance 3x3 or None).
+
+        The first measurement (or the first after a reset) initialises the filter.
+        """
+        self.check_time(stamp)
+        if self.stamp is None:
+            self.reset(z, stamp, covariance)
+            return
+        self.predict(stamp)
+        R = self._measurement_covariance(covariance)
+        # filterpy: y = z - Hx; S = HPH' + R; K = PH'S^-1; x = x + Ky; P = (I-KH)P(I-KH)' + KRK'
+        self.kf.update(self._wrapped(z).reshape(3, 1), R=R)
+        self.kf.x[IPHI, 0] = geo.wrap_angle(float(self.kf.x[IPHI, 0]))
