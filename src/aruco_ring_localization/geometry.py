@@ -232,8 +232,12 @@ def rotation_angle(R) -> float:
 
 def wrap_angle(angle):
     """Wrap an angle (or array of angles) in rad to [-pi, pi)."""
-    return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi if np.ndim(angle) else \
-        float((angle + np.pi) % (2.0 * np.pi) - np.pi)
+    if np.ndim(angle):
+        out = (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
+        # For angles just below -pi the modulo rounds up to exactly 2 pi, giving +pi.
+        return np.where(out >= np.pi, -np.pi, out)
+    out = float((angle + np.pi) % (2.0 * np.pi) - np.pi)
+    return -np.pi if out >= np.pi else out
 
 
 def angle_diff(a, b):
