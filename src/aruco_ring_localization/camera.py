@@ -70,6 +70,15 @@ class CameraModel:
             full = D.copy()
         object.__setattr__(self, "_D_full", full)
 
+    def __eq__(self, other: object) -> bool:
+        # The dataclass-generated __eq__ compares the arrays with ``==`` inside a tuple and raises
+        # "truth value of an array is ambiguous" for two equal models loaded separately.
+        if not isinstance(other, CameraModel):
+            return NotImplemented
+        return (self.distortion_model == other.distortion_model and self.width == other.width
+                and self.height == other.height and self.name == other.name
+                and np.array_equal(self.K, other.K) and np.array_equal(self.D, other.D))
+
     # --- construction ------------------------------------------------------------------------
 
     @classmethod
