@@ -66,8 +66,8 @@ class FilterParams:
         max_dt: predictions longer than this (s) are clamped (a long gap; covariance still grows).
     """
 
-    jerk_noise_xy: float = 0.5
-    jerk_noise_yaw: float = 0.5
+    jerk_noise_xy: float = 0.1
+    jerk_noise_yaw: float = 0.1
     measurement_std_xy: float = 0.02
     measurement_std_yaw: float = 0.01
     min_measurement_std_xy: float = 0.003

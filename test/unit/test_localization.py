@@ -1,0 +1,208 @@
+"""localization.py: the paper's weights and fusion, per-camera estimates, the joint estimator."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from aruco_ring_localization import geometry as geo
+from aruco_ring_localization.errors import ConfigError
+from aruco_ring_localization.frames import CameraFrame, MarkerObservation, RingFrame
+from aruco_ring_localization.localization import (CameraEstimate, JointProblem, LocalizationParams, RingLocalizer,
+                                                  accuracy_weight, fuse_paper)
+from aruco_ring_localization.marker_map import MarkerEntry, MarkerMap
+from aruco_ring_localization.rig import CameraRing
+from aruco_ring_localization.simulation.ring_sim import RingSimulator, perturb_ring
+from aruco_ring_localization.simulation.scene import Scene
+
+from helpers import RING_YAML
+
+
+@pytest.fixture(scope="module")
+def lab():
+    scene = Scene.default()
+    ring = CameraRing.load(str(RING_YAML))
+    return scene, ring, scene.truth_map()
+
+
+def _pose_err(T_est, T_true):
+    e = geo.se2_from_transform(T_est) - geo.se2_from_transform(T_true)
+    return float(np.hypot(e[0], e[1])), abs(float(geo.wrap_angle(e[2])))
+
+
+# --- the paper's weights (eq. 4) and fusion (eq. 5) ------------------------------------------
+
+@pytest.mark.parametrize("dist, ang_deg, expected", [
+    (2.5, 30.0, 0.5),            # (0.5 + 0.5) / 2
+    (1.0, 12.0, 0.8),            # (0.8 + 0.8) / 2
+    (0.0, 0.0, 1.0),
+    (4.0, 0.0, 0.6),             # (0.2 + 1.0) / 2
+    (5.0, 30.0, 0.25),           # Ac_d = 0 at TH_d
+    (7.0, 30.0, 0.25),           # 0 beyond TH_d, never negative
+    (2.5, 60.0, 0.25),           # Ac_or = 0 at TH_or
+    (2.5, 90.0, 0.25),
+    (6.0, 75.0, 0.0),
+    (2.5, -30.0, 0.5),           # the angle's sign does not matter
+])
+def test_accuracy_weight_hand_computed(dist, ang_deg, expected):
+    ac = accuracy_weight(dist, np.radians(ang_deg))
+    assert ac == pytest.approx(expected, abs=1e-12), f"Ac({dist} m, {ang_deg} deg) = {ac}, expected {expected}"
+
+
+def _est(name, x, y, yaw, ac, valid=True):
+    T = geo.transform_from_se2(x, y, yaw)
+    return CameraEstimate(camera=name, marker_ids=[1], T_map_cam=T, T_map_base=T, reprojection_error=0.5,
+                          distance=1.0, angle=0.1, accuracy=ac, valid=valid)
+
+
+def test_fusion_picks_best_when_alone():
+    ests = [_est("a", 1.0, 1.0, 0.1, 0.3), _est("b", 2.0, 1.0, 0.1, 0.7), _est("c", 3.0, 1.0, 0.1, 0.5)]
+    T, used, w = fuse_paper(ests, fusion_gap=0.1)
+    assert [e.camera for e in used] == ["b"], f"used {[e.camera for e in used]}"
+    assert np.allclose(geo.se2_from_transform(T), [2.0, 1.0, 0.1])
+
+
+def test_fusion_weighted_average_within_gap():
+    # b (Ac 0.6) is best; a (0.2) is 5 cm away -> averaged; c is 30 cm away -> ignored; d invalid.
+    ests = [_est("a", 1.05, 1.0, 0.30, 0.2), _est("b", 1.0, 1.0, 0.10, 0.6),
+            _est("c", 1.3, 1.0, 0.1, 0.5), _est("d", 1.0, 1.0, 2.0, 0.9, valid=False)]
+    T, used, w = fuse_paper(ests, fusion_gap=0.1)
+    assert sorted(e.camera for e in used) == ["a", "b"]
+    # x = (1.05 * 0.2 + 1.0 * 0.6) / 0.8 = 1.0125; yaw = circular mean ~ (0.3*0.2 + 0.1*0.6)/0.8 = 0.15
+    se2 = geo.se2_from_transform(T)
+    assert se2[0] == pytest.approx(1.0125, abs=1e-9), f"x = {se2[0]}"
+    assert se2[2] == pytest.approx(0.15, abs=2e-3), f"yaw = {se2[2]}"
+
+
+def test_fusion_yaw_averaged_on_the_circle():
+    ests = [_est("a", 1.0, 1.0, np.radians(179.0), 0.5), _est("b", 1.0, 1.01, np.radians(-179.0), 0.5)]
+    T, used, _ = fuse_paper(ests, fusion_gap=0.1)
+    yaw = geo.se2_from_transform(T)[2]
+    assert abs(geo.angle_diff(yaw, np.pi)) < 1e-9, f"mean of +-179 deg is {np.degrees(yaw):.3f} deg, not 180"
+
+
+def test_fusion_nothing_valid():
+    T, used, _ = fuse_paper([_est("a", 1, 1, 0, 0.5, valid=False)], 0.1)
+    assert T is None and used == []
+
+
+def test_bad_params():
+    with pytest.raises(ConfigError, match="fusion"):
+        LocalizationParams(fusion="average")
+    with pytest.raises(ConfigError, match="th_distance"):
+        LocalizationParams(th_distance=0.0)
+
+
+# --- on the simulated lab ---------------------------------------------------------------------
+
+@pytest.mark.parametrize("fusion", ["paper", "joint"])
+def test_noise_free_perfect_rig_is_exact(lab, fusion):
+    scene, ring, truth = lab
+    sim = RingSimulator(scene, ring, pixel_noise=0.0, seed=0)
+    loc = RingLocalizer(ring, truth, LocalizationParams(fusion=fusion))
+    for pose in scene.test_positions[::4] + scene.test_orientations[::3]:
+        T = scene.T_world_base(pose)
+        res = loc.process(sim.observe(T, 1.0))
+        assert res.ok and res.method == fusion, f"{pose}: no {fusion} pose ({res.method})"
+        d, a = _pose_err(res.T_map_base, T)
+        assert d < 1e-4 and a < 1e-4, f"{fusion} at {pose}: {d * 1000:.3f} mm, {np.degrees(a):.4f} deg"
+        assert len(res.estimates) >= 4, f"only {len(res.estimates)} per-camera estimates"
+
+
+def test_joint_with_calibration_error_and_noise(lab):
+    scene, ring, truth = lab
+    sim = RingSimulator(scene, perturb_ring(ring, seed=3), pixel_noise=0.3, seed=4)
+    loc = RingLocalizer(ring, truth, LocalizationParams(fusion="joint"))
+    errs = []
+    for pose in scene.test_positions:
+        T = scene.T_world_base(pose)
+        res = loc.process(sim.observe(T))
+        d, a = _pose_err(res.T_map_base, T)
+        errs.append(d)
+        assert a < np.radians(0.5), f"yaw error {np.degrees(a):.3f} deg at {pose}"
+        # with the prediction (fast path) the answer is the same optimum
+        res2 = loc.process(sim.observe(T), prediction=geo.se3_perturb(T, [0, 0, 0.02, 0.03, -0.02, 0]))
+        assert _pose_err(res2.T_map_base, T)[0] < 0.03
+        assert len(res2.estimates) >= 4, "per-camera estimates missing on the fast path"
+    assert max(errs) < 0.03, f"joint max position error {max(errs) * 100:.2f} cm"
+    cov = res.covariance
+    assert cov.shape == (6, 6) and np.all(np.linalg.eigvalsh(cov) > 0), "covariance not positive definite"
+
+
+def test_single_marker_ambiguity_resolved_by_prediction(lab):
+    scene, ring, truth = lab
+    sim = RingSimulator(scene, ring, pixel_noise=0.5, seed=11)
+    loc = RingLocalizer(ring, truth, LocalizationParams(fusion="paper"))
+    pose = scene.test_positions[7]
+    T = scene.T_world_base(pose)
+    full = sim.observe(T)
+    # Keep one camera with one marker only.
+    name = next(n for n, f in full.cameras.items() if f.observations)
+    frame = RingFrame(stamp=0.0, cameras={name: CameraFrame(name, 0.0, full.cameras[name].observations[:1])})
+    wrong_far = 0
+    for trial in range(10):
+        res = loc.process(frame, prediction=T)
+        assert res.ok
+        d, a = _pose_err(res.T_map_base, T)
+        wrong_far += d > 0.3
+    assert wrong_far == 0, f"{wrong_far}/10 single-marker poses far from the prediction"
+
+
+def test_rejections_are_counted(lab):
+    scene, ring, truth = lab
+    sim = RingSimulator(scene, ring, pixel_noise=0.3, seed=1)
+    params = LocalizationParams(fusion="joint", ignore_ids=(truth.ids[0],))
+    loc = RingLocalizer(ring, truth, params)
+    T = scene.T_world_base(scene.test_positions[0])
+    frame = sim.observe(T)
+    cam = next(iter(frame.cameras.values()))
+    cam.observations.append(MarkerObservation(999, np.array([[10, 10], [50, 10], [50, 50], [10, 50]], float)))
+    cam.observations.append(MarkerObservation(truth.ids[1], np.full((4, 2), np.nan)))
+    cam.observations.append(MarkerObservation(truth.ids[2], np.array([[0, 0], [10, 10], [0, 10], [10, 0]], float)))
+    cam.observations.append(MarkerObservation(truth.ids[0], np.array([[10, 10], [50, 10], [50, 50], [10, 50]], float)))
+    res = loc.process(frame)
+    assert res.rejected.get("unknown id") == 1, res.rejected
+    assert res.rejected.get("degenerate", 0) >= 2, res.rejected
+    assert res.rejected.get("ignored", 0) >= 1, res.rejected
+    assert res.ok and _pose_err(res.T_map_base, T)[0] < 0.01
+
+
+def test_moved_marker_is_dropped_by_joint(lab):
+    scene, ring, truth = lab
+    sim = RingSimulator(scene, ring, pixel_noise=0.3, seed=2)
+    T = scene.T_world_base(scene.test_positions[5])
+    frame = sim.observe(T)
+    seen = sorted({o.marker_id for f in frame.cameras.values() for o in f.observations})
+    moved = MarkerMap([MarkerEntry(e.marker_id, geo.se3_perturb(e.T_map_marker, [0, 0, 0, 0.3, 0, 0])
+                                   if e.marker_id == seen[0] else e.T_map_marker, e.size) for e in truth])
+    res = RingLocalizer(ring, moved, LocalizationParams(fusion="joint")).process(frame)
+    assert res.rejected.get("joint outlier", 0) >= 1, f"moved marker not dropped: {res.rejected}"
+    assert _pose_err(res.T_map_base, T)[0] < 0.01
+
+
+def test_large_map_gives_the_same_answer(lab):
+    scene, ring, truth = lab
+    big = MarkerMap(list(truth) + [MarkerEntry(5000 + k, geo.transform_from_se2(100.0 + k, 100.0, 0.0, 1.0), 0.2)
+                                   for k in range(1000)])
+    sim = RingSimulator(scene, ring, pixel_noise=0.3, seed=5)
+    frame = sim.observe(scene.T_world_base(scene.test_positions[3]))
+    a = RingLocalizer(ring, truth).process(frame)
+    b = RingLocalizer(ring, big).process(frame)
+    assert np.allclose(a.T_map_base, b.T_map_base, atol=1e-9), "map size changed the result"
+
+
+def test_joint_jacobian_matches_finite_differences(lab):
+    scene, ring, truth = lab
+    sim = RingSimulator(scene, ring, pixel_noise=0.3, seed=6)
+    T = scene.T_world_base(scene.test_positions[2])
+    loc = RingLocalizer(ring, truth)
+    views = loc._gather(sim.observe(T), {})
+    prob = JointProblem(list(views.values()))
+    T_bm = geo.se3_perturb(geo.inverse(T), [0.01, -0.02, 0.03, 0.05, 0.02, -0.01])
+    r0, J = prob.residuals(T_bm)
+    eps = 1e-6
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = eps
+        num = (prob.residuals(geo.se3_perturb(T_bm, d), False)[0] - prob.residuals(geo.se3_perturb(T_bm, -d), False)[0]) / (2 * eps)
+        err = np.max(np.abs(num - J[:, :, k])) / max(1.0, np.max(np.abs(num)))
+        assert err < 1e-4, f"Jacobian column {k}: relative error {err:.2e}"
