@@ -321,11 +321,19 @@ def _read_matrix(data: Mapping[str, Any], key: str, shape, source: str) -> np.nd
 
 def _read_vector(data: Mapping[str, Any], key: str, source: str) -> np.ndarray:
     node = data[key]
-    values = node.get("data", []) if isinstance(node, Mapping) else node
+    if isinstance(node, Mapping) and "data" not in node:
+        # A truncated file must not silently become a camera without distortion.
+        raise ConfigError("missing", path=source, key=f"{key}.data")
+    values = node.get("data") if isinstance(node, Mapping) else node
     try:
         arr = np.asarray(values if values is not None else [], dtype=np.float64).ravel()
     except (TypeError, ValueError):
         raise ConfigError("expected a list of numbers", path=source, key=f"{key}.data") from None
+    if isinstance(node, Mapping) and "rows" in node and "cols" in node:
+        rows, cols = node["rows"], node["cols"]
+        if not (isinstance(rows, int) and isinstance(cols, int)) or rows * cols != arr.size:
+            raise ConfigError(f"rows={rows!r}, cols={cols!r} do not match the {arr.size} values in data",
+                              path=source, key=key)
     return arr
 
 
