@@ -45,7 +45,9 @@ def axis_angle_matrix(axis, angle: float) -> np.ndarray:
 
 def max_abs_diff(a, b) -> float:
     """Largest absolute element difference of two arrays (for assertion messages)."""
-    return float(np.max(np.abs(np.asarray(a, dtype=float) - np.asarray(b, dtype=float))))
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    assert a.shape == b.shape, f"shapes differ: {a.shape} vs {b.shape}"
+    return float(np.max(np.abs(a - b))) if a.size else 0.0
 
 
 def assert_close(a, b, tol: float, what: str = "value") -> None:
