@@ -159,7 +159,7 @@ def marker_pose_candidates(corners_px: np.ndarray, size: float, model: CameraMod
     are polished by Levenberg-Marquardt on undistorted pixels (OpenCV's IPPE alone can miss the
     exact pose of a small, off-axis, nearly face-on marker by tens of degrees while
     reprojecting within 0.1 px). Returns (poses ``T_cam_marker``, RMS errors px, ambiguity ratio
-    best/second; 1.0 when only one distinct pose exists).
+    best/second; 0.0 when both branches converge to one pose).
     """
     seed = solve_marker_ippe(corners_px, size, model)
     obj = marker_corners(size)
@@ -187,7 +187,9 @@ def marker_pose_candidates(corners_px: np.ndarray, size: float, model: CameraMod
             keep.append((err, T))
             break
     errors = [e for e, _ in keep]
-    amb = errors[0] / errors[1] if len(errors) > 1 and errors[1] > 0 else (0.0 if len(errors) > 1 else 1.0)
+    # One distinct pose: both branches of the ambiguity converged together (face-on marker): the
+    # orientation is not ambiguous between two discrete poses, only uncertain near that one.
+    amb = errors[0] / errors[1] if len(errors) > 1 and errors[1] > 0 else 0.0
     return [T for _, T in keep], errors, float(amb)
 
 
@@ -292,10 +294,15 @@ class MapBuilder:
             except (MeasurementError, GeometryError) as exc:
                 self._reject("no pose", name, detail=str(exc))
                 continue
-            if cand.error > opts.max_reprojection_px:
-                self._reject("reprojection", name, detail=f"marker {o.marker_id}: {cand.error:.2f} px")
+            T_cam_marker, error = cand.T_cam_marker, cand.error
+            if error > opts.max_reprojection_px:
+                # OpenCV's IPPE can miss small off-axis markers: check with the refined pair first.
+                poses, errors, _ = marker_pose_candidates(o.corners, size, model)
+                T_cam_marker, error = poses[0], errors[0]
+            if error > opts.max_reprojection_px:
+                self._reject("reprojection", name, detail=f"marker {o.marker_id}: {error:.2f} px")
                 continue
-            if float(np.linalg.norm(cand.T_cam_marker[:3, 3])) > opts.max_distance:
+            if float(np.linalg.norm(T_cam_marker[:3, 3])) > opts.max_distance:
                 self._reject("too far", name)
                 continue
             self._obs.append(_Obs(st, name, int(o.marker_id), o.corners, model.normalize(o.corners),

@@ -1,0 +1,163 @@
+"""MapBuilder: the paper's mode, the reference rule, multi-station linking, malformed inputs."""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from aruco_ring_localization import geometry as geo
+from aruco_ring_localization.evaluation import map_error
+from aruco_ring_localization.frames import CameraFrame, MarkerObservation, RingFrame
+from aruco_ring_localization.mapping import MapBuilder, marker_pose_candidates
+from aruco_ring_localization.markers import MarkerSizes, marker_corners
+from aruco_ring_localization.rig import CameraRing
+from aruco_ring_localization.simulation.ring_sim import RingSimulator
+from aruco_ring_localization.simulation.scene import Scene, SceneMarker, marker_pose
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def ring() -> CameraRing:
+    return CameraRing.load(str(REPO / "config" / "ring.yaml"))
+
+
+@pytest.fixture(scope="module")
+def scene() -> Scene:
+    return Scene.default()
+
+
+def _frames(sim, poses, n, t0=0.0):
+    t = t0
+    for pose in poses:
+        for _ in range(n):
+            yield sim.observe(Scene.T_world_base(pose), stamp=t)
+            t += 0.1
+
+
+def test_paper_mode_exact_on_noise_free_corners(ring, scene):
+    sim = RingSimulator(scene, ring, pixel_noise=0.0, seed=0)
+    b = MapBuilder(ring, MarkerSizes(0.2), method="paper")
+    for f in _frames(sim, [scene.mapping_pose], 2):
+        b.add_frame(f)
+    m = b.build()
+    err = map_error(m, scene.truth_map())
+    assert err["n"] == len(scene.markers), f"mapped {m.ids}, missing {err['missing']}"
+    assert err["position_max_mm"] < 1e-3, f"max position error {err['position_max_mm']:.2e} mm"
+    assert err["rotation_max_deg"] < 1e-4, f"max rotation error {err['rotation_max_deg']:.2e} deg"
+    ref = m[m.reference_marker].T_map_marker
+    assert abs(ref[0, 3]) < 1e-9 and abs(ref[1, 3]) < 1e-9, f"reference not above the origin: {ref[:3, 3]}"
+
+
+def test_reference_follows_the_papers_rule(ring):
+    """Closest to its camera and most face-on wins; a user's reference overrides."""
+    cam = ring["cam0"]
+    T_base_cam = cam.T_base_cam
+    # Three markers in front of cam0: near & face-on (1), nearer but oblique 60 deg (2), far & face-on (3).
+    poses = {1: geo.make_transform(geo.rotation_from_rvec([np.pi, 0, 0]), [0.0, 0.0, 2.0]),
+             2: geo.make_transform(geo.rotation_from_rvec([np.pi, 0, 0]) @ geo.rotation_from_rvec([0, np.radians(60), 0]),
+                                   [-0.6, 0.0, 1.6]),
+             3: geo.make_transform(geo.rotation_from_rvec([np.pi, 0, 0]), [0.7, 0.0, 4.0])}
+    obs = [MarkerObservation(i, cam.model.project(geo.transform_points(T, marker_corners(0.2))))
+           for i, T in poses.items()]
+    frame = RingFrame(0.0, {"cam0": CameraFrame("cam0", 0.0, obs)})
+    b = MapBuilder(ring, MarkerSizes(0.2), method="paper")
+    b.add_frame(frame)
+    assert b.reference == 1, f"reference {b.reference}, expected 1 (near, face-on)"
+    assert b.build().reference_marker == 1
+    b2 = MapBuilder(ring, MarkerSizes(0.2), method="paper", reference_marker=3)
+    b2.add_frame(frame)
+    m = b2.build()
+    assert m.reference_marker == 3
+    # Chaining is the same whatever the reference: marker 1 relative to 3 matches the truth.
+    T31 = geo.inverse(m.T_map_marker(3)) @ m.T_map_marker(1)
+    dp, dr = geo.pose_distance(T31, geo.inverse(poses[3]) @ poses[1])
+    assert dp < 1e-6 and dr < 1e-6, f"relative pose error {dp:.2e} m, {dr:.2e} rad"
+    del T_base_cam
+
+
+def test_refined_reduces_map_error_on_noisy_multi_station(ring, scene):
+    from aruco_ring_localization.simulation.ring_sim import perturb_ring
+
+    sim = RingSimulator(scene, perturb_ring(ring, seed=1), pixel_noise=0.3, seed=2)
+    b = MapBuilder(ring, MarkerSizes(0.2))
+    for f in _frames(sim, scene.mapping_stations, 6):
+        b.add_frame(f)
+    assert b.station_count == len(scene.mapping_stations), f"{b.station_count} stations detected"
+    truth = scene.truth_map()
+    paper = map_error(b.build("paper"), truth, best_fit=True)
+    refined_map = b.build("refined")
+    refined = map_error(refined_map, truth, best_fit=True)
+    assert refined["n"] == len(scene.markers)
+    assert refined["position_rms_mm"] < 0.5 * paper["position_rms_mm"], \
+        f"refined RMS {refined['position_rms_mm']:.2f} mm vs paper {paper['position_rms_mm']:.2f} mm"
+    assert refined["position_rms_mm"] < 6.0, f"refined RMS {refined['position_rms_mm']:.2f} mm"
+    stds = np.array([np.max(e.position_std) for e in refined_map if e.marker_id != refined_map.reference_marker])
+    assert np.all(stds > 0) and np.all(stds < 0.05), f"position std (m) {stds}"
+
+
+def test_disconnected_marker_is_reported(ring, scene):
+    """A marker seen only from a station that shares nothing with the mapped set is not dropped silently."""
+    far = SceneMarker(999, marker_pose([30.0, 4.5, 1.0], np.pi), 0.2)
+    big = Scene(**{**scene.__dict__, "markers": list(scene.markers) + [far]})
+    big.room = type(scene.room)(origin=(0.0, 0.0), size=(40.0, 9.0), height=3.0)
+    sim = RingSimulator(big, ring, pixel_noise=0.0, seed=0, max_range=8.0)
+    b = MapBuilder(ring, MarkerSizes(0.2))
+    for f in _frames(sim, [scene.mapping_pose], 2):
+        b.add_frame(f)
+    for f in _frames(sim, [(27.0, 4.5, 0.0)], 2, t0=10.0):
+        b.add_frame(f)
+    assert 999 in b.seen, "the far marker should have been detected"
+    assert b.unlinked_markers() == [999], f"unlinked {b.unlinked_markers()}"
+    assert 999 not in b.build("paper")
+    assert 999 in b.summary()["unlinked"]
+
+
+def test_malformed_inputs_rejected_with_warning(ring, scene, caplog):
+    sim = RingSimulator(scene, ring, pixel_noise=0.0, seed=0)
+    frame = sim.observe(Scene.T_world_base(scene.mapping_pose))
+    cam, cf = next((n, f) for n, f in frame.cameras.items() if len(f.observations) >= 1)
+    good = cf.observations[0]
+    nan = good.corners.copy()
+    nan[1, 1] = np.nan
+    cf.observations = [MarkerObservation(good.marker_id, nan), MarkerObservation(4000, good.corners),
+                       MarkerObservation(4000, good.corners + 50.0)] + cf.observations[1:]
+    b = MapBuilder(ring, MarkerSizes(0.2))
+    with caplog.at_level(logging.WARNING, logger="aruco_ring_localization.mapping"):
+        b.add_frame(frame)
+    assert b.rejected_detections["non-finite"] == 1, dict(b.rejected_detections)
+    assert b.rejected_detections["duplicate id"] == 2, dict(b.rejected_detections)
+    assert "non-finite" in caplog.text and "duplicate id" in caplog.text, caplog.text
+    assert 4000 not in b.build("paper")
+
+
+def test_marker_with_wrong_size_rejected(ring, scene):
+    """Marker 42 is printed at 0.16 m while the map believes 0.2 m: stations disagree, it is rejected."""
+    markers = [SceneMarker(m.marker_id, m.T_world_marker, 0.16 if m.marker_id == 42 else m.size)
+               for m in scene.markers]
+    sim = RingSimulator(Scene(**{**scene.__dict__, "markers": markers}), ring, pixel_noise=0.0, seed=0)
+    b = MapBuilder(ring, MarkerSizes(0.2))
+    for f in _frames(sim, scene.mapping_stations, 1):
+        b.add_frame(f)
+    m = b.build("paper")
+    assert 42 not in m and 42 in b.rejected_markers(), f"rejected {b.rejected_markers()}"
+    assert "size" in b.rejected_markers()[42]
+    # With the right override it is mapped.
+    b2 = MapBuilder(ring, MarkerSizes(0.2, {42: 0.16}))
+    for f in _frames(sim, scene.mapping_stations, 1):
+        b2.add_frame(f)
+    err = map_error(b2.build("paper"), scene.truth_map())
+    assert err["n"] == len(scene.markers) and err["position_max_mm"] < 1e-3, err["per_marker"]
+
+
+def test_candidates_contain_true_pose_of_far_face_on_marker(ring):
+    """The refined IPPE pair contains the exact pose (OpenCV's IPPE alone misses it here)."""
+    model = ring["cam0"].model
+    T = geo.make_transform(np.diag([1.0, -1.0, -1.0]), [0.9, -0.3, 5.38])
+    px = model.project(geo.transform_points(T, marker_corners(0.2)))
+    poses, errors, amb = marker_pose_candidates(px, 0.2, model)
+    dp, dr = geo.pose_distance(poses[0], T)
+    assert dp < 1e-6 and dr < 1e-6, f"best candidate off by {dp:.2e} m, {np.degrees(dr):.3f} deg"
+    assert amb < 0.01, f"ambiguity {amb}"
