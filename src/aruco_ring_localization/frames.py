@@ -120,15 +120,17 @@ class RingFrameAssembler:
             logger.warning("time jumped back from %.3f to %.3f s; resetting frame assembly",
                            self._last_emitted, frame.stamp)
             self.reset()
-        elif frame.stamp <= self._last_emitted + 1e-9 - self.slop:
-            self.dropped_late += 1
-            return self.poll(now)
         group = None
         for _, g in self._pending:
             if abs(g.stamp - frame.stamp) <= self.slop and frame.camera not in g.cameras:
                 group = g
                 break
         if group is None:
+            if frame.stamp <= self._last_emitted + self.slop:
+                # It belongs to a ring frame that already went out (or is older still): a frame
+                # of its own would repeat that stamp with one camera, so drop it.
+                self.dropped_late += 1
+                return self.poll(now)
             group = RingFrame(stamp=frame.stamp)
             self._pending.append((now, group))
             self._pending.sort(key=lambda item: item[1].stamp)
