@@ -1,0 +1,219 @@
+"""Unit tests of frames.py: ring frame assembly by stamp (timeouts, dead cameras, clock jumps, late
+frames) and sanitising of detections."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from aruco_ring_localization.frames import (CameraFrame, MarkerObservation, RingFrame, RingFrameAssembler,
+                                            sanitize_observations)
+
+CAMS = [f"cam{k}" for k in range(8)]
+SQUARE = np.array([[100.0, 100.0], [140.0, 100.0], [140.0, 140.0], [100.0, 140.0]])
+
+
+def _frame(cam: str, stamp: float, n_obs: int = 0) -> CameraFrame:
+    return CameraFrame(cam, stamp, [MarkerObservation(i, SQUARE + 50 * i) for i in range(n_obs)])
+
+
+def _assembler(**kw) -> RingFrameAssembler:
+    args = dict(slop=0.03, timeout=0.25)
+    args.update(kw)
+    return RingFrameAssembler(CAMS, **args)
+
+
+def test_complete_group_goes_out_with_the_last_camera():
+    a = _assembler()
+    rng = np.random.default_rng(40)
+    jitter = rng.uniform(-0.01, 0.01, size=8)
+    out = []
+    for k, cam in enumerate(CAMS):
+        assert out == [], f"emitted before all cameras reported (after {cam})"
+        out = a.add(_frame(cam, 5.0 + jitter[k], n_obs=k % 3), now=5.02 + 0.001 * k)
+    assert len(out) == 1
+    rf = out[0]
+    assert isinstance(rf, RingFrame) and sorted(rf.cameras) == CAMS and rf.missing == []
+    assert rf.stamp == pytest.approx(5.0 + jitter.min())
+    assert rf.observation_count() == sum(k % 3 for k in range(8))
+    assert a.poll(now=100.0) == []
+
+
+def test_frames_are_grouped_by_stamp_within_slop():
+    a = _assembler()
+    # Two captures 0.1 s apart, interleaved arrivals.
+    emitted = []
+    for k, cam in enumerate(CAMS):
+        emitted += a.add(_frame(cam, 1.0 + 0.002 * k), now=1.05)
+        emitted += a.add(_frame(cam, 1.1 + 0.002 * k), now=1.06)
+    assert [rf.stamp for rf in emitted] == [pytest.approx(1.0), pytest.approx(1.1)]
+    for rf, base in zip(emitted, (1.0, 1.1)):
+        assert sorted(rf.cameras) == CAMS
+        assert all(abs(f.stamp - base) < 0.03 for f in rf.cameras.values())
+
+
+def test_incomplete_group_goes_out_after_timeout_listing_missing_cameras():
+    a = _assembler()
+    for cam in CAMS[:6]:
+        assert a.add(_frame(cam, 2.0), now=2.01) == []
+    assert a.poll(now=2.01 + 0.2) == []
+    out = a.poll(now=2.01 + 0.25)
+    assert len(out) == 1
+    assert sorted(out[0].cameras) == CAMS[:6] and out[0].missing == ["cam6", "cam7"]
+    assert a.poll(now=3.0) == []
+
+
+def test_timeout_is_counted_from_the_first_member():
+    a = _assembler()
+    a.add(_frame("cam0", 2.0), now=2.0)
+    a.add(_frame("cam1", 2.0), now=2.2)
+    out = a.poll(now=2.26)
+    assert len(out) == 1 and sorted(out[0].cameras) == ["cam0", "cam1"]
+
+
+def test_a_dead_camera_never_stalls_the_others():
+    a = _assembler()
+    rate, n = 10.0, 100
+    emitted = []
+    for i in range(n):
+        stamp = 100.0 + i / rate
+        for k, cam in enumerate(CAMS[:7]):  # cam7 is dead
+            now = stamp + 0.02 + 0.001 * k  # transport delay
+            emitted += [(now, rf) for rf in a.add(_frame(cam, stamp), now)]
+        emitted += [(stamp + 0.05, rf) for rf in a.poll(stamp + 0.05)]
+    assert len(emitted) >= n - 3, f"only {len(emitted)} of {n} ring frames came out"
+    stamps = [rf.stamp for _, rf in emitted]
+    assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)
+    for now, rf in emitted:
+        assert rf.missing == ["cam7"] and len(rf.cameras) == 7
+        latency = now - rf.stamp
+        assert latency <= 0.02 + 0.25 + 1 / rate + 1e-9, f"ring frame {rf.stamp} came out {latency:.3f} s late"
+    assert a.silent_cameras(now=110.0, silence=1.0) == ["cam7"]
+    assert a.dropped_late == 0 and a.time_jumps == 0
+
+
+def test_silent_cameras():
+    a = _assembler()
+    assert a.silent_cameras(now=0.0, silence=1.0) == CAMS
+    a.add(_frame("cam3", 1.0), now=1.0)
+    assert a.silent_cameras(now=1.5, silence=1.0) == [c for c in CAMS if c != "cam3"]
+    assert "cam3" in a.silent_cameras(now=2.5, silence=1.0)
+
+
+def test_time_jump_backwards_resets():
+    a = _assembler()
+    for cam in CAMS:
+        a.add(_frame(cam, 50.0), now=50.0)
+    a.add(_frame("cam0", 50.1), now=50.1)  # pending group at the old time
+    # A bag loops: stamps restart at 10 s.
+    out = []
+    for cam in CAMS:
+        out += a.add(_frame(cam, 10.0), now=50.2)
+    assert a.time_jumps == 1
+    assert len(out) == 1 and out[0].stamp == 10.0 and sorted(out[0].cameras) == CAMS
+    # The stale pending group of 50.1 s was discarded, not emitted later.
+    assert a.poll(now=60.0) == []
+    out = []
+    for cam in CAMS:
+        out += a.add(_frame(cam, 10.1), now=50.3)
+    assert len(out) == 1 and a.dropped_late == 0
+
+
+def test_late_frame_of_an_emitted_group_is_dropped():
+    a = _assembler()
+    for cam in CAMS[:7]:
+        a.add(_frame(cam, 10.0), now=10.01)
+    out = a.poll(now=10.3)
+    assert len(out) == 1 and out[0].missing == ["cam7"]
+    # cam7's frame of the same capture arrives after the group went out: it is late.
+    assert a.add(_frame("cam7", 10.0), now=10.31) == []
+    assert a.add(_frame("cam7", 10.02), now=10.32) == []
+    assert a.add(_frame("cam6", 9.5), now=10.33) == []
+    assert a.poll(now=20.0) == [], "a late frame came out as a ring frame of its own"
+    assert a.dropped_late == 3 and a.time_jumps == 0
+    # The next capture is assembled normally.
+    out = []
+    for cam in CAMS:
+        out += a.add(_frame(cam, 10.1), now=10.4)
+    assert len(out) == 1 and out[0].missing == []
+
+
+def test_complete_newer_group_flushes_older_incomplete_ones():
+    a = _assembler()
+    a.add(_frame("cam0", 3.0), now=3.0)
+    out = []
+    for cam in CAMS:
+        out += a.add(_frame(cam, 3.1), now=3.1)
+    assert [rf.stamp for rf in out] == [3.0, 3.1]
+    assert out[0].missing == CAMS[1:] and out[1].missing == []
+
+
+def test_max_pending_bounds_memory():
+    a = _assembler(timeout=100.0, max_pending=4)
+    out = []
+    for i in range(10):
+        out += a.add(_frame("cam0", float(i)), now=0.0)
+    assert len(a._pending) <= 4
+    assert [rf.stamp for rf in out] == [float(i) for i in range(6)]
+
+
+def test_unknown_camera_is_ignored_and_bad_arguments_raise():
+    a = _assembler()
+    assert a.add(_frame("cam99", 1.0), now=1.0) == []
+    assert a.poll(now=10.0) == []
+    with pytest.raises(ValueError):
+        RingFrameAssembler([])
+    with pytest.raises(ValueError):
+        RingFrameAssembler(CAMS, slop=-1.0)
+    with pytest.raises(ValueError):
+        RingFrameAssembler(CAMS, timeout=0.0)
+
+
+def test_single_camera_ring_emits_every_frame():
+    a = RingFrameAssembler(["cam0"], slop=0.01, timeout=0.5)
+    for i in range(5):
+        out = a.add(_frame("cam0", i * 0.1), now=i * 0.1)
+        assert len(out) == 1 and out[0].stamp == pytest.approx(i * 0.1)
+
+
+# --- sanitize_observations ---------------------------------------------------------------------------
+
+def test_sanitize_keeps_good_detections_untouched():
+    obs = [MarkerObservation(i, SQUARE + 60 * i) for i in range(4)]
+    kept, reasons = sanitize_observations(obs, width=1280, height=960)
+    assert [o.marker_id for o in kept] == [0, 1, 2, 3] and reasons == {}
+    assert all(k is o for k, o in zip(kept, obs))
+
+
+def test_sanitize_drops_and_counts_each_reason():
+    bowtie = SQUARE[[0, 2, 1, 3]]
+    obs = [
+        MarkerObservation(1, SQUARE),                                        # kept
+        MarkerObservation(2, np.where(np.eye(4, 2, dtype=bool), np.nan, SQUARE)),  # NaN
+        MarkerObservation(3, SQUARE[:3]),                                    # wrong shape
+        MarkerObservation(4, bowtie),                                        # degenerate
+        MarkerObservation(5, SQUARE * 0.01),                                 # tiny
+        MarkerObservation(6, SQUARE + 10.0),                                 # duplicate id ...
+        MarkerObservation(6, SQUARE + 300.0),                                # ... both dropped
+        MarkerObservation(7, SQUARE + 20.0),                                 # ignored
+        MarkerObservation(8, SQUARE + 1e5),                                  # far outside the image
+        MarkerObservation(9, SQUARE.tolist()),                               # list corners: converted
+    ]
+    kept, reasons = sanitize_observations(obs, ignore={7, 100}, width=1280, height=960)
+    assert [o.marker_id for o in kept] == [1, 9]
+    assert isinstance(kept[1].corners, np.ndarray) and kept[1].corners.shape == (4, 2)
+    assert reasons == {"non-finite": 2, "degenerate": 2, "duplicate id": 2, "ignored": 1, "outside image": 1}, reasons
+
+
+def test_sanitize_duplicate_counts_only_usable_copies():
+    obs = [MarkerObservation(5, SQUARE), MarkerObservation(5, np.full((4, 2), np.nan))]
+    kept, reasons = sanitize_observations(obs)
+    assert [o.marker_id for o in kept] == [5] and reasons == {"non-finite": 1}
+
+
+def test_sanitize_without_image_size_keeps_far_corners():
+    kept, reasons = sanitize_observations([MarkerObservation(1, SQUARE + 1e5)])
+    assert len(kept) == 1 and reasons == {}
+
+
+def test_sanitize_empty():
+    assert sanitize_observations([]) == ([], {})
