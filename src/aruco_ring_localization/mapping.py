@@ -246,10 +246,15 @@ class MapBuilder:
         self.frames = 0
         self.seen: Dict[int, int] = defaultdict(int)          # marker -> detections (all, kept or not)
         self.rejected_detections: Dict[str, int] = defaultdict(int)
-        self._version = 0
+        self._version = getattr(self, "_version", 0) + 1
         self._init_cache: Optional[Tuple[int, _Init]] = None
         self._last_groups: List[_Group] = []
         self.last_ba: Optional[BAResult] = None
+
+    @property
+    def version(self) -> int:
+        """Changes whenever an observation is added (or the builder cleared)."""
+        return self._version
 
     @property
     def station_count(self) -> int:
