@@ -1,0 +1,83 @@
+"""Unit tests of fileio.atomic_write_text: whole-or-nothing replacement with a .bak of the previous file."""
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from aruco_ring_localization import fileio
+from aruco_ring_localization.errors import ConfigError
+
+
+def _leftovers(directory):
+    return sorted(p.name for p in directory.iterdir() if p.name.endswith(".tmp"))
+
+
+def test_first_write_creates_directories_and_no_backup(tmp_path):
+    path = tmp_path / "a" / "b" / "file.txt"
+    fileio.atomic_write_text(str(path), "hello\n")
+    assert path.read_text() == "hello\n"
+    assert not (path.parent / "file.txt.bak").exists()
+    assert _leftovers(path.parent) == []
+
+
+def test_backup_holds_the_previous_content(tmp_path):
+    path = tmp_path / "file.txt"
+    for i in range(4):
+        fileio.atomic_write_text(str(path), f"version {i}")
+        assert path.read_text() == f"version {i}"
+        if i:
+            assert (tmp_path / "file.txt.bak").read_text() == f"version {i - 1}"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file.txt", "file.txt.bak"]
+
+
+def test_backup_is_independent_of_the_new_file(tmp_path):
+    # The .bak is a hard link to the old inode; the rename must leave it with the old bytes.
+    path = tmp_path / "file.txt"
+    fileio.atomic_write_text(str(path), "old")
+    fileio.atomic_write_text(str(path), "new")
+    assert os.stat(path).st_ino != os.stat(tmp_path / "file.txt.bak").st_ino
+    assert (tmp_path / "file.txt.bak").read_text() == "old"
+
+
+def test_unicode_and_pathlike(tmp_path):
+    path = tmp_path / "ü.txt"
+    fileio.atomic_write_text(path, "Grüße °\n")
+    assert path.read_text(encoding="utf-8") == "Grüße °\n"
+
+
+def test_backup_falls_back_to_copy_when_hard_links_fail(tmp_path, monkeypatch):
+    path = tmp_path / "file.txt"
+    fileio.atomic_write_text(str(path), "old")
+
+    def no_link(src, dst):
+        raise OSError(1, "Operation not permitted")
+
+    monkeypatch.setattr(fileio.os, "link", no_link)
+    fileio.atomic_write_text(str(path), "new")
+    assert path.read_text() == "new" and (tmp_path / "file.txt.bak").read_text() == "old"
+
+
+@pytest.mark.parametrize("failing", ["replace", "fsync"])
+def test_failure_keeps_the_old_file_and_names_the_path(tmp_path, monkeypatch, failing):
+    path = tmp_path / "file.txt"
+    fileio.atomic_write_text(str(path), "old")
+
+    def fail(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(fileio.os, failing, fail)
+    with pytest.raises(ConfigError) as info:
+        fileio.atomic_write_text(str(path), "new")
+    assert str(path) in str(info.value) and "No space left" in str(info.value), str(info.value)
+    assert path.read_text() == "old"
+    assert _leftovers(tmp_path) == []
+
+
+def test_directory_that_cannot_be_created(tmp_path):
+    blocker = tmp_path / "not_a_dir"
+    blocker.write_text("x")
+    path = blocker / "sub" / "file.txt"
+    with pytest.raises(ConfigError) as info:
+        fileio.atomic_write_text(str(path), "data")
+    assert str(path) in str(info.value) and "cannot create" in str(info.value), str(info.value)
