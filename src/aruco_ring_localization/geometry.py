@@ -38,6 +38,15 @@ def _as_array(value, shape: Tuple[int, ...], name: str) -> np.ndarray:
     return arr
 
 
+def _as_flat(value, n: int, name: str) -> np.ndarray:
+    """``value`` flattened to ``n`` finite floats, or GeometryError (also for ragged nested lists)."""
+    try:
+        flat = np.ravel(np.asarray(value, dtype=np.float64))
+    except (TypeError, ValueError) as exc:
+        raise GeometryError(f"{name}: expected numbers, got {type(value).__name__} ({exc})") from None
+    return _as_array(flat, (n,), name)
+
+
 def validate_rotation(R, name: str = "rotation", tol: float = _ORTHO_TOL) -> np.ndarray:
     """Check that ``R`` is a 3x3 proper rotation (orthonormal, det +1) and return it as float64."""
     R = _as_array(R, (3, 3), name)
@@ -101,7 +110,7 @@ def transform_points(T, points) -> np.ndarray:
 
 def rotation_from_rvec(rvec) -> np.ndarray:
     """Rodrigues rotation vector (axis * angle, rad) -> 3x3 rotation matrix."""
-    r = _as_array(np.ravel(rvec), (3,), "rvec")
+    r = _as_flat(rvec, 3, "rvec")
     theta = float(np.linalg.norm(r))
     if theta < 1e-12:
         K = _skew(r)
@@ -133,7 +142,7 @@ def transform_from_rvec_tvec(rvec, tvec) -> np.ndarray:
     """OpenCV (rvec, tvec) -> 4x4 transform (``T_cam_obj`` for solvePnP output)."""
     T = np.eye(4)
     T[:3, :3] = rotation_from_rvec(rvec)
-    T[:3, 3] = _as_array(np.ravel(tvec), (3,), "tvec")
+    T[:3, 3] = _as_flat(tvec, 3, "tvec")
     return T
 
 
@@ -169,7 +178,7 @@ def quaternion_from_matrix(M) -> np.ndarray:
 
 def matrix_from_quaternion(q, name: str = "quaternion") -> np.ndarray:
     """Quaternion (x, y, z, w) -> 3x3 rotation. It must have a norm near 1 (0.9 .. 1.1)."""
-    q = _as_array(np.ravel(q), (4,), name)
+    q = _as_flat(q, 4, name)
     n = float(np.linalg.norm(q))
     if not 0.9 < n < 1.1:
         raise GeometryError(f"{name}: norm {n:.4f} is not close to 1 (expected a unit quaternion x, y, z, w)")
@@ -185,7 +194,7 @@ def transform_from_translation_quaternion(t, q, name: str = "transform") -> np.n
     """(x, y, z) and quaternion (x, y, z, w) -> 4x4 transform."""
     T = np.eye(4)
     T[:3, :3] = matrix_from_quaternion(q, f"{name} rotation")
-    T[:3, 3] = _as_array(np.ravel(t), (3,), f"{name} translation")
+    T[:3, 3] = _as_flat(t, 3, f"{name} translation")
     return T
 
 
