@@ -243,7 +243,7 @@ class MarkerMap:
                 mid = int(fields[0])
                 x, y, z, rx, ry, rz, var = (float(v) for v in fields[1:8])
                 nobs = int(float(fields[8]))
-            except ValueError:
+            except (ValueError, OverflowError):  # OverflowError: nObs "inf"
                 raise ConfigError("a field is not a number", path=source, key=key) from None
             values = np.array([x, y, z, rx, ry, rz, var])
             if not np.all(np.isfinite(values)) or var < 0:
