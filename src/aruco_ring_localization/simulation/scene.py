@@ -174,7 +174,10 @@ class Scene:
                               path=source, key="dictionary")
         markers = _read_markers(data.get("markers"), default_size, source)
         posts = []
-        for i, p in enumerate(data.get("posts") or []):
+        posts_d = data.get("posts") or []
+        if not isinstance(posts_d, list):
+            raise ConfigError("expected a list of posts", path=source, key="posts")
+        for i, p in enumerate(posts_d):
             key = f"posts[{i}]"
             if not isinstance(p, Mapping):
                 raise ConfigError("expected a mapping {name, centre, side, height}", path=source, key=key)
@@ -183,6 +186,8 @@ class Scene:
                               side=_float(p.get("side", 0.1), source, key + ".side", positive=True),
                               height=_float(p.get("height", 1.5), source, key + ".height", positive=True)))
         robot_d = data.get("robot") or {}
+        if not isinstance(robot_d, Mapping):
+            raise ConfigError("expected a mapping {footprint: [length, width]}", path=source, key="robot")
         robot = Robot(footprint=tuple(_floats(robot_d.get("footprint", [0.98, 0.61]), 2, source,
                                               "robot.footprint", positive=True)))
         scene = cls(
