@@ -113,3 +113,47 @@ def format_map_error(err: Dict[str, Any]) -> str:
             f"max {err['position_max_mm']:.2f} mm; rotation mean {err['rotation_mean_deg']:.3f} deg, "
             f"max {err['rotation_max_deg']:.3f} deg"
             + (f"; missing {err['missing']}" if err["missing"] else ""))
+
+
+# --- localization part: trajectories (localization engineer) --------------------------------
+
+def tum_lines(stamps, poses) -> List[str]:
+    """TUM trajectory lines ``t x y z qx qy qz qw`` (evo's format) for 4x4 poses or (x, y, yaw)."""
+    lines = []
+    for t, P in zip(stamps, poses):
+        P = np.asarray(P, dtype=np.float64)
+        T = geo.transform_from_se2(*P) if P.shape == (3,) else P
+        q = geo.quaternion_from_matrix(T)
+        lines.append(f"{float(t):.6f} {T[0, 3]:.6f} {T[1, 3]:.6f} {T[2, 3]:.6f} "
+                     f"{q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}")
+    return lines
+
+
+def write_tum(path: str, stamps, poses) -> None:
+    """Write a TUM trajectory file (atomically); see :func:`tum_lines`."""
+    from .fileio import atomic_write_text
+
+    atomic_write_text(path, "\n".join(tum_lines(stamps, poses)) + "\n")
+
+
+def read_tum(path: str) -> np.ndarray:
+    """(N, 8) array ``t x y z qx qy qz qw`` from a TUM file (comments '#' skipped)."""
+    rows = [list(map(float, line.split())) for line in open(path, encoding="utf-8")
+            if line.strip() and not line.startswith("#")]
+    arr = np.array(rows, dtype=np.float64).reshape(-1, 8)
+    return arr
+
+
+def se2_errors(estimates, references) -> Dict[str, float]:
+    """Position (m) and |yaw| (rad) error statistics of paired (x, y, yaw) poses.
+
+    Returns ``pos_median``, ``pos_max``, ``pos_rms``, ``yaw_mean``, ``yaw_max`` (yaw wrapped).
+    """
+    e = np.asarray(estimates, dtype=np.float64).reshape(-1, 3)
+    r = np.asarray(references, dtype=np.float64).reshape(-1, 3)
+    if e.shape != r.shape or e.size == 0:
+        raise GeometryError(f"se2_errors: expected two equal non-empty (N, 3) arrays, got {e.shape} and {r.shape}")
+    d = np.hypot(e[:, 0] - r[:, 0], e[:, 1] - r[:, 1])
+    a = np.abs(geo.angle_diff(e[:, 2], r[:, 2]))
+    return {"pos_median": float(np.median(d)), "pos_max": float(d.max()), "pos_rms": float(np.sqrt(np.mean(d * d))),
+            "yaw_mean": float(np.mean(a)), "yaw_max": float(a.max())}
