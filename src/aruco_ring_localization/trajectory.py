@@ -126,16 +126,11 @@ def read_tum(path: str) -> Trajectory:
 
 
 def tum_text(traj: Trajectory, header: Optional[str] = None) -> str:
-    """The TUM text of a trajectory (9 decimals for stamps, 6 for positions, 9 for quaternions)."""
-    out = io.StringIO()
-    if header:
-        for line in header.splitlines():
-            out.write(f"# {line}\n")
-    for t, T in zip(traj.stamps, traj.poses):
-        q = geo.quaternion_from_matrix(T)
-        out.write(f"{t:.9f} {T[0, 3]:.6f} {T[1, 3]:.6f} {T[2, 3]:.6f} "
-                  f"{q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}\n")
-    return out.getvalue()
+    """The TUM text of a trajectory: ``#`` header lines, then :func:`evaluation.tum_lines`."""
+    from .evaluation import tum_lines  # the package's one TUM line format (shared with `aruco_ring localize`)
+
+    head = "".join(f"# {line}\n" for line in header.splitlines()) if header else ""
+    return head + "".join(line + "\n" for line in tum_lines(traj.stamps, traj.poses))
 
 
 def write_tum(path: str, traj: Trajectory, header: Optional[str] = None) -> None:
