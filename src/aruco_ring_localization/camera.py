@@ -282,11 +282,34 @@ def _check_intrinsics(K: np.ndarray, D: np.ndarray, model: str, width: int, heig
     return None
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """yaml.SafeLoader that refuses a key repeated in one mapping (PyYAML silently keeps the last,
+    so a hand edit that adds a second ``image_width:`` or ``markers:`` would go unnoticed)."""
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            seen = set()
+            for key_node, _ in node.value:
+                key = self.construct_object(key_node, deep=deep)
+                try:
+                    duplicate = key in seen
+                    seen.add(key)
+                except TypeError:  # unhashable key: the base class reports it
+                    continue
+                if duplicate:
+                    raise yaml.constructor.ConstructorError(None, None, f"duplicate key {key!r}",
+                                                            key_node.start_mark)
+        return super().construct_mapping(node, deep)
+
+
 def load_yaml_file(path: str) -> Any:
-    """Read a YAML file; any failure becomes a ConfigError naming the file (and line, if known)."""
+    """Read a YAML file; any failure becomes a ConfigError naming the file (and line, if known).
+
+    A key repeated in one mapping is an error too (naming the key and its line).
+    """
     try:
         with open(path, "r", encoding="utf-8") as handle:
-            data = yaml.safe_load(handle)
+            data = yaml.load(handle, Loader=_UniqueKeyLoader)
     except FileNotFoundError:
         raise ConfigError("file not found", path=str(path)) from None
     except (OSError, UnicodeDecodeError) as exc:
@@ -295,6 +318,8 @@ def load_yaml_file(path: str) -> Any:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
         raise ConfigError(f"invalid YAML{where}: {getattr(exc, 'problem', exc)}", path=str(path)) from None
+    except RecursionError:
+        raise ConfigError("invalid YAML: nested too deeply", path=str(path)) from None
     if data is None:
         raise ConfigError("file is empty", path=str(path))
     return data
