@@ -28,6 +28,8 @@ APT_PACKAGES=(
   python3-venv cmake g++ make python3-rosbag python3-diagnostic-msgs ros-diagnostic-msgs
   python3-tf2-msgs python3-roslaunch python3-rosnode python3-rostopic python3-rosservice
   python3-rosparam python3-rosgraph python3-rosmsg python3-message-filters tf2-tools
+  # rviz, headless rendering and screenshots (make demo GUI=1, test/integration/test_rviz_configs.py)
+  rviz python3-rviz xvfb xauth libgl1-mesa-dri imagemagick
 )
 
 log() { echo "[setup] $*"; }
