@@ -206,3 +206,22 @@ def test_joint_jacobian_matches_finite_differences(lab):
         num = (prob.residuals(geo.se3_perturb(T_bm, d), False)[0] - prob.residuals(geo.se3_perturb(T_bm, -d), False)[0]) / (2 * eps)
         err = np.max(np.abs(num - J[:, :, k])) / max(1.0, np.max(np.abs(num)))
         assert err < 1e-4, f"Jacobian column {k}: relative error {err:.2e}"
+
+
+def test_fast_path_camera_estimates_agree_with_per_camera_pnp(lab):
+    scene, ring, truth = lab
+    sim = RingSimulator(scene, ring, pixel_noise=0.3, seed=9)
+    T = scene.T_world_base(scene.test_positions[6])
+    frame = sim.observe(T)
+    pnp = RingLocalizer(ring, truth, LocalizationParams(fusion="paper")).process(frame)
+    fast = RingLocalizer(ring, truth, LocalizationParams(fusion="joint")).process(frame, prediction=T)
+    compared = 0
+    for name, e in pnp.estimates.items():
+        if len(e.marker_ids) < 2 or name not in fast.estimates:
+            continue
+        d, a = geo.pose_distance(e.T_map_base, fast.estimates[name].T_map_base)
+        assert d < 0.01 and a < np.radians(0.2), f"{name}: fast-path estimate {d * 100:.2f} cm / " \
+                                                  f"{np.degrees(a):.3f} deg from its own PnP"
+        assert abs(e.accuracy - fast.estimates[name].accuracy) < 0.01
+        compared += 1
+    assert compared >= 3, f"only {compared} multi-marker cameras compared"

@@ -1,0 +1,272 @@
+"""Localization benchmark: accuracy (image mode) for the paper's fusion and the joint estimator,
+the joint estimator against the Cramér-Rao bound, and the localizer's latency per ring frame.
+
+Accuracy: the simulated lab (config/lab_scene.yaml); the true rig is the ring file perturbed by a
+seeded calibration error (2 mm, 0.2 deg); the map is built by the mapping engineer's MapBuilder
+(``refined``: bundle adjustment) from corners-mode observations at the scene's mapping stations
+with that same rig (the truth map when mapping.py is unavailable; the markdown says which). At
+each of the paper's 15 positions and 8 orientations, ring frames are *rendered* (image mode) and
+detected with OpenCV's ArUco detector (DICT_5X5_1000, subpixel corners), then localized. Errors
+are single-frame measurements (no Kalman smoothing) against the true pose expressed in the map's
+frame by a best-fit alignment of the map to the true marker layout.
+
+CRLB: corners mode, perfect rig and map, 0.3 px noise: the RMS of the joint estimate over many
+noise draws at the 15 positions against sqrt(trace) of the bound's (x, y) block.
+
+Latency: RingLocalizer.process (the core: gather, PnP/joint, per-camera estimates, covariance)
+per ring frame with 8 cameras on the lab (about 10 markers in view, 15-20 detections) with the
+previous pose as prediction, as the node runs; then with the map grown to 100 and 1,000 markers
+(extra markers out of view).
+"""
+from __future__ import annotations
+
+import os
+import sys
+import time
+from typing import Dict, List, Tuple
+
+import cv2
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.join(os.path.dirname(HERE), "src"))
+
+from aruco_ring_localization import geometry as geo  # noqa: E402
+from aruco_ring_localization.frames import CameraFrame, MarkerObservation, RingFrame  # noqa: E402
+from aruco_ring_localization.localization import (LocalizationParams, RingLocalizer, crlb_covariance,  # noqa: E402
+                                                  se2_covariance)
+from aruco_ring_localization.marker_map import MarkerEntry, MarkerMap  # noqa: E402
+from aruco_ring_localization.markers import MarkerSizes  # noqa: E402
+from aruco_ring_localization.rig import CameraRing  # noqa: E402
+from aruco_ring_localization.simulation.ring_sim import RingSimulator, perturb_ring  # noqa: E402
+from aruco_ring_localization.simulation.scene import Scene  # noqa: E402
+
+RING_FILE = os.path.join(os.path.dirname(HERE), "config", "ring.yaml")
+PIXEL_NOISE = 0.3
+RIG_SEED = 1
+
+
+def _build_map(scene: Scene, ring: CameraRing, true_ring: CameraRing, frames: int):
+    """(map, description, ring with the bundle adjustment's refined extrinsics or None)."""
+    try:
+        from aruco_ring_localization.mapping import MapBuilder
+    except ImportError:
+        return scene.truth_map(), "the simulator's truth map (mapping.py unavailable)", None
+    sim = RingSimulator(scene, true_ring, pixel_noise=PIXEL_NOISE, seed=7)
+    b = MapBuilder(ring, MarkerSizes(0.2))
+    t = 0.0
+    for s, pose in enumerate(scene.mapping_stations):
+        for _ in range(frames):
+            b.add_frame(sim.observe(Scene.T_world_base(pose), stamp=t), station=s)
+            t += 0.1
+    m = b.build("refined")
+    refined_ring = None
+    ba = getattr(b, "last_ba", None)
+    if ba is not None and getattr(ba, "T_base_cams", None) is not None and len(ba.T_base_cams) == len(ring.names):
+        refined_ring = ring.with_extrinsics({c: ba.T_base_cams[k] for k, c in enumerate(ring.names)})
+    return m, (f"the refined map (MapBuilder + bundle adjustment) from {len(scene.mapping_stations)} "
+               f"stations x {frames} corners-mode frames, same miscalibrated rig"), refined_ring
+
+
+def _detector(dictionary: int):
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    params.cornerRefinementWinSize = 5
+    params.cornerRefinementMaxIterations = 50
+    params.cornerRefinementMinAccuracy = 0.01
+    return cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(dictionary), params)
+
+
+def _detect_frame(sim: RingSimulator, det, T: np.ndarray, stamp: float, rng) -> RingFrame:
+    images = sim.render(T, rng=rng)
+    frame = RingFrame(stamp=stamp)
+    for name, img in images.items():
+        corners, ids, _ = det.detectMarkers(img)
+        obs = [] if ids is None else [MarkerObservation(int(i), c.reshape(4, 2).astype(np.float64))
+                                      for i, c in zip(ids.ravel(), corners)]
+        frame.cameras[name] = CameraFrame(name, stamp, obs)
+    return frame
+
+
+def _accuracy(scene, rings: Dict[str, CameraRing], true_ring, marker_map, T_map_world,
+              frames_per_pose: int) -> Dict[str, Dict[str, float]]:
+    sim = RingSimulator(scene, true_ring, pixel_noise=0.0, seed=11)
+    det = _detector(scene.dictionary)
+    rng = np.random.default_rng(12)
+    poses = list(scene.test_positions) + list(scene.test_orientations)
+    frames = []
+    for k, p in enumerate(poses):
+        T_world = Scene.T_world_base(p)
+        for j in range(frames_per_pose):
+            frames.append((T_map_world @ T_world, _detect_frame(sim, det, T_world, 10.0 * k + 0.1 * j, rng)))
+    out: Dict[str, Dict[str, float]] = {}
+    for label, fusion in [(lb, fu) for lb in rings for fu in ("paper", "joint")]:
+        loc = RingLocalizer(rings[label], marker_map, LocalizationParams(fusion=fusion))
+        d, a, prev = [], [], None
+        for T_true, frame in frames:
+            # As the node: the previous measurement as the prediction (None on the first frame).
+            res = loc.process(frame, prediction=prev)
+            if not res.ok:
+                d.append(np.inf)
+                a.append(np.inf)
+                prev = None
+                continue
+            e = geo.se2_from_transform(res.T_map_base) - geo.se2_from_transform(T_true)
+            d.append(float(np.hypot(e[0], e[1])))
+            a.append(abs(float(geo.wrap_angle(e[2]))))
+            prev = res.T_map_base
+        d, a = np.array(d), np.array(a)
+        out[fusion + label] = {"pos_median_cm": 100 * float(np.median(d)), "pos_max_cm": 100 * float(d.max()),
+                       "yaw_mean_deg": float(np.degrees(np.mean(a))), "yaw_max_deg": float(np.degrees(a.max())),
+                       "frames": len(frames)}
+    return out
+
+
+def _crlb_ratio(scene, ring, trials: int) -> Tuple[float, float, float]:
+    truth = scene.truth_map()
+    sim = RingSimulator(scene, ring, pixel_noise=PIXEL_NOISE, seed=21)
+    loc = RingLocalizer(ring, truth, LocalizationParams(fusion="joint", pixel_noise=PIXEL_NOISE))
+    rng = np.random.default_rng(22)
+    sq, bound = [], []
+    for p in scene.test_positions:
+        T = Scene.T_world_base(p)
+        blocks = []
+        for cam in ring.cameras:
+            ids = [i for i, _ in sim.visible_camera(T, cam.name)]
+            if ids:
+                blocks.append((cam.T_cam_base, cam.model, np.concatenate([truth.corners(i) for i in ids])))
+        bound.append(np.trace(se2_covariance(crlb_covariance(T, blocks, PIXEL_NOISE))[:2, :2]))
+        for _ in range(trials):
+            start = geo.se3_perturb(T, np.r_[rng.normal(0, 0.01, 3), rng.normal(0, 0.03, 3)])
+            res = loc.process(sim.observe(T), prediction=start)
+            e = res.T_map_base[:2, 3] - T[:2, 3]
+            sq.append(float(e @ e))
+    rms = float(np.sqrt(np.mean(sq)))
+    crlb = float(np.sqrt(np.mean(bound)))
+    return rms / crlb, rms, crlb
+
+
+def _grown_map(truth: MarkerMap, n: int) -> MarkerMap:
+    extra = [MarkerEntry(10000 + k, geo.transform_from_se2(200.0 + 0.5 * k, 200.0, 0.0, 1.0), 0.2)
+             for k in range(max(0, n - len(truth)))]
+    return MarkerMap(list(truth) + extra, frame_id=truth.frame_id)
+
+
+def _latency(scene, ring, true_ring, marker_map: MarkerMap, fusion: str, n_frames: int) -> Dict[str, float]:
+    sim = RingSimulator(scene, true_ring, pixel_noise=PIXEL_NOISE, seed=31)
+    loc = RingLocalizer(ring, marker_map, LocalizationParams(fusion=fusion))
+    poses = list(scene.test_positions) + list(scene.test_orientations)
+    frames = [(Scene.T_world_base(poses[k % len(poses)]), sim.observe(Scene.T_world_base(poses[k % len(poses)]), 0.1 * k))
+              for k in range(n_frames)]
+    for T, f in frames[:10]:  # warm-up (caches, first calls)
+        loc.process(f, prediction=T)
+    times, walls, dets, markers = [], [], [], []
+    prev = None
+    for T, f in frames:
+        pred = prev if prev is not None else T
+        c0, t0 = time.thread_time(), time.perf_counter()
+        res = loc.process(f, prediction=pred)
+        times.append(time.thread_time() - c0)
+        walls.append(time.perf_counter() - t0)
+        prev = res.T_map_base if res.ok and np.linalg.norm(res.T_map_base[:2, 3] - T[:2, 3]) < 0.1 else None
+        dets.append(f.observation_count())
+        markers.append(len(res.marker_ids))
+    t = 1000.0 * np.array(times)
+    w = 1000.0 * np.array(walls)
+    return {"median": float(np.median(t)), "p99": float(np.percentile(t, 99)), "detections": float(np.mean(dets)),
+            "wall_median": float(np.median(w)), "wall_p99": float(np.percentile(w, 99)),
+            "markers": float(np.mean(markers))}
+
+
+def run(quick: bool = False) -> dict:
+    scene = Scene.default()
+    ring = CameraRing.load(RING_FILE)
+    true_ring = perturb_ring(ring, seed=RIG_SEED)
+    marker_map, map_source, refined_ring = _build_map(scene, ring, true_ring, frames=5 if quick else 10)
+    # Truth expressed in the map's frame: best-fit alignment of the map to the true layout.
+    truth = scene.truth_map()
+    if marker_map.reference_marker is not None:
+        from aruco_ring_localization.evaluation import align_map_to_truth
+        T_map_world = geo.inverse(align_map_to_truth(marker_map, truth))
+    else:
+        T_map_world = np.eye(4)
+    rings = {"": ring}
+    if refined_ring is not None:
+        rings["_refined_extrinsics"] = refined_ring
+    acc = _accuracy(scene, rings, true_ring, marker_map, T_map_world, frames_per_pose=1 if quick else 3)
+    ratio, rms, crlb = _crlb_ratio(scene, ring, trials=10 if quick else 60)
+    n_lat = 200 if quick else 1000
+    lat = {n: _latency(scene, ring, true_ring, _grown_map(truth, n), "joint", n_lat) for n in (10, 100, 1000)}
+    lat_paper = _latency(scene, ring, true_ring, truth, "paper", n_lat // 2)
+    results = {}
+    for f in acc:
+        results[f"pos_err_cm_median_{f}"] = acc[f]["pos_median_cm"]
+        results[f"pos_err_cm_max_{f}"] = acc[f]["pos_max_cm"]
+        results[f"yaw_err_deg_mean_{f}"] = acc[f]["yaw_mean_deg"]
+        results[f"yaw_err_deg_max_{f}"] = acc[f]["yaw_max_deg"]
+    results.update({
+        "crlb_ratio_joint": ratio,
+        "loc_ms_median": lat[10]["median"],
+        "loc_ms_p99": lat[10]["p99"],
+        "loc_ms_median_100_markers": lat[100]["median"],
+        "loc_ms_median_1000_markers": lat[1000]["median"],
+        "loc_ms_p99_1000_markers": lat[1000]["p99"],
+        "loc_ms_median_paper": lat_paper["median"],
+        "loc_ms_median_wall": lat[10]["wall_median"],
+        "loc_ms_p99_wall": lat[10]["wall_p99"],
+    })
+    lines = [
+        "## Localization",
+        "",
+        f"Simulated lab, **image mode**: rendered 1280x960 images of the 8 cameras, OpenCV ArUco detection "
+        f"(DICT_5X5_1000, subpixel corners; not the package's detector module), true rig = ring file + "
+        f"2 mm / 0.2 deg calibration error (seed {RIG_SEED}). Map: {map_source}. "
+        f"{acc['joint']['frames']} single ring frames ({'1' if quick else '3'} per pose) at the paper's 15 positions and "
+        "8 orientations; errors are per-frame measurements (no Kalman filter) against the true pose in the map "
+        "frame (best-fit alignment of the map to the true marker layout).",
+        "",
+        "| fusion | extrinsics | position median (cm) | position max (cm) | yaw mean (deg) | yaw max (deg) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for f in acc:
+        fusion, _, rest = f.partition("_")
+        extr = "refined by the mapping BA" if rest else "ring file (2 mm / 0.2 deg off)"
+        lines.append(f"| {fusion} | {extr} | {acc[f]['pos_median_cm']:.2f} | {acc[f]['pos_max_cm']:.2f} | "
+                     f"{acc[f]['yaw_mean_deg']:.3f} | {acc[f]['yaw_max_deg']:.3f} |")
+    lines += [
+        "| paper's result vs gmapping | | 3.10 | 17.27 | 1.9 | 4.5 |",
+        "",
+        "Keys without suffix use the ring file's extrinsics (what the node uses today); "
+        "`_refined_extrinsics` uses the extrinsics the mapping bundle adjustment estimated for the same rig. "
+        "The calibration error, not the pixel noise, dominates the joint estimator's error: a camera "
+        "turned by 0.2 deg shifts what it sees 3-5 m away by 1-2 cm.",
+        "",
+        "Targets: median <= 1.0 cm, max <= 3 cm, yaw mean <= 0.3 deg, max <= 1 deg.",
+        "",
+        f"Joint estimator vs Cramér-Rao bound (corners mode, perfect rig and map, {PIXEL_NOISE} px noise, "
+        f"{10 if quick else 60} draws x 15 positions): position RMS {rms * 1000:.3f} mm, bound "
+        f"{crlb * 1000:.3f} mm, **ratio {ratio:.3f}** (target <= 1.25).",
+        "",
+        f"Latency of RingLocalizer.process per ring frame (8 cameras, {lat[10]['markers']:.1f} markers / "
+        f"{lat[10]['detections']:.1f} detections in view on average, previous pose as prediction, {n_lat} frames; "
+        "single thread). CPU time of the calling thread (the keys), because this machine is shared by several "
+        "sessions and wall-clock times include waiting for a core; wall-clock shown beside it:",
+        "",
+        "| map size (markers) | fusion | CPU median (ms) | CPU p99 (ms) | wall median (ms) | wall p99 (ms) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for n in (10, 100, 1000):
+        lines.append(f"| {n} | joint | {lat[n]['median']:.2f} | {lat[n]['p99']:.2f} | {lat[n]['wall_median']:.2f} | "
+                     f"{lat[n]['wall_p99']:.2f} |")
+    lines.append(f"| 10 | paper | {lat_paper['median']:.2f} | {lat_paper['p99']:.2f} | {lat_paper['wall_median']:.2f} | "
+                 f"{lat_paper['wall_p99']:.2f} |")
+    lines += ["", "Target: <= 2 ms median, <= 5 ms p99, independent of the map size."]
+    return {"results": results, "markdown": "\n".join(lines)}
+
+
+if __name__ == "__main__":
+    import json
+
+    out = run(quick="--quick" in sys.argv)
+    print(json.dumps(out["results"], indent=2))
+    print(out["markdown"])
