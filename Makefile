@@ -8,13 +8,15 @@ ENV := source .ws/env.sh
 PYTEST_ARGS ?= -q
 BENCH_ARGS ?=
 
-.PHONY: help setup test bench demo clean
+.PHONY: help setup test bench demo clean fuzz soak
 
 help:
 	@echo "make demo   set up if needed, then run the demo"
 	@echo "make test   set up if needed, then all tests (unit + rostest), one summary line"
 	@echo "make bench  set up if needed, then the benchmarks (docs/benchmarks.md, results/bench/);"
 	@echo "           BENCH_ARGS=\"--quick --only NAME\" passes options to bench/run.py"
+	@echo "make fuzz   the fuzz tests with many examples (FUZZ_ARGS=\"--examples N --seed S\"), docs/reliability.md"
+	@echo "make soak   simulator + 8 detectors + localizer for SOAK_ARGS=\"--minutes 30\" of sim time: RSS, drops, error"
 	@echo "make setup  install apt packages, the venv and the catkin workspace (.venv/, .ws/)"
 	@echo "make clean  remove the venv, the workspace and results/"
 
@@ -29,6 +31,15 @@ bench: setup
 
 demo: setup
 	@$(ENV) && bash tools/demo.sh
+
+FUZZ_ARGS ?=
+SOAK_ARGS ?=
+
+fuzz: setup
+	@$(ENV) && python tools/fuzz.py $(FUZZ_ARGS)
+
+soak: setup
+	@$(ENV) && python tools/soak.py $(SOAK_ARGS)
 
 clean:
 	rm -rf .venv .ws results .pytest_cache .hypothesis
