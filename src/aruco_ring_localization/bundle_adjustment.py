@@ -96,7 +96,7 @@ class BAOptions:
     extrinsics_trans_sigma: float = 0.005
     extrinsics_rot_sigma: float = np.radians(0.5)
     max_nfev: int = 200
-    dense_max_params: int = 1200
+    dense_max_params: int = 300
     ftol: float = 1e-8
     xtol: float = 1e-10
     gtol: float = 1e-10
@@ -388,6 +388,7 @@ def bundle_adjust(prob: BAProblem, opts: Optional[BAOptions] = None) -> BAResult
         jac = model.jacobian if tr_solver == "lsmr" else (lambda x: model.jacobian(x).toarray())
         res = least_squares(model.residuals, x0, jac=jac, method="trf", loss=opts.loss,
                             f_scale=opts.robust_scale, x_scale="jac", tr_solver=tr_solver,
+                            tr_options={"atol": 1e-10, "btol": 1e-10} if tr_solver == "lsmr" else {},
                             ftol=opts.ftol, xtol=opts.xtol, gtol=opts.gtol, max_nfev=opts.max_nfev)
         res_x, nfev, status, J = res.x, int(res.nfev), str(res.message), res.jac
     r = model.residuals(res_x)
