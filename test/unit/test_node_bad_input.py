@@ -1,0 +1,348 @@
+"""Bad input at the localizer node's boundary, without a ROS master (issue 7 §2, §3).
+
+The node class is built with rospy's publishers, subscribers, services, timers and the tf
+listener/broadcaster replaced by recorders, and its callbacks are called directly with
+constructed messages: FiducialArray with NaN/inf/huge coordinates, empty or huge lists,
+duplicate, unknown and wrong frame ids; CameraInfo with zero K or a wrong D length; initialpose
+with NaN. Each callback must return normally (never raise), warn through a THROTTLED call, and
+the node must keep localizing from the good cameras. A hypothesis fuzz does the same with
+arbitrary field values.
+"""
+from __future__ import annotations
+
+import math
+import time
+from typing import List
+from unittest import mock
+
+import numpy as np
+import pytest
+
+rospy = pytest.importorskip("rospy")
+pytest.importorskip("fiducial_msgs.msg")
+pytest.importorskip("tf2_ros")
+
+import tf2_ros  # noqa: E402
+from fiducial_msgs.msg import Fiducial, FiducialArray  # noqa: E402
+from geometry_msgs.msg import PoseWithCovarianceStamped  # noqa: E402
+from hypothesis import given  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+from aruco_ring_localization.marker_map import MarkerMap  # noqa: E402
+from aruco_ring_localization.rig import CameraRing  # noqa: E402
+from aruco_ring_localization.ros.conversions import (make_transform_stamped, model_to_camera_info,  # noqa: E402
+                                                     observations_to_fiducials)
+from aruco_ring_localization.simulation.ring_sim import RingSimulator  # noqa: E402
+from aruco_ring_localization.simulation.scene import Scene  # noqa: E402
+
+from fuzz_support import FUZZ  # noqa: E402
+from helpers import REPO, RING_YAML  # noqa: E402
+
+POSE = (5.2, 4.3, 0.4)  # robot on the plate (x, y, yaw)
+
+
+_RealBuffer = tf2_ros.Buffer
+
+
+def _buffer_without_master(*args, **kwargs):
+    kwargs["debug"] = False  # debug=True registers a service with the master
+    return _RealBuffer(*args, **kwargs)
+
+
+class Recorder:
+    """Collects rospy log calls: (level, throttled, message)."""
+
+    def __init__(self):
+        self.calls: List[tuple] = []
+
+    def make(self, level: str, throttled: bool):
+        def log(*args, **_kw):
+            if throttled:
+                args = args[1:]  # the period
+            msg = args[0] % args[1:] if len(args) > 1 else (args[0] if args else "")
+            self.calls.append((level, throttled, str(msg)))
+        return log
+
+    def warnings(self, throttled=None):
+        return [m for lvl, thr, m in self.calls if lvl in ("warn", "err") and (throttled is None or thr == throttled)]
+
+
+@pytest.fixture(scope="module")
+def world():
+    scene = Scene.default()
+    ring = CameraRing.load(str(RING_YAML))
+    truth = MarkerMap.load(str(REPO / "test" / "data" / "lab_truth_map.yaml"))
+    return scene, ring, truth
+
+
+@pytest.fixture
+def node(world, monkeypatch):
+    """A LocalizerNode with fake ROS plumbing; ``node.log`` records the log calls."""
+    from aruco_ring_localization.ros import localizer as loc_mod
+
+    _, ring, truth = world
+    rec = Recorder()
+    for name in ("Publisher", "Subscriber", "Service", "Timer"):  # a new recorder per object
+        monkeypatch.setattr(rospy, name, mock.MagicMock(name=name, side_effect=lambda *a, **k: mock.MagicMock()))
+    monkeypatch.setattr(tf2_ros, "TransformListener", mock.MagicMock())
+    monkeypatch.setattr(tf2_ros, "TransformBroadcaster", mock.MagicMock())
+    monkeypatch.setattr(tf2_ros, "Buffer", _buffer_without_master)
+    for level in ("warn", "err", "info", "debug"):
+        monkeypatch.setattr(rospy, f"log{level}", rec.make(level, False))
+        monkeypatch.setattr(rospy, f"log{level}_throttle", rec.make(level, True))
+        monkeypatch.setattr(rospy, f"log{level}_once", rec.make(level, True))
+    rospy.rostime.set_rostime_initialized(True)  # wall time, as without use_sim_time
+    n = loc_mod.LocalizerNode(loc_mod.LocalizerNodeParams(camera_info_fallback=False, timeout=0.05), ring, truth)
+    for cam in ring.cameras:
+        n.tf_buffer.set_transform_static(make_transform_stamped(cam.T_base_cam, ring.base_frame, cam.frame_id,
+                                                                rospy.Time(0)), "test")
+    n.log = rec
+    n.published_poses = lambda: [c.args[0] for c in n.pub_pose.publish.call_args_list]
+    return n
+
+
+def _info(ring, name, **changes):
+    msg = model_to_camera_info(ring[name].model, ring[name].frame_id)
+    for k, v in changes.items():
+        setattr(msg, k, v)
+    return msg
+
+
+def _frame_msgs(world, stamp, extra=None, frame_ids=None):
+    """Per-camera FiducialArray of the simulated robot at POSE; ``extra[name]`` fiducials appended."""
+    scene, ring, _ = world
+    sim = RingSimulator(scene, ring, pixel_noise=0.2, seed=3)
+    frame = sim.observe(scene.T_world_base(POSE), stamp)
+    out = {}
+    for cam in ring.cameras:
+        msg = FiducialArray()
+        msg.header.stamp = rospy.Time.from_sec(stamp)
+        msg.header.frame_id = (frame_ids or {}).get(cam.name, cam.frame_id)
+        msg.fiducials = observations_to_fiducials(frame.cameras[cam.name].observations) + list(
+            (extra or {}).get(cam.name, []))
+        out[cam.name] = msg
+    return out
+
+
+def _feed(node, world, n_frames=3, infos=None, extra=None, frame_ids=None):
+    """Send camera_info + detections for every camera, n_frames times; return the stamps used."""
+    _, ring, _ = world
+    stamps = []
+    for k in range(n_frames):
+        stamp = time.time()
+        stamps.append(stamp)
+        for name in ring.names:
+            node.ring_input._on_camera_info((infos or {}).get(name) or _info(ring, name), name)
+        for name, msg in _frame_msgs(world, stamp, extra, frame_ids).items():
+            node.ring_input._on_fiducials(msg, name)
+        # a skipped camera: the assembler's timeout sends the frame without it
+        time.sleep(node.p.timeout + 0.01)
+        node.ring_input._on_timer(None)
+    return stamps
+
+
+def _fid(fid, corners):
+    f = Fiducial()
+    f.fiducial_id = fid
+    (f.x0, f.y0), (f.x1, f.y1), (f.x2, f.y2), (f.x3, f.y3) = corners
+    return f
+
+
+def _last_error(node):
+    poses = node.published_poses()
+    assert poses, f"no pose published; warnings: {node.log.warnings()}"
+    p = poses[-1].pose.pose.position
+    return math.hypot(p.x - POSE[0], p.y - POSE[1])
+
+
+def test_good_frames_localize(node, world):
+    _feed(node, world)
+    err = _last_error(node)
+    assert err < 0.03, f"position error {err * 100:.2f} cm on clean input"
+    assert not node.log.warnings(), node.log.warnings()
+
+
+BAD_CORNERS = {
+    "nan": [(math.nan, 1.0), (10.0, 1.0), (10.0, 10.0), (1.0, 10.0)],
+    "inf": [(math.inf, 1.0), (10.0, -math.inf), (10.0, 10.0), (1.0, 10.0)],
+    "huge": [(1e30, 1e30), (2e30, 1e30), (2e30, 2e30), (1e30, 2e30)],
+    "float_max": [(1.7e308, 0.0), (-1.7e308, 0.0), (0.0, 1.7e308), (0.0, -1.7e308)],
+    "degenerate": [(5.0, 5.0)] * 4,
+    "bowtie": [(0.0, 0.0), (100.0, 100.0), (100.0, 0.0), (0.0, 100.0)],
+}
+
+
+@pytest.mark.parametrize("kind", sorted(BAD_CORNERS))
+def test_malformed_corners_are_dropped_with_a_throttled_warning(node, world, kind):
+    _, _, truth = world
+    bad = {"cam0": [_fid(truth.ids[0], BAD_CORNERS[kind])], "cam3": [_fid(999, BAD_CORNERS[kind])]}
+    _feed(node, world, extra=bad)
+    assert _last_error(node) < 0.03, f"{kind}: position error {_last_error(node) * 100:.2f} cm"
+    assert node.log.warnings(throttled=True), f"{kind}: no throttled warning: {node.log.calls}"
+    assert not node.log.warnings(throttled=False), f"{kind}: unthrottled warning {node.log.warnings(False)}"
+    rejected = sum(sum(v.values()) for v in node.ring_input.rejected.values())
+    assert rejected >= 2 * 3, f"{kind}: {node.ring_input.rejected}"
+
+
+def test_duplicate_ids_in_one_image_are_dropped(node, world):
+    scene, ring, truth = world
+    msgs = _frame_msgs(world, time.time())
+    cam = max(msgs, key=lambda n: len(msgs[n].fiducials))
+    dup = msgs[cam].fiducials[0]
+    _feed(node, world, extra={cam: [dup, dup]})
+    assert node.ring_input.rejected[cam].get("duplicate id", 0) >= 3, node.ring_input.rejected
+    assert _last_error(node) < 0.05
+
+
+def test_unknown_ids_are_ignored(node, world):
+    quad = [(100.0, 100.0), (200.0, 100.0), (200.0, 200.0), (100.0, 200.0)]
+    _feed(node, world, extra={name: [_fid(3000 + k, quad)] for k, name in enumerate(world[1].names)})
+    assert _last_error(node) < 0.03
+
+
+def test_negative_and_out_of_range_ids(node, world):
+    quad = [(100.0, 100.0), (200.0, 100.0), (200.0, 200.0), (100.0, 200.0)]
+    _feed(node, world, extra={"cam1": [_fid(-5, quad), _fid(2 ** 31 - 1, quad)]})
+    assert _last_error(node) < 0.03
+
+
+def test_empty_fiducial_lists_publish_nothing_new_and_do_not_raise(node, world):
+    _feed(node, world, n_frames=2)
+    before = len(node.published_poses())
+    _, ring, _ = world
+    for _ in range(3):
+        stamp = time.time()
+        for name in ring.names:
+            msg = FiducialArray()
+            msg.header.stamp = rospy.Time.from_sec(stamp)
+            msg.header.frame_id = ring[name].frame_id
+            node.ring_input._on_fiducials(msg, name)
+    # predict-only: the pose may still be published (predicted), but the node is alive
+    assert len(node.published_poses()) >= before
+
+
+def test_huge_fiducial_list(node, world):
+    rng = np.random.default_rng(7)
+    quads = [_fid(int(i), [(x, y), (x + 20, y), (x + 20, y + 20), (x, y + 20)])
+             for i, (x, y) in zip(rng.integers(0, 1000, 3000), rng.uniform(0, 1200, (3000, 2)))]
+    t0 = time.perf_counter()
+    _feed(node, world, n_frames=1, extra={"cam2": quads})
+    assert time.perf_counter() - t0 < 30.0
+    # The good cameras still give a pose (cam2's duplicate-laden garbage is dropped or rejected).
+    assert _last_error(node) < 0.10, f"{_last_error(node) * 100:.1f} cm"
+
+
+@pytest.mark.parametrize("frame_id", ["no_such_frame", "", "/cam0_optical_frame"])
+def test_wrong_frame_id_skips_that_camera(node, world, frame_id):
+    _feed(node, world, frame_ids={"cam0": frame_id})
+    assert _last_error(node) < 0.05
+    if frame_id == "no_such_frame":
+        assert any("no tf" in w for w in node.log.warnings(throttled=True)), node.log.calls
+
+
+@pytest.mark.parametrize("change", [
+    {"K": [0.0] * 9}, {"K": [math.nan] * 9}, {"D": [0.1, 0.2]}, {"width": 0, "height": 0},
+    {"distortion_model": "no_such_model"}, {"K": [1.0, 2.0]},
+])
+def test_bad_camera_info_ignores_the_camera(node, world, change):
+    _, ring, _ = world
+    infos = {"cam0": _info(ring, "cam0", **change)}
+    _feed(node, world, infos=infos)
+    assert any("camera_info" in w for w in node.log.warnings(throttled=True)), (change, node.log.calls)
+    assert _last_error(node) < 0.05
+    assert "cam0" in node.ring_input.silent_cameras(0.0) or node.ring_input.skipped["cam0"], \
+        "the camera with bad camera_info was used"
+
+
+def test_missing_camera_info_and_tf_for_one_camera(node, world):
+    _, ring, _ = world
+    # No camera_info ever for cam5: skipped with a throttled hint, the others work.
+    stamp = time.time()
+    for name in ring.names:
+        if name != "cam5":
+            node.ring_input._on_camera_info(_info(ring, name), name)
+    for name, msg in _frame_msgs(world, stamp).items():
+        node.ring_input._on_fiducials(msg, name)
+    time.sleep(node.p.timeout + 0.02)
+    node.ring_input._on_timer(None)
+    assert node.ring_input.skipped["cam5"], node.ring_input.skipped
+    assert any("camera_info" in w for w in node.log.warnings(throttled=True))
+    assert _last_error(node) < 0.05
+
+
+@pytest.mark.parametrize("field,value", [("x", math.nan), ("y", math.inf), ("qw", math.nan), ("qz", 0.0)])
+def test_initialpose_with_nan_is_ignored(node, world, field, value):
+    _feed(node, world, n_frames=2)
+    msg = PoseWithCovarianceStamped()
+    msg.header.frame_id = "map"
+    msg.pose.pose.position.x, msg.pose.pose.position.y = 1.0, 1.0
+    msg.pose.pose.orientation.w = 1.0
+    if field in ("x", "y"):
+        setattr(msg.pose.pose.position, field, value)
+    else:
+        msg.pose.pose.orientation.w = 0.0 if field == "qz" else value  # qz: all-zero quaternion
+    node.on_initialpose(msg)
+    assert any("initialpose" in w for w in node.log.warnings()), node.log.calls
+    pose = node.tracker.filter.pose
+    assert math.hypot(pose[0] - POSE[0], pose[1] - POSE[1]) < 0.05, f"track moved to {pose}"
+
+
+def test_diagnostics_and_markers_callbacks_run(node, world):
+    _feed(node, world, n_frames=1)
+    node.publish_diagnostics()
+    node.publish_markers()
+    arr = node.pub_diag.publish.call_args[0][0]
+    assert any("filter" in s.name for s in arr.status)
+
+
+# --- fuzz ------------------------------------------------------------------------------------
+
+floats = st.floats(allow_nan=True, allow_infinity=True) | st.floats(-2000, 2000)
+fiducial = st.builds(lambda i, c: _fid(i, [(c[0], c[1]), (c[2], c[3]), (c[4], c[5]), (c[6], c[7])]),
+                     st.integers(-2 ** 31, 2 ** 31 - 1) | st.sampled_from([17, 42, 95, 126, 203]),
+                     st.lists(floats, min_size=8, max_size=8))
+
+
+@FUZZ
+@given(st.data())
+def test_fuzz_node_callbacks_never_raise(world, data):
+    """Arbitrary detections, camera_info and initialpose: no callback ever raises."""
+    scene, ring, truth = world
+    with mock.patch.object(rospy, "Publisher"), mock.patch.object(rospy, "Subscriber"), \
+            mock.patch.object(rospy, "Service"), mock.patch.object(rospy, "Timer"), \
+            mock.patch.object(tf2_ros, "TransformListener"), mock.patch.object(tf2_ros, "TransformBroadcaster"), \
+            mock.patch.object(tf2_ros, "Buffer", _buffer_without_master), \
+            mock.patch.object(rospy, "logwarn_throttle"), mock.patch.object(rospy, "logwarn"), \
+            mock.patch.object(rospy, "loginfo"):
+        from aruco_ring_localization.ros import localizer as loc_mod
+
+        rospy.rostime.set_rostime_initialized(True)
+        n = loc_mod.LocalizerNode(loc_mod.LocalizerNodeParams(camera_info_fallback=True, use_tf=False), ring, truth)
+        base = time.time()
+        for _ in range(data.draw(st.integers(1, 6), label="events")):
+            name = data.draw(st.sampled_from(ring.names), label="camera")
+            kind = data.draw(st.sampled_from(["fid", "fid", "info", "initialpose", "timer"]), label="kind")
+            if kind == "fid":
+                msg = FiducialArray()
+                msg.header.stamp = rospy.Time.from_sec(base + data.draw(st.floats(-5, 5), label="dt"))
+                msg.header.frame_id = data.draw(st.sampled_from([ring[name].frame_id, "", "x", "/base_link"]))
+                msg.fiducials = data.draw(st.lists(fiducial, max_size=6), label="fiducials")
+                n.ring_input._on_fiducials(msg, name)
+            elif kind == "info":
+                info = model_to_camera_info(ring[name].model, ring[name].frame_id)
+                info.K = data.draw(st.lists(floats, min_size=9, max_size=9) | st.just(list(info.K)), label="K")
+                info.D = data.draw(st.lists(floats, max_size=8), label="D")
+                info.width = data.draw(st.integers(0, 5000), label="w")
+                info.height = data.draw(st.integers(0, 5000), label="h")
+                info.distortion_model = data.draw(st.sampled_from(["plumb_bob", "equidistant", "", "bad"]))
+                n.ring_input._on_camera_info(info, name)
+            elif kind == "initialpose":
+                msg = PoseWithCovarianceStamped()
+                msg.header.frame_id = data.draw(st.sampled_from(["map", "", "odom"]), label="frame")
+                p = msg.pose.pose
+                p.position.x, p.position.y, p.orientation.z, p.orientation.w = data.draw(
+                    st.lists(floats, min_size=4, max_size=4), label="pose")
+                n.on_initialpose(msg)
+            else:
+                n.ring_input._on_timer(None)
+        n.publish_diagnostics()
