@@ -193,9 +193,9 @@ def run(quick: bool = False) -> dict:
     rings = {"": ring}
     if refined_ring is not None:
         rings["_refined_extrinsics"] = refined_ring
-    acc = _accuracy(scene, rings, true_ring, marker_map, T_map_world, frames_per_pose=1 if quick else 3)
+    acc = _accuracy(scene, rings, true_ring, marker_map, T_map_world, frames_per_pose=1 if quick else 2)
     ratio, rms, crlb = _crlb_ratio(scene, ring, trials=10 if quick else 60)
-    n_lat = 200 if quick else 1000
+    n_lat = 200 if quick else 600
     lat = {n: _latency(scene, ring, true_ring, _grown_map(truth, n), "joint", n_lat) for n in (10, 100, 1000)}
     lat_paper = _latency(scene, ring, true_ring, truth, "paper", n_lat // 2)
     results = {}
@@ -221,7 +221,7 @@ def run(quick: bool = False) -> dict:
         f"Simulated lab, **image mode**: rendered 1280x960 images of the 8 cameras, OpenCV ArUco detection "
         f"(DICT_5X5_1000, subpixel corners; not the package's detector module), true rig = ring file + "
         f"2 mm / 0.2 deg calibration error (seed {RIG_SEED}). Map: {map_source}. "
-        f"{acc['joint']['frames']} single ring frames ({'1' if quick else '3'} per pose) at the paper's 15 positions and "
+        f"{acc['joint']['frames']} single ring frames ({'1' if quick else '2'} per pose) at the paper's 15 positions and "
         "8 orientations; errors are per-frame measurements (no Kalman filter) against the true pose in the map "
         "frame (best-fit alignment of the map to the true marker layout).",
         "",
