@@ -156,6 +156,8 @@ class LocalizerNode:
         rospy.Service("~reset", Trigger, self.on_reset)
         rospy.Timer(rospy.Duration(params.diagnostics_period), self.publish_diagnostics, reset=True)
         rospy.Timer(rospy.Duration(params.markers_period), self.publish_markers, reset=True)
+        self.last_frame_wall: Optional[float] = None
+        rospy.Timer(rospy.Duration(0.1), self.on_blind_timer)
         rospy.loginfo("localizer: %d mapped markers in %s, fusion %s, output %s -> %s, tf %s (%s)",
                       len(marker_map), self.map_frame, params.fusion, self.map_frame, self.base_frame,
                       params.tf_mode, "on" if params.publish_tf else "off")
@@ -197,7 +199,31 @@ class LocalizerNode:
         rospy.loginfo("localizer: reset by service; the next measurement initialises the track")
         return TriggerResponse(success=True, message="track reset")
 
+    def on_blind_timer(self, _event=None) -> None:
+        """Predict-only output while no ring frame arrives at all (every camera silent).
+
+        The assembler emits nothing when no camera reports, so without this the pose would just
+        stop; instead the filter predicts to the current time and the pose goes out with its
+        growing covariance, after ``silent_after`` s without a frame, with a throttled warning.
+        """
+        if self.last_frame_wall is None:
+            return
+        blind = time.monotonic() - self.last_frame_wall
+        if blind < self.p.silent_after:
+            return
+        now = rospy.get_time()
+        with self._lock:
+            f = self.tracker.filter
+            if not f.initialized or f.stamp is None or now <= f.stamp:
+                return  # nothing to predict from, or the clock has not moved (a paused bag)
+            result = self.tracker.process(RingFrame(stamp=now, missing=self.ring_input.camera_names))
+        rospy.logwarn_throttle(WARN_PERIOD, f"localizer: no ring frame for {blind:.1f} s (every camera silent): "
+                                            "predicting only, the covariance grows")
+        if result.pose is not None:
+            self.publish(result, RingFrame(stamp=now))
+
     def on_ring_frame(self, frame: RingFrame) -> None:
+        self.last_frame_wall = time.monotonic()
         now = rospy.get_time()
         age = now - frame.stamp
         if self.p.max_frame_age > 0 and age > self.p.max_frame_age and frame.stamp <= now:
