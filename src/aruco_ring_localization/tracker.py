@@ -14,7 +14,7 @@ benchmarks run for every ring frame (paper Algorithm 1, steps 2-5):
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Dict, Optional
 
 import numpy as np
@@ -76,6 +76,11 @@ class RingTracker:
         self._z = 0.0  # height of base_link in the map, from the last measurement
         self.time_jumps = 0
         self.rejected_counts: Dict[str, int] = {}
+
+    @property
+    def height(self) -> float:
+        """z of base_link in the map frame from the last accepted measurement, m."""
+        return self._z
 
     def set_motion(self, source: str, speed: float, yaw_rate: float, stamp: float) -> None:
         """Latest motion from ``source`` (``cmd_vel`` or ``odom``): |linear| m/s, yaw rate rad/s."""

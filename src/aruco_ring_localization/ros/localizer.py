@@ -19,7 +19,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Dict, List, Optional, Sequence
 
 import numpy as np
@@ -268,7 +268,7 @@ class LocalizerNode:
     def publish(self, result: TrackResult, frame: RingFrame) -> None:
         stamp = rospy.Time.from_sec(result.stamp)
         x, y, yaw = result.pose
-        z = self.tracker._z
+        z = self.tracker.height
         T_map_base = geo.transform_from_se2(x, y, yaw, z)
         cov = se2_covariance_to_pose_covariance(result.covariance)
         msg = PoseWithCovarianceStamped()
