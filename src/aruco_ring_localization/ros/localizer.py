@@ -304,6 +304,10 @@ class LocalizerNode:
                     tf = None
             except (tf2_ros.LookupException, tf2_ros.ConnectivityException):
                 tf = None
+            except rospy.exceptions.ROSTimeMovedBackwardsException:
+                # lookup_transform sleeps in ROS time while waiting; a bag loop during that wait
+                # raised out of the detection callback and lost the frame.
+                tf = None
             if tf is not None:
                 T_odom_base = msg_to_transform(tf.transform, "tf odom -> base")
                 self.tf_broadcaster.sendTransform(make_transform_stamped(
