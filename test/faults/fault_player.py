@@ -198,6 +198,32 @@ class FaultPlayer:
         with self.lock:
             return [d for d in self.diags if p.start + after <= d.t < p.end]
 
+    def summary(self) -> Dict[str, object]:
+        """Per phase: poses, max/median position error (cm), std x/y at start and end (m); injected faults."""
+        out: Dict[str, object] = {"injected": dict(self.injected), "phases": {}}
+        for ph in self.schedule.phases:
+            poses = self.poses_in(ph.name)
+            errs = [r.error for r in poses if np.isfinite(r.error)]
+            out["phases"][ph.name] = {  # type: ignore[index]
+                "duration_s": ph.duration, "poses": len(poses),
+                "max_err_cm": round(100 * max(errs), 2) if errs else None,
+                "median_err_cm": round(100 * float(np.median(errs)), 2) if errs else None,
+                "std_xy_first_m": round(poses[0].std_xy, 4) if poses else None,
+                "std_xy_last_m": round(poses[-1].std_xy, 4) if poses else None,
+                "silent_in_diagnostics": self.diags_in(ph.name)[-1].silent if self.diags_in(ph.name) else None}
+        if self.diags:
+            out["last_filter_diagnostics"] = self.diags[-1].values
+        return out
+
+    def write_summary(self, path: str, extra: Optional[Dict[str, object]] = None) -> None:
+        import json
+
+        data = self.summary()
+        data.update(extra or {})
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        with open(path, "w") as handle:
+            json.dump(data, handle, indent=1, default=str)
+
     def logs_matching(self, text: str, t_from: float = -1e9, t_to: float = 1e9) -> List[Tuple[float, int, str]]:
         with self.lock:
             return [x for x in self.logs if text in x[2] and t_from <= x[0] < t_to]

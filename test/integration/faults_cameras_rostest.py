@@ -26,7 +26,8 @@ CAMS = [f"cam{k}" for k in range(8)]
 NO_INFO, NO_TF = "cam7", "cam5"          # ignored throughout
 ALWAYS = dict(no_camera_info=(NO_INFO,), wrong_frame=(NO_TF,))
 TOL_M = 0.05          # position error with several cameras
-TOL_ONE_CAM_M = 0.25  # one camera often sees one far marker: a sanity bound
+TOL_ONE_CAM_M = 0.10  # one camera (cam3 sees markers 64 and 17 on this path)
+SURVIVOR = "cam3"   # the camera left when 7 of 8 are silent
 RATE = 10.0
 
 
@@ -42,7 +43,7 @@ def schedule() -> FaultSchedule:
     s.add("back1", 2.0, **ALWAYS)
     s.add("four_silent", 3.0, silent=("cam0", "cam2", "cam4", "cam6"), **ALWAYS)
     s.add("back4", 2.0, **ALWAYS)
-    s.add("seven_silent", 3.0, silent=tuple(c for c in CAMS if c != "cam1"), **ALWAYS)
+    s.add("seven_silent", 3.0, silent=tuple(c for c in CAMS if c != SURVIVOR), **ALWAYS)
     s.add("back7", 2.0, **ALWAYS)
     s.add("all_silent", 10.0, silent=tuple(CAMS), **ALWAYS)
     s.add("recover", 3.0, **ALWAYS)
@@ -58,6 +59,12 @@ class FaultsCamerasTest(unittest.TestCase):
         assert cls.p.wait_for_subscribers(), "the localizer did not subscribe"
         cls.p.play()
         rospy.rostime.wallsleep(1.5)  # last diagnostics
+        cls.root = root
+
+    @classmethod
+    def tearDownClass(cls):
+        extra = cls.extra() if hasattr(cls, "extra") else {}
+        cls.p.write_summary(os.path.join(cls.root, "results", "faults", "faults_cameras.json"), extra)
 
     def _summary(self, phase):
         poses = self.p.poses_in(phase)
@@ -124,6 +131,11 @@ class FaultsCamerasTest(unittest.TestCase):
                 self.assertLessEqual(len(msgs), duration / 5.0 + 3, f"{len(msgs)} warnings about {cam} in "
                                                                    f"{duration:.0f} s: not throttled")
 
+
+    def test_9_no_callback_raised(self):
+        """rospy logs 'bad callback' when a subscriber/timer callback raises: it must never happen."""
+        bad = [m for _, _, m in self.p.logs if "bad callback" in m or "Traceback" in m]
+        self.assertFalse(bad, f"a localizer callback raised: {bad[:2]}")
 
 Log_WARN = 4  # rosgraph_msgs/Log.WARN
 
