@@ -9,7 +9,10 @@ command). It is rejected when it lies farther than what the robot could have mov
 
 with ``v`` and ``w`` the commanded (``cmd_vel``) or measured (odometry twist) speeds, whichever is
 larger, and ``dt`` the time since the last accepted measurement: the thresholds grow with the
-elapsed time and the speed.
+elapsed time and the speed. When the covariances of the prediction (the filter's) and of the
+measurement (the estimator's) are given, both thresholds also grow by ``sigma_factor`` standard
+deviations of their sum (largest eigenvalue for the position): an uncertain track, e.g. after a
+stretch with one camera, does not reject good measurements.
 
 No lock-out: after ``recovery_count`` consecutive rejected measurements that agree with each other
 (each within ``recovery_distance`` / ``recovery_angle`` of the previous one, plus the motion
@@ -48,6 +51,8 @@ class GateParams:
         recovery_count: consecutive mutually consistent rejections that re-initialise.
         recovery_distance: m; recovery_angle: rad — how close consecutive rejected measurements
             must be to count as consistent.
+        sigma_factor: standard deviations of (prediction + measurement) covariance added to the
+            thresholds when covariances are given (0 disables).
     """
 
     enabled: bool = True
@@ -59,6 +64,7 @@ class GateParams:
     recovery_count: int = 5
     recovery_distance: float = 0.10
     recovery_angle: float = float(np.radians(5.0))
+    sigma_factor: float = 3.0
 
     def __post_init__(self) -> None:
         for name in ("base_distance", "base_angle", "recovery_distance", "recovery_angle"):
@@ -114,12 +120,15 @@ class MotionGate:
         a = p.base_angle + p.speed_margin * abs(yaw_rate) * dt + 0.5 * p.max_angular_acceleration * dt * dt
         return d, a
 
-    def check(self, z, stamp: float, predicted=None, speed: float = 0.0, yaw_rate: float = 0.0) -> GateDecision:
+    def check(self, z, stamp: float, predicted=None, speed: float = 0.0, yaw_rate: float = 0.0,
+              covariance: Optional[np.ndarray] = None) -> GateDecision:
         """Decide on measurement ``z = (x, y, yaw)`` at ``stamp`` (s).
 
         Args:
             predicted: (x, y, yaw) expected at ``stamp``, or None when there is no track yet.
             speed: |linear speed| from cmd_vel or odometry, m/s; yaw_rate: rad/s.
+            covariance: optional 3x3 covariance of (z - predicted) over (x, y, yaw): the
+                prediction's plus the measurement's.
         """
         z = np.asarray(z, dtype=np.float64).reshape(3)
         if predicted is None or self.last_accepted_stamp is None:
@@ -131,6 +140,10 @@ class MotionGate:
         pred = np.asarray(predicted, dtype=np.float64).reshape(3)
         dt = stamp - self.last_accepted_stamp
         allowed_d, allowed_a = self.thresholds(dt, speed, yaw_rate)
+        if covariance is not None and self.params.sigma_factor > 0:
+            C = np.asarray(covariance, dtype=np.float64).reshape(3, 3)
+            allowed_d += self.params.sigma_factor * float(np.sqrt(max(np.linalg.eigvalsh(C[:2, :2])[-1], 0.0)))
+            allowed_a += self.params.sigma_factor * float(np.sqrt(max(C[2, 2], 0.0)))
         dist = float(np.hypot(z[0] - pred[0], z[1] - pred[1]))
         ang = abs(float(geo.angle_diff(z[2], pred[2])))
         if dist <= allowed_d and ang <= allowed_a:

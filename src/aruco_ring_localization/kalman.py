@@ -207,6 +207,21 @@ class PoseFilter:
         x = transition_matrix(dt) @ self.kf.x.ravel()
         return np.array([x[IX], x[IY], geo.wrap_angle(float(x[IPHI]))])
 
+    def predicted_covariance(self, stamp: float) -> np.ndarray:
+        """3x3 covariance of (x, y, phi) predicted at ``stamp`` without changing the filter."""
+        if self.stamp is None:
+            raise ValueError("the filter is not initialised")
+        dt = min(max(float(stamp) - self.stamp, 0.0), self.params.max_dt)
+        F = transition_matrix(dt)
+        # P = F P F^T + Q
+        P = F @ self.kf.P @ F.T + process_noise(dt, self.params.jerk_noise_xy, self.params.jerk_noise_yaw)
+        idx = np.array([IX, IY, IPHI])
+        return P[np.ix_(idx, idx)]
+
+    def measurement_covariance(self, covariance: Optional[np.ndarray] = None) -> np.ndarray:
+        """The R the filter uses for a measurement with estimator covariance ``covariance`` (3x3 or None)."""
+        return self._measurement_covariance(covariance)
+
     def _measurement_covariance(self, covariance: Optional[np.ndarray]) -> np.ndarray:
         p = self.params
         if covariance is None:

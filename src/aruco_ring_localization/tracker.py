@@ -121,7 +121,11 @@ class RingTracker:
             cov = loc.covariance_se2
             speed, yaw_rate = self._speeds(stamp)
             predicted = None if pred is None else geo.se2_from_transform(pred)
-            decision = self.gate.check(z, stamp, predicted, speed, yaw_rate)
+            gate_cov = None
+            if predicted is not None:
+                # Covariance of (z - prediction): the filter's predicted covariance + the measurement's.
+                gate_cov = self.filter.predicted_covariance(stamp) + self.filter.measurement_covariance(cov)
+            decision = self.gate.check(z, stamp, predicted, speed, yaw_rate, gate_cov)
             out.decision = decision
             if decision.reinitialize:
                 self.filter.reset(z, stamp, cov)

@@ -82,3 +82,15 @@ def test_disabled_gate_accepts_everything():
 def test_bad_params():
     with pytest.raises(ConfigError, match="recovery_count"):
         GateParams(recovery_count=0)
+
+
+def test_uncertain_track_widens_the_gate():
+    gate = MotionGate(GateParams(sigma_factor=3.0))
+    gate.check([0.0, 0.0, 0.0], 0.0)
+    z, pred = [0.3, 0.0, 0.0], [0.0, 0.0, 0.0]
+    tight = gate.check(z, 0.1, predicted=pred, covariance=np.diag([1e-6, 1e-6, 1e-6]))
+    assert not tight.accepted, f"0.3 m jump accepted with a 1 mm track: {tight}"
+    gate.reset()
+    gate.check([0.0, 0.0, 0.0], 0.0)
+    loose = gate.check(z, 0.1, predicted=pred, covariance=np.diag([0.01, 0.01, 1e-4]))  # 10 cm std
+    assert loose.accepted and loose.allowed_distance == pytest.approx(gate.thresholds(0.1)[0] + 0.3), f"{loose}"

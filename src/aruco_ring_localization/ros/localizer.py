@@ -67,7 +67,7 @@ class LocalizerNodeParams:
     camera_info_fallback: bool = False
     slop: float = 0.03
     timeout: float = 0.25
-    max_frame_age: float = 0.5
+    max_frame_age: float = 2.0
     ignore_fiducials: str = ""
     # localization
     max_reprojection_error: float = 3.0
@@ -85,6 +85,7 @@ class LocalizerNodeParams:
     gate_max_acceleration: float = 1.0
     gate_max_angular_acceleration: float = 2.0
     gate_recovery_count: int = 5
+    gate_sigma_factor: float = 3.0
     # filter
     jerk_noise_xy: float = 0.1
     jerk_noise_yaw: float = 0.1
@@ -110,7 +111,7 @@ class LocalizerNodeParams:
                           base_angle=float(np.radians(self.gate_base_angle_deg)), speed_margin=self.gate_speed_margin,
                           max_acceleration=self.gate_max_acceleration,
                           max_angular_acceleration=self.gate_max_angular_acceleration,
-                          recovery_count=self.gate_recovery_count)
+                          recovery_count=self.gate_recovery_count, sigma_factor=self.gate_sigma_factor)
 
     def filter(self) -> FilterParams:
         return FilterParams(jerk_noise_xy=self.jerk_noise_xy, jerk_noise_yaw=self.jerk_noise_yaw,
@@ -226,11 +227,15 @@ class LocalizerNode:
         self.last_frame_wall = time.monotonic()
         now = rospy.get_time()
         age = now - frame.stamp
-        if self.p.max_frame_age > 0 and age > self.p.max_frame_age and frame.stamp <= now:
-            # Never fall behind: an old frame is worth less than the next one.
+        # Never fall behind: when newer ring frames are already waiting, this one is worth less than
+        # the newest; a frame older than max_frame_age (ROS time) is dropped too. The age alone is
+        # not enough: frames with a silent camera wait `timeout` s of wall time in the assembler,
+        # which is several seconds of ROS time when a bag plays faster than real time.
+        waiting = len(getattr(getattr(self, "ring_input", None), "_ready", ()))
+        if waiting or (self.p.max_frame_age > 0 and age > self.p.max_frame_age and frame.stamp <= now):
             self.dropped_stale += 1
             rospy.logwarn_throttle(WARN_PERIOD, f"localizer: dropped {self.dropped_stale} stale ring frames "
-                                                f"(last {age:.2f} s old)")
+                                                f"(last {age:.2f} s old, {waiting} newer waiting)")
             return
         ring_input = getattr(self, "ring_input", None)
         if ring_input is not None and ring_input.ring is not self.tracker.localizer.ring:
