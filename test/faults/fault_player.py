@@ -151,8 +151,11 @@ class FaultPlayer:
             p[2] = geo.wrap_angle(p[2])
         return p
 
-    def play(self, t_start: float = 0.0, t_end: Optional[float] = None) -> None:
-        """Publish frames for player times [t_start, t_end) (default: the whole schedule)."""
+    def play(self, t_start: float = 0.0, t_end: Optional[float] = None, speed: float = 1.0) -> None:
+        """Publish frames for player times [t_start, t_end) (default: the whole schedule).
+
+        ``speed``: simulated seconds per wall second (the pacing; the stamps are unchanged).
+        """
         t_end = self.schedule.duration if t_end is None else t_end
         n = int(round((t_end - t_start) * self.rate_hz))
         for k in range(n):
@@ -183,7 +186,7 @@ class FaultPlayer:
                 msg.header.frame_id = f"{cam.frame_id}_unknown" if name in phase.wrong_frame else cam.frame_id
                 msg.fiducials = observations_to_fiducials(cf.observations)
                 self.fv_pubs[name].publish(msg)
-            rospy.rostime.wallsleep(1.0 / self.rate_hz)
+            rospy.rostime.wallsleep(1.0 / (self.rate_hz * speed))
 
     # --- queries ---------------------------------------------------------------------------------
 
