@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """`make fuzz`: the fuzz tests (test/unit/test_fuzz_*.py) with many more examples.
 
-Runs pytest once over every ``test_fuzz_*.py`` with ``FUZZ_EXAMPLES`` examples per test (default
+Runs pytest once over every ``test_fuzz_*.py`` (and the node-callback fuzz in
+test_node_bad_input.py) with ``FUZZ_EXAMPLES`` examples per test (default
 2000; CI runs 40), Hypothesis's random exploration with a FIXED seed (``--seed``, so a run is
 reproducible and a failure can be replayed), and prints per test: examples tried, failing
 examples, seconds. The figures go to ``results/fuzz/fuzz.json`` and, as a markdown table, to
@@ -56,11 +57,12 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
 
     files = sorted(os.path.relpath(f, REPO) for f in glob.glob(os.path.join(REPO, "test", "unit", "test_fuzz_*.py")))
+    # the node callbacks' fuzz lives with the node bad-input tests (it needs rospy: skipped without)
+    files.append(os.path.join("test", "unit", "test_node_bad_input.py"))
     env = dict(os.environ, FUZZ_EXAMPLES=str(args.examples), HYPOTHESIS_PROFILE="dev")
     cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-W", "ignore::RuntimeWarning",
            "--hypothesis-show-statistics", f"--hypothesis-seed={args.seed}", *files]
-    if args.only:
-        cmd += ["-k", args.only]
+    cmd += ["-k", f"fuzz and ({args.only})" if args.only else "fuzz"]
     print(f"fuzz: {args.examples} examples per test, seed {args.seed}: {' '.join(files)}", flush=True)
     t0 = time.time()
     proc = subprocess.run(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

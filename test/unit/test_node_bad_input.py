@@ -35,7 +35,8 @@ from aruco_ring_localization.ros.conversions import (make_transform_stamped, mod
 from aruco_ring_localization.simulation.ring_sim import RingSimulator  # noqa: E402
 from aruco_ring_localization.simulation.scene import Scene  # noqa: E402
 
-from fuzz_support import FUZZ  # noqa: E402
+from fuzz_support import EXAMPLES, FUZZ  # noqa: E402
+from hypothesis import settings  # noqa: E402
 from helpers import REPO, RING_YAML  # noqa: E402
 
 POSE = (5.2, 4.3, 0.4)  # robot on the plate (x, y, yaw)
@@ -303,7 +304,7 @@ fiducial = st.builds(lambda i, c: _fid(i, [(c[0], c[1]), (c[2], c[3]), (c[4], c[
                      st.lists(floats, min_size=8, max_size=8))
 
 
-@FUZZ
+@settings(FUZZ, max_examples=max(40, EXAMPLES // 8))  # each example builds a node (~0.2 s)
 @given(st.data())
 def test_fuzz_node_callbacks_never_raise(world, data):
     """Arbitrary detections, camera_info and initialpose: no callback ever raises."""
