@@ -96,7 +96,7 @@ class ComparisonNode:
         self.last_stamp: Optional[rospy.Time] = None
         self.last_ref: Optional[np.ndarray] = None
         self.last_tf_stamp: Optional[rospy.Time] = None
-        self.timer = rospy.Timer(rospy.Duration(1.0 / max(params.rate, 0.1)), self.on_timer)
+        self.timer = rospy.Timer(rospy.Duration(1.0 / max(params.rate, 0.1)), self.on_timer, reset=True)
         rospy.on_shutdown(self.on_shutdown)
         rospy.loginfo("comparison: %s -> %s (reference) against %s -> %s (ours); alignment %s; tables to %s",
                       params.reference_frame, params.reference_child, params.estimate_frame, params.estimate_child,

@@ -158,7 +158,7 @@ class LocalizerNode:
         rospy.Timer(rospy.Duration(params.diagnostics_period), self.publish_diagnostics, reset=True)
         rospy.Timer(rospy.Duration(params.markers_period), self.publish_markers, reset=True)
         self.last_frame_wall: Optional[float] = None
-        rospy.Timer(rospy.Duration(0.1), self.on_blind_timer)
+        rospy.Timer(rospy.Duration(0.1), self.on_blind_timer, reset=True)
         rospy.loginfo("localizer: %d mapped markers in %s, fusion %s, output %s -> %s, tf %s (%s)",
                       len(marker_map), self.map_frame, params.fusion, self.map_frame, self.base_frame,
                       params.tf_mode, "on" if params.publish_tf else "off")

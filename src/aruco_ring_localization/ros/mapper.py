@@ -168,8 +168,8 @@ class MapperNode:
                                     camera_info_fallback=params.camera_info_fallback == "ring", ignore_ids=ignore)
         rospy.Service("~save_map", Trigger, self.on_save_map)
         rospy.Service("~clear", Trigger, self.on_clear)
-        rospy.Timer(rospy.Duration(params.publish_period), self.on_publish_timer)
-        rospy.Timer(rospy.Duration(params.progress_period), self.on_progress_timer)
+        rospy.Timer(rospy.Duration(params.publish_period), self.on_publish_timer, reset=True)
+        rospy.Timer(rospy.Duration(params.progress_period), self.on_progress_timer, reset=True)
         rospy.on_shutdown(self.on_shutdown)
         rospy.loginfo("mapper: method %s, map file %s, map frame %s", params.method, self.map_file, params.map_frame)
 

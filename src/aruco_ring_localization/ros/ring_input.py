@@ -114,7 +114,8 @@ class RingInput:
                                                callback_args=name, queue_size=5))
             self._subs.append(rospy.Subscriber(f"{prefix}camera_info", CameraInfo, self._on_camera_info,
                                                callback_args=name, queue_size=1))
-        self._timer = rospy.Timer(rospy.Duration(poll_period), self._on_timer)
+        # reset=True: a bag loop moves ROS time backwards, which would otherwise kill the timer thread.
+        self._timer = rospy.Timer(rospy.Duration(poll_period), self._on_timer, reset=True)
         rospy.loginfo("ring input: %d cameras (%s), slop %.3f s, timeout %.3f s, extrinsics from %s, "
                       "intrinsics from camera_info%s", len(names), ", ".join(names), slop, timeout,
                       "tf" if use_tf else "the ring file", " (ring file as fallback)" if camera_info_fallback else "")
