@@ -20,6 +20,14 @@ File format (YAML, written atomically with the previous file kept as ``.bak``; d
         position_std: [0.001, 0.001, 0.001] # m, 1 sigma per axis of the map frame
         rotation_std: [0.002, 0.002, 0.002] # rad, 1 sigma about the marker's x, y, z
         observations: 120
+    ring_calibration:                       # optional: the ring extrinsics refined while mapping
+      base_frame: base_link
+      cameras:
+        cam0: {translation: [0.12, 0.0, 0.75], rotation: [-0.5, 0.5, -0.5, 0.5]}
+
+The markers were estimated through the ring extrinsics. When bundle adjustment refined those
+(``ring_calibration``), localizing with them instead of the original calibration removes the
+calibration error from every pose (``ring_tf`` publishes them when given the map file).
 
 fiducial_slam's ``map.txt`` (one marker a line: ``id x y z rx ry rz variance nObs [links...]``,
 angles fixed-axis roll/pitch/yaw in degrees) is imported and exported too.
@@ -84,8 +92,13 @@ class MarkerMap:
 
     def __init__(self, entries: Iterable[MarkerEntry] = (), frame_id: str = "map",
                  reference_marker: Optional[int] = None, frame_definition: str = "", method: str = "",
-                 created: str = ""):
+                 created: str = "", ring_extrinsics: Optional[Mapping[str, np.ndarray]] = None,
+                 ring_base_frame: str = "base_link"):
         self._entries: Dict[int, MarkerEntry] = {}
+        #: camera name -> refined ``T_base_cam`` (4x4), empty when the map carries no calibration.
+        self.ring_extrinsics: Dict[str, np.ndarray] = {
+            str(k): geo.validate_transform(v, f"ring extrinsics of {k}") for k, v in (ring_extrinsics or {}).items()}
+        self.ring_base_frame = ring_base_frame
         self._corners: Dict[int, np.ndarray] = {}
         self.frame_id = frame_id
         self.reference_marker = reference_marker
@@ -150,7 +163,7 @@ class MarkerMap:
                 "rotation_std": [float(v) for v in e.rotation_std],
                 "observations": int(e.observations),
             })
-        return {
+        out: Dict[str, Any] = {
             "format_version": MAP_FORMAT_VERSION,
             "frame_id": self.frame_id,
             "reference_marker": self.reference_marker,
@@ -159,6 +172,14 @@ class MarkerMap:
             "created": self.created or _now_iso(),
             "markers": markers,
         }
+        if self.ring_extrinsics:
+            out["ring_calibration"] = {
+                "base_frame": self.ring_base_frame,
+                "cameras": {name: {"translation": [float(v) for v in T[:3, 3]],
+                                   "rotation": [float(v) for v in geo.quaternion_from_matrix(T)]}
+                            for name, T in sorted(self.ring_extrinsics.items())},
+            }
+        return out
 
     def save(self, path: str) -> None:
         """Write the map as YAML, atomically; the previous file is kept as ``<path>.bak``."""
@@ -202,6 +223,8 @@ class MarkerMap:
             out.add(entry)
         if ref is not None and ref not in out:
             raise ConfigError(f"reference marker {ref} is not among the markers", path=source, key="reference_marker")
+        if data.get("ring_calibration") is not None:
+            out.ring_base_frame, out.ring_extrinsics = _read_ring_calibration(data["ring_calibration"], source)
         return out
 
     # --- fiducial_slam ------------------------------------------------------------------------
@@ -287,6 +310,19 @@ def _entry_from_dict(m: Any, source: str, key: str) -> MarkerEntry:
     if isinstance(nobs, bool) or not isinstance(nobs, int) or nobs < 0:
         raise ConfigError(f"expected a non-negative integer, got {nobs!r}", path=source, key=f"{key}.observations")
     return MarkerEntry(mid, T, float(size), pos_std, rot_std, nobs)
+
+
+def _read_ring_calibration(node: Any, source: str):
+    key = "ring_calibration"
+    if not isinstance(node, Mapping) or not isinstance(node.get("cameras"), Mapping) or not node["cameras"]:
+        raise ConfigError("expected {base_frame: NAME, cameras: {NAME: {translation, rotation}}}", path=source, key=key)
+    base = node.get("base_frame", "base_link")
+    if not isinstance(base, str) or not base:
+        raise ConfigError("expected a non-empty frame name", path=source, key=f"{key}.base_frame")
+    from .rig import read_transform
+
+    cams = {str(name): read_transform(T, source, f"{key}.cameras.{name}") for name, T in node["cameras"].items()}
+    return base, cams
 
 
 def _read_std(m: Mapping[str, Any], name: str, source: str, key: str) -> np.ndarray:

@@ -220,3 +220,20 @@ def ring_summary(ring: CameraRing) -> List[str]:
         lines.append(f"  overlap {ring.cameras[a].name}-{ring.cameras[b].name}: {np.degrees(overlap):+.1f} deg"
                      + ("  (blind gap)" if overlap < 0 else ""))
     return lines
+
+
+def apply_refined_extrinsics(ring: CameraRing, extrinsics: Mapping[str, np.ndarray], base_frame: str,
+                             source: str = "<map>") -> CameraRing:
+    """The ring with the extrinsics refined while mapping (a map file's ``ring_calibration``).
+
+    Cameras absent from ``extrinsics`` keep their calibration. Raises ConfigError when the
+    calibration was made for another base frame or names a camera the ring does not have.
+    """
+    if base_frame != ring.base_frame:
+        raise ConfigError(f"refined for base frame '{base_frame}', but the ring's base frame is "
+                          f"'{ring.base_frame}'", path=source, key="ring_calibration.base_frame")
+    unknown = sorted(set(extrinsics) - set(ring.names))
+    if unknown:
+        raise ConfigError(f"cameras {unknown} are not in the ring ({', '.join(ring.names)})", path=source,
+                          key="ring_calibration.cameras")
+    return ring.with_extrinsics(extrinsics)

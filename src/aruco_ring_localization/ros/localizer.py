@@ -39,7 +39,7 @@ from ..kalman import FilterParams
 from ..localization import LocalizationParams
 from ..marker_map import MarkerMap
 from ..markers import parse_id_list
-from ..rig import CameraRing
+from ..rig import CameraRing, apply_refined_extrinsics
 from ..tracker import RingTracker, TrackResult
 from .conversions import (make_transform_stamped, msg_to_transform, pose_msg_to_transform, pose_to_msg,
                           se2_covariance_to_pose_covariance, stamp_to_sec)
@@ -402,6 +402,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         marker_map = MarkerMap.load(params.map_file)
         if len(marker_map) == 0:
             raise ConfigError("the map has no markers", path=params.map_file, key="markers")
+        if marker_map.ring_extrinsics and not params.use_tf:
+            # Without tf, the ring file's extrinsics would be used: prefer the ones refined with the map.
+            ring = apply_refined_extrinsics(ring, marker_map.ring_extrinsics, marker_map.ring_base_frame,
+                                            source=params.map_file)
+            rospy.loginfo("localizer: using the ring extrinsics refined while mapping (%s)", params.map_file)
         LocalizerNode(params, ring, marker_map)
     except (ConfigError, ValueError) as exc:
         rospy.logfatal("localizer: %s", exc)

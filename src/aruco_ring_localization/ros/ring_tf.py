@@ -11,6 +11,9 @@ would leave late-joining listeners with only the last camera.
 Parameters (private):
     ~ring_file (str, default: ``$(find aruco_ring_localization)/config/ring.yaml``):
         path of the ring YAML file.
+    ~map_file (str, default ""): a marker map; when it carries a ``ring_calibration`` (the
+        extrinsics refined by bundle adjustment while mapping), those are published instead of
+        the ring file's. Localization uses the refined calibration this way; mapping must not.
 
 Exits with code 1 and a fatal log naming the file and the key when the ring file is unusable.
 """
@@ -26,7 +29,8 @@ import tf2_ros
 from geometry_msgs.msg import TransformStamped
 
 from ..errors import ConfigError
-from ..rig import CameraRing
+from ..marker_map import MarkerMap
+from ..rig import CameraRing, apply_refined_extrinsics
 from .conversions import make_transform_stamped
 
 PACKAGE = "aruco_ring_localization"
@@ -69,6 +73,22 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if ring is None:
         rospy.signal_shutdown("bad ring file")
         return 1
+    # ~map_file (str): marker map whose refined ring calibration, if any, replaces the ring file's.
+    map_file = str(rospy.get_param("~map_file", "") or "")
+    if map_file:
+        try:
+            marker_map = MarkerMap.load(map_file)
+            if marker_map.ring_extrinsics:
+                ring = apply_refined_extrinsics(ring, marker_map.ring_extrinsics, marker_map.ring_base_frame,
+                                                source=map_file)
+                rospy.loginfo("ring_tf: using the extrinsics of %d cameras refined while mapping (%s)",
+                              len(marker_map.ring_extrinsics), map_file)
+            else:
+                rospy.loginfo("ring_tf: %s carries no refined ring calibration; using %s", map_file, ring_file)
+        except ConfigError as exc:
+            rospy.logfatal("ring_tf: cannot use the map's ring calibration: %s", exc)
+            rospy.signal_shutdown("bad map file")
+            return 1
 
     broadcaster = tf2_ros.StaticTransformBroadcaster()
     transforms = ring_transforms(ring, rospy.Time.now())
