@@ -1,0 +1,374 @@
+"""ArUco marker detection on one image, compatible with UbiquityRobotics' ``aruco_detect``.
+
+* :class:`DetectorParams` — the detector's settings (dictionary, corner refinement, size limits),
+  a frozen dataclass with the defaults that reproduce aruco_detect's published test corners.
+* :class:`Detector` — wraps OpenCV's ``cv2.aruco.ArucoDetector``: ``detect(gray)`` returns
+  :class:`~aruco_ring_localization.frames.MarkerObservation` with corners in aruco_detect order
+  (0 top-left, 1 top-right, 2 bottom-right, 3 bottom-left of the printed marker; this is OpenCV's
+  order), in raw (distorted) pixels of the image.
+* :func:`marker_poses` — per-marker pose ``T_cam_marker`` (single-marker IPPE from
+  :mod:`pnp`) with aruco_detect's quality figures ``image_error``, ``object_error`` and
+  ``fiducial_area`` (definitions in :class:`MarkerPose` and docs/detector.md).
+* :func:`image_to_gray` — a ``sensor_msgs/Image`` payload (encoding, size, step, bytes) to a mono8
+  array without cv_bridge, with every malformed field reported as a
+  :class:`~aruco_ring_localization.errors.MeasurementError` that names the field.
+* :func:`annotate` — a BGR copy of the image with the detections drawn (``fiducial_images``).
+
+No rospy here: the ROS node (``ros/detector.py``) and the CLI (``aruco_ring detect``) call this.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Sequence
+
+import cv2
+import numpy as np
+
+from . import geometry as geo
+from .camera import CameraModel
+from .errors import ArucoRingError, ConfigError, MeasurementError
+from .frames import MarkerObservation
+from .markers import MarkerSizes
+from .pnp import solve_marker_ippe
+
+logger = logging.getLogger(__name__)
+
+#: Corner refinement names accepted by :class:`DetectorParams` -> OpenCV constants.
+CORNER_REFINEMENT = {
+    "none": cv2.aruco.CORNER_REFINE_NONE,
+    "subpix": cv2.aruco.CORNER_REFINE_SUBPIX,
+    "contour": cv2.aruco.CORNER_REFINE_CONTOUR,
+    "apriltag": cv2.aruco.CORNER_REFINE_APRILTAG,
+}
+
+#: Largest predefined dictionary index OpenCV 4.x knows (DICT_ARUCO_MIP_36h12 = 21).
+_MAX_DICTIONARY = 21
+
+#: Supported ``sensor_msgs/Image`` encodings -> (channels, bytes per channel).
+ENCODINGS = {
+    "mono8": (1, 1),
+    "8UC1": (1, 1),
+    "mono16": (1, 2),
+    "16UC1": (1, 2),
+    "bgr8": (3, 1),
+    "rgb8": (3, 1),
+    "bgra8": (4, 1),
+    "rgba8": (4, 1),
+}
+
+
+@dataclass(frozen=True)
+class DetectorParams:
+    """Settings of the ArUco detector.
+
+    Attributes:
+        dictionary: OpenCV predefined dictionary index, as aruco_detect's ``dictionary``
+            parameter (7 = DICT_5X5_1000, the default; 0 = DICT_4X4_50, 16 = DICT_ARUCO_ORIGINAL,
+            17..20 = AprilTag families).
+        corner_refinement: ``subpix`` (default: cornerSubPix on the detected corners, what
+            aruco_detect does with its default ``doCornerRefinement``/``cornerRefinementSubpix``;
+            reproduces its test corners to 1e-4 px), ``contour`` (line fit on the contour: more
+            robust to blur, less precise), ``apriltag`` (slow), or ``none`` (integer-ish polygon
+            corners; fastest, about 0.3-0.5 px worse).
+        corner_refinement_win_size: half window of the subpixel search, pixels.
+        corner_refinement_max_iterations: iteration cap of the refinement.
+        corner_refinement_min_accuracy: stop when a corner moves less than this, pixels
+            (aruco_detect uses 0.01; OpenCV's own default 0.1 leaves up to 0.03 px).
+        min_marker_perimeter_rate: smallest marker perimeter as a fraction of the image's larger
+            side (0.03 -> 38 px perimeter, about 10 px per side at 1280 px).
+        max_marker_perimeter_rate: largest perimeter, same unit.
+        adaptive_thresh_win_size_min, adaptive_thresh_win_size_max, adaptive_thresh_win_size_step:
+            window sizes (pixels) of the adaptive thresholds tried; more windows find markers in
+            harder light but cost time linearly.
+        adaptive_thresh_constant: subtracted from the local mean before thresholding.
+        error_correction_rate: fraction of the dictionary's correction capacity used (0..1).
+        min_distance_to_border: markers closer than this to the image border are rejected, px.
+        detect_inverted_marker: also accept white-on-black markers.
+    """
+
+    dictionary: int = 7
+    corner_refinement: str = "subpix"
+    corner_refinement_win_size: int = 5
+    corner_refinement_max_iterations: int = 30
+    corner_refinement_min_accuracy: float = 0.01
+    min_marker_perimeter_rate: float = 0.03
+    max_marker_perimeter_rate: float = 4.0
+    adaptive_thresh_win_size_min: int = 3
+    adaptive_thresh_win_size_max: int = 23
+    adaptive_thresh_win_size_step: int = 10
+    adaptive_thresh_constant: float = 7.0
+    error_correction_rate: float = 0.6
+    min_distance_to_border: int = 3
+    detect_inverted_marker: bool = False
+
+    def __post_init__(self) -> None:
+        if isinstance(self.dictionary, bool) or not isinstance(self.dictionary, (int, np.integer)) \
+                or not 0 <= int(self.dictionary) <= _MAX_DICTIONARY:
+            raise ConfigError(f"expected an OpenCV predefined dictionary index 0..{_MAX_DICTIONARY}, "
+                              f"got {self.dictionary!r}", key="dictionary")
+        if self.corner_refinement not in CORNER_REFINEMENT:
+            raise ConfigError(f"expected one of {sorted(CORNER_REFINEMENT)}, got {self.corner_refinement!r}",
+                              key="corner_refinement")
+        positive = {
+            "corner_refinement_win_size": self.corner_refinement_win_size,
+            "corner_refinement_max_iterations": self.corner_refinement_max_iterations,
+            "corner_refinement_min_accuracy": self.corner_refinement_min_accuracy,
+            "min_marker_perimeter_rate": self.min_marker_perimeter_rate,
+            "max_marker_perimeter_rate": self.max_marker_perimeter_rate,
+            "adaptive_thresh_win_size_min": self.adaptive_thresh_win_size_min,
+            "adaptive_thresh_win_size_max": self.adaptive_thresh_win_size_max,
+            "adaptive_thresh_win_size_step": self.adaptive_thresh_win_size_step,
+        }
+        for key, value in positive.items():
+            if not np.isfinite(value) or value <= 0:
+                raise ConfigError(f"must be positive, got {value!r}", key=key)
+        if self.adaptive_thresh_win_size_min < 3 or \
+                self.adaptive_thresh_win_size_max < self.adaptive_thresh_win_size_min:
+            raise ConfigError(f"need 3 <= min <= max, got {self.adaptive_thresh_win_size_min}.."
+                              f"{self.adaptive_thresh_win_size_max}", key="adaptive_thresh_win_size_min")
+        if self.min_marker_perimeter_rate >= self.max_marker_perimeter_rate:
+            raise ConfigError("must be below max_marker_perimeter_rate", key="min_marker_perimeter_rate")
+        if not 0.0 <= self.error_correction_rate <= 1.0:
+            raise ConfigError(f"must be in [0, 1], got {self.error_correction_rate!r}", key="error_correction_rate")
+        if self.min_distance_to_border < 0:
+            raise ConfigError(f"must be >= 0, got {self.min_distance_to_border!r}", key="min_distance_to_border")
+
+    def opencv(self) -> "cv2.aruco.DetectorParameters":
+        """The equivalent ``cv2.aruco.DetectorParameters``."""
+        p = cv2.aruco.DetectorParameters()
+        p.cornerRefinementMethod = CORNER_REFINEMENT[self.corner_refinement]
+        p.cornerRefinementWinSize = int(self.corner_refinement_win_size)
+        p.cornerRefinementMaxIterations = int(self.corner_refinement_max_iterations)
+        p.cornerRefinementMinAccuracy = float(self.corner_refinement_min_accuracy)
+        p.minMarkerPerimeterRate = float(self.min_marker_perimeter_rate)
+        p.maxMarkerPerimeterRate = float(self.max_marker_perimeter_rate)
+        p.adaptiveThreshWinSizeMin = int(self.adaptive_thresh_win_size_min)
+        p.adaptiveThreshWinSizeMax = int(self.adaptive_thresh_win_size_max)
+        p.adaptiveThreshWinSizeStep = int(self.adaptive_thresh_win_size_step)
+        p.adaptiveThreshConstant = float(self.adaptive_thresh_constant)
+        p.errorCorrectionRate = float(self.error_correction_rate)
+        p.minDistanceToBorder = int(self.min_distance_to_border)
+        p.detectInvertedMarker = bool(self.detect_inverted_marker)
+        return p
+
+
+class Detector:
+    """ArUco detection on mono8 images (one instance per camera; not thread-safe)."""
+
+    def __init__(self, params: Optional[DetectorParams] = None):
+        self.params = params if params is not None else DetectorParams()
+        dictionary = cv2.aruco.getPredefinedDictionary(int(self.params.dictionary))
+        self._detector = cv2.aruco.ArucoDetector(dictionary, self.params.opencv())
+
+    def detect(self, gray: np.ndarray) -> List[MarkerObservation]:
+        """Markers in a grayscale image.
+
+        Args:
+            gray: (height, width) uint8 image (a 3-channel BGR image is converted).
+
+        Returns:
+            One :class:`MarkerObservation` per detected marker, in OpenCV's output order,
+            corners (4, 2) float64 raw pixels in aruco_detect order (pixel centres at integer
+            coordinates, as OpenCV and aruco_detect).
+
+        Raises:
+            MeasurementError: not a 2-D uint8 (or 3-channel uint8) array, or empty.
+        """
+        img = np.asarray(gray)
+        if img.ndim == 3 and img.shape[2] == 3 and img.dtype == np.uint8:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        if img.ndim != 2 or img.dtype != np.uint8:
+            raise MeasurementError(f"image: expected a 2-D uint8 array, got shape {img.shape} dtype {img.dtype}")
+        if img.size == 0:
+            raise MeasurementError(f"image: empty ({img.shape})")
+        try:
+            corners, ids, _rejected = self._detector.detectMarkers(img)
+        except cv2.error as exc:
+            raise MeasurementError(f"ArUco detection failed: {exc}") from None
+        if ids is None or len(ids) == 0:
+            return []
+        return [MarkerObservation(int(i), np.asarray(c, dtype=np.float64).reshape(4, 2))
+                for c, i in zip(corners, np.asarray(ids).ravel())]
+
+
+@dataclass(frozen=True)
+class MarkerPose:
+    """Pose of one detected marker, with aruco_detect's quality figures.
+
+    Attributes:
+        marker_id: ArUco id.
+        corners: (4, 2) detected raw pixels, aruco_detect order.
+        size: side of the black square used, m.
+        T_cam_marker: (4, 4) marker frame in the camera's optical frame (best IPPE solution).
+        image_error: aruco_detect's ``image_error``: the MEAN SQUARED reprojection error over the
+            4 corners, pixels^2 (its source calls it RMS but never takes the square root; we
+            keep its definition so thresholds carry over).
+        object_error: aruco_detect's ``object_error``: ``image_error / |c0 - c2| * |t| / size``,
+            where ``|c0 - c2|`` is the image diagonal in pixels and ``|t|`` the marker's distance
+            in m (aruco_detect divides by the default ``fiducial_len`` even for overridden
+            markers; we use the marker's own size).
+        fiducial_area: area of the corner quadrilateral in pixels^2 (aruco_detect: Heron's
+            formula on triangles (c0, c1, c3) and (c1, c2, c3)).
+        ambiguity: IPPE ambiguity ratio (best / second RMS error; near 1: the pose may be flipped).
+        T_cam_marker_alt: (4, 4) the other IPPE solution, or None.
+    """
+
+    marker_id: int
+    corners: np.ndarray
+    size: float
+    T_cam_marker: np.ndarray
+    image_error: float
+    object_error: float
+    fiducial_area: float
+    ambiguity: float
+    T_cam_marker_alt: Optional[np.ndarray] = field(default=None, repr=False)
+
+
+def fiducial_area(corners) -> float:
+    """Area (pixels^2) of the quadrilateral c0 c1 c2 c3 as aruco_detect computes it.
+
+    Sum of the triangles (c0, c1, c3) and (c1, c2, c3) by Heron's formula; equal to the polygon
+    area for a convex quad.
+    """
+    c = np.asarray(corners, dtype=np.float64).reshape(4, 2)
+
+    def heron(a, b, d) -> float:
+        la, lb, lc = np.linalg.norm(a - b), np.linalg.norm(a - d), np.linalg.norm(b - d)
+        s = 0.5 * (la + lb + lc)
+        return float(np.sqrt(max(s * (s - la) * (s - lb) * (s - lc), 0.0)))
+
+    return heron(c[0], c[1], c[3]) + heron(c[1], c[2], c[3])
+
+
+def marker_pose(obs: MarkerObservation, model: CameraModel, size: float, refine: bool = True) -> MarkerPose:
+    """Pose and quality figures of one observation (see :class:`MarkerPose`).
+
+    ``refine`` polishes both IPPE solutions by Levenberg-Marquardt on the reprojection error, as
+    aruco_detect's ``solvePnP`` (ITERATIVE) does: without it the 403.jpg conformance pose differs
+    from aruco_detect's by 1.5 mrad, with it by 0.2 mrad (IPPE's closed form is not the
+    least-squares optimum). :func:`pnp.solve_marker_ippe` keeps the unrefined pair when the
+    refinement merges the two solutions, so the ambiguity stays visible.
+
+    Raises:
+        MeasurementError: degenerate corners or no IPPE solution in front of the camera.
+    """
+    cand = solve_marker_ippe(obs.corners, size, model, refine=refine)
+    T = cand.T_cam_marker
+    image_error = float(cand.error) ** 2  # mean squared pixel error, as aruco_detect
+    diag = float(np.linalg.norm(obs.corners[0] - obs.corners[2]))
+    object_error = image_error / diag * float(np.linalg.norm(T[:3, 3])) / size if diag > 0 else float("inf")
+    return MarkerPose(
+        marker_id=int(obs.marker_id), corners=np.asarray(obs.corners, dtype=np.float64), size=float(size),
+        T_cam_marker=T, image_error=image_error, object_error=float(object_error),
+        fiducial_area=fiducial_area(obs.corners), ambiguity=float(cand.ambiguity),
+        T_cam_marker_alt=cand.poses[1] if len(cand.poses) > 1 else None)
+
+
+def marker_poses(observations: Sequence[MarkerObservation], model: CameraModel,
+                 sizes: MarkerSizes, refine: bool = True) -> List[MarkerPose]:
+    """Poses of every observation whose pose can be solved (others are logged and skipped).
+
+    Args:
+        observations: detections in raw pixels of the camera ``model``.
+        model: the camera's intrinsics (from camera_info).
+        sizes: marker side per id, m (``fiducial_len`` + ``fiducial_len_override``).
+        refine: Levenberg-Marquardt polish of the IPPE poses (see :func:`marker_pose`).
+
+    Returns:
+        :class:`MarkerPose` list in the order of ``observations`` (minus the unsolvable ones).
+    """
+    out: List[MarkerPose] = []
+    for obs in observations:
+        try:
+            out.append(marker_pose(obs, model, sizes(obs.marker_id), refine=refine))
+        except ArucoRingError as exc:
+            logger.debug("no pose for marker %d: %s", obs.marker_id, exc)
+    return out
+
+
+def image_to_gray(encoding: str, width: int, height: int, step: int, data, is_bigendian: bool = False) -> np.ndarray:
+    """Decode a ``sensor_msgs/Image`` payload into a mono8 array (height, width).
+
+    Args:
+        encoding: ``mono8`` (``8UC1``), ``mono16`` (``16UC1``, scaled by 1/256 as cv_bridge),
+            ``bgr8``, ``rgb8``, ``bgra8`` or ``rgba8``.
+        width, height: image size, pixels (> 0).
+        step: bytes per row, >= width * bytes per pixel (padding at row ends is skipped).
+        data: the bytes (``bytes``, ``bytearray``, a list of ints or a uint8 array).
+        is_bigendian: byte order of 16-bit encodings.
+
+    Returns:
+        (height, width) uint8 array (a view of ``data`` for unpadded mono8, else a new array).
+
+    Raises:
+        MeasurementError: naming the field — unsupported ``encoding``, zero ``width``/``height``,
+            ``step`` too small, or ``data`` shorter than ``step * height``.
+    """
+    if encoding not in ENCODINGS:
+        raise MeasurementError(f"encoding: unsupported image encoding {encoding!r} "
+                               f"(supported: {', '.join(ENCODINGS)})")
+    channels, depth = ENCODINGS[encoding]
+    width, height, step = int(width), int(height), int(step)
+    if width <= 0 or height <= 0:
+        raise MeasurementError(f"width/height: zero-size image ({width}x{height})")
+    row_bytes = width * channels * depth
+    if step < row_bytes:
+        raise MeasurementError(f"step: {step} bytes per row is less than width {width} x {channels * depth} "
+                               f"bytes per pixel = {row_bytes} for {encoding}")
+    if isinstance(data, np.ndarray):
+        buf = data.reshape(-1).view(np.uint8) if data.dtype != np.uint8 else data.reshape(-1)
+    elif isinstance(data, (bytes, bytearray, memoryview)):
+        buf = np.frombuffer(data, dtype=np.uint8)
+    else:
+        buf = np.asarray(data, dtype=np.uint8).reshape(-1)
+    need = step * (height - 1) + row_bytes
+    if buf.size < need:
+        raise MeasurementError(f"data: {buf.size} bytes, expected step {step} x height {height} = {step * height}")
+    if buf.size >= step * height:
+        rows = buf[:step * height].reshape(height, step)[:, :row_bytes]
+    else:  # last row without its padding: still decodable
+        rows = np.lib.stride_tricks.as_strided(buf, shape=(height, row_bytes), strides=(step, 1))
+    if depth == 2:
+        dt = np.dtype(">u2" if is_bigendian else "<u2")
+        img16 = np.ascontiguousarray(rows).view(dt).reshape(height, width)
+        return (img16 >> 8).astype(np.uint8)
+    if channels == 1:
+        return rows if rows.flags.c_contiguous else np.ascontiguousarray(rows)
+    pix = np.ascontiguousarray(rows).reshape(height, width, channels)
+    code = {
+        "bgr8": cv2.COLOR_BGR2GRAY, "rgb8": cv2.COLOR_RGB2GRAY,
+        "bgra8": cv2.COLOR_BGRA2GRAY, "rgba8": cv2.COLOR_RGBA2GRAY,
+    }[encoding]
+    return cv2.cvtColor(pix, code)
+
+
+def annotate(gray: np.ndarray, observations: Sequence[MarkerObservation],
+             poses: Sequence[MarkerPose] = (), model: Optional[CameraModel] = None) -> np.ndarray:
+    """BGR (height, width, 3) copy of ``gray`` with the detected outlines/ids and pose axes drawn."""
+    img = cv2.cvtColor(np.asarray(gray, dtype=np.uint8), cv2.COLOR_GRAY2BGR)
+    if observations:
+        corners = [np.asarray(o.corners, dtype=np.float32).reshape(1, 4, 2) for o in observations]
+        ids = np.array([[o.marker_id] for o in observations], dtype=np.int32)
+        cv2.aruco.drawDetectedMarkers(img, corners, ids)
+    if model is not None:
+        for p in poses:
+            axes = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=np.float64) * p.size
+            px = model.project(geo.transform_points(p.T_cam_marker, axes))
+            if not np.all(np.isfinite(px)):
+                continue
+            o = tuple(int(round(v)) for v in px[0])
+            for k, colour in ((1, (0, 0, 255)), (2, (0, 255, 0)), (3, (255, 0, 0))):
+                cv2.line(img, o, tuple(int(round(v)) for v in px[k]), colour, 2)
+    return img
+
+
+def dictionary_name(index: int) -> str:
+    """OpenCV's name of a predefined dictionary index (``DICT_5X5_1000`` for 7), or ``str(index)``."""
+    names: Dict[int, str] = {getattr(cv2.aruco, n): n for n in dir(cv2.aruco)
+                             if n.startswith("DICT_") and isinstance(getattr(cv2.aruco, n), int)}
+    return names.get(int(index), str(index))
+
+
+__all__ = ["DetectorParams", "Detector", "MarkerPose", "marker_pose", "marker_poses", "fiducial_area",
+           "image_to_gray", "annotate", "dictionary_name", "CORNER_REFINEMENT", "ENCODINGS"]
