@@ -1,6 +1,9 @@
 #!/usr/bin/env bash
-# Stand-in demo until the simulated-lab demo exists: runs the demo module when it is there,
-# otherwise validates and summarises the shipped ring configuration.
+# make demo: the paper's experiment on the simulated lab with the real ROS nodes
+# (src/aruco_ring_localization/demo.py). Outputs under results/demo/.
+#   make demo                 # tables, summary.json, TUM trajectories, figures
+#   make demo GUI=1           # the same, with rviz when a display exists
+#   tools/demo.sh --fusion paper --method paper   # options of python -m aruco_ring_localization.demo
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$REPO"
@@ -8,7 +11,8 @@ if [ -z "${ARUCO_RING_REPO:-}" ]; then
   # shellcheck disable=SC1091
   source .ws/env.sh
 fi
-if python -c 'import importlib.util, sys; sys.exit(importlib.util.find_spec("aruco_ring_localization.demo") is None)' 2>/dev/null; then
-  exec python -m aruco_ring_localization.demo "$@"
+args=()
+if [ -n "${GUI:-}" ] && [ "${GUI}" != 0 ]; then
+  if [ -n "${DISPLAY:-}" ]; then args+=(--gui); else echo "demo: GUI=1 but DISPLAY is not set: running without rviz"; fi
 fi
-exec aruco_ring check-config --ring config/ring.yaml
+exec python -m aruco_ring_localization.demo "${args[@]}" "$@"

@@ -1,0 +1,720 @@
+"""``make demo``: the paper's experiment (§III) end to end on the simulated lab, with the real ROS nodes.
+
+``python -m aruco_ring_localization.demo [--fusion joint|paper] [--method refined|paper]
+[--mode corners|images] [--gui] [--out results/demo]``
+
+1. starts its own roscore (a free port, so it never disturbs a running ROS);
+2. mapping: ``launch/demo.launch phase:=mapping`` (ring_tf + mapper); this process plays the
+   simulated lab: the robot stands at the plate centre (the paper's single placement) and every
+   camera's detections (``ring/camK/fiducial_vertices`` + ``camera_info``; in ``--mode images``
+   rendered images on ``ring/camK/image_raw`` for the detector nodes) go out with the simulated
+   clock; then ``/mapper/save_map`` writes the map;
+3. localization: ``demo.launch phase:=localization`` (ring_tf + localizer on the saved map); the
+   robot drives through the paper's 15 positions and 8 orientations (``cmd_vel`` published as it
+   moves) and holds each stop for a few frames; the localizer's pose at each stop is recorded
+   against the simulator's ground truth;
+4. report: Table I (x, y, Euclidean error per position, cm), Table II (yaw error per
+   orientation, deg), the map error, a one-line summary; under ``--out``: ``summary.json``,
+   ``table1.md``/``.csv``, ``table2.md``/``.csv``, ``trajectory_estimate.tum``,
+   ``trajectory_truth.tum``, ``map.yaml`` and the figures (``map.png``, ``fig8_positions.png``,
+   ``fig9_camera_estimates.png``, ``fig10_orientations.png``).
+
+The comparison is fair: the truth is expressed in the map frame through the TRUE pose of the
+map's reference marker and the map's own frame definition
+(:func:`evaluation.truth_in_map_frame`); nothing is fitted that could hide an error.
+
+The simulator runs in lockstep with the localizer (each frame waits for the pose it produces, up
+to a timeout), so the result does not depend on the machine's speed, only the run time does.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import platform
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from . import geometry as geo
+from . import trajectory as tr
+from .errors import ArucoRingError
+from .marker_map import MarkerMap
+
+logger = logging.getLogger(__name__)
+
+REPO = Path(__file__).resolve().parents[2]
+PACKAGE = "aruco_ring_localization"
+
+
+# --------------------------------------------------------------------------------------------
+# Plan and report (pure: no ROS; unit-tested)
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class StopPlan:
+    """One stop of the drive: ``kind`` "position" (Table I) or "orientation" (Table II)."""
+
+    kind: str
+    label: str
+    pose: Tuple[float, float, float]  # world frame, x m, y m, yaw rad
+
+
+def plan_stops(test_positions: Sequence[Sequence[float]], test_orientations: Sequence[Sequence[float]]) -> List[StopPlan]:
+    """The paper's route: the 15 positions (labels 1..15), then the 8 orientations (1..8)."""
+    stops = [StopPlan("position", str(k + 1), tuple(float(v) for v in p)) for k, p in enumerate(test_positions)]
+    stops += [StopPlan("orientation", str(k + 1), tuple(float(v) for v in p)) for k, p in enumerate(test_orientations)]
+    return stops
+
+
+def interpolate_motion(start: Sequence[float], goal: Sequence[float], dt: float, max_speed: float = 0.5,
+                       max_yaw_rate: float = 1.0) -> List[Tuple[np.ndarray, np.ndarray]]:
+    """Poses (and body-frame velocity commands) from ``start`` to ``goal``, one per ``dt`` s.
+
+    Straight line and shortest rotation together, at constant speed limited by ``max_speed``
+    (m/s) and ``max_yaw_rate`` (rad/s). Returns [(pose (x, y, yaw), cmd (vx, vy, wz) in the
+    robot frame)], the last pose being ``goal``; empty when start == goal.
+    """
+    a = np.asarray(start, dtype=float)
+    b = np.asarray(goal, dtype=float)
+    dist = float(np.hypot(*(b[:2] - a[:2])))
+    dyaw = float(geo.angle_diff(b[2], a[2]))
+    duration = max(dist / max_speed, abs(dyaw) / max_yaw_rate)
+    n = int(np.ceil(duration / dt - 1e-9))
+    if n <= 0:
+        return []
+    v_world = (b[:2] - a[:2]) / (n * dt)
+    w = dyaw / (n * dt)
+    out = []
+    for k in range(1, n + 1):
+        f = k / n
+        pose = np.array([a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]), geo.wrap_angle(a[2] + f * dyaw)])
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        cmd = np.array([c * v_world[0] + s * v_world[1], -s * v_world[0] + c * v_world[1], w])
+        out.append((pose, cmd))
+    return out
+
+
+@dataclass
+class StopRecord:
+    """What the demo saw at one stop: the truth and our estimates (map frame)."""
+
+    plan: StopPlan
+    truth_world: np.ndarray                      # (3,) world frame
+    estimates: List[Tuple[float, np.ndarray]] = field(default_factory=list)   # (stamp, (x, y, yaw) map)
+    camera_estimates: List[np.ndarray] = field(default_factory=list)           # (K, 3) map, last frame
+
+
+def se2_in_frame(T_frame_world: np.ndarray, pose_world: Sequence[float]) -> np.ndarray:
+    """(x, y, yaw) of a world-frame planar pose expressed in another frame (4x4 ``T_frame_world``)."""
+    return geo.se2_from_transform(T_frame_world @ geo.transform_from_se2(*pose_world))
+
+
+def stop_rows(records: Sequence[StopRecord], T_map_world: np.ndarray, kind: str, use_last: int = 5) -> List[tr.StopError]:
+    """Table rows of the stops of ``kind``: truth in the map frame vs the median of the last estimates."""
+    rows = []
+    for rec in records:
+        if rec.plan.kind != kind:
+            continue
+        truth = se2_in_frame(T_map_world, rec.truth_world)
+        if not rec.estimates:
+            logger.warning("stop %s %s: no estimate recorded", kind, rec.plan.label)
+            rows.append(tr.StopError(rec.plan.label, truth, np.full(3, np.nan), 0))
+            continue
+        est = np.array([e for _, e in rec.estimates[-use_last:]])
+        fused = np.array([float(np.median(est[:, 0])), float(np.median(est[:, 1])), geo.circular_mean(est[:, 2])])
+        stamps = [s for s, _ in rec.estimates[-use_last:]]
+        rows.append(tr.StopError(rec.plan.label, truth, fused, len(est), float(stamps[0]), float(stamps[-1])))
+    return rows
+
+
+def summary_dict(pos_rows: Sequence[tr.StopError], yaw_rows: Sequence[tr.StopError], map_err: Optional[Dict[str, Any]],
+                 fusion: str, method: str, mode: str, runtime_s: float) -> Dict[str, Any]:
+    """The keys of ``summary.json`` (issue 6): position_error_cm, yaw_error_deg, map_error_mm, ..."""
+    def cm(r):
+        return float(100 * r.errors[2]) if np.all(np.isfinite(r.est)) else None
+
+    def deg(r):
+        return float(np.degrees(r.errors[3])) if np.all(np.isfinite(r.est)) else None
+
+    pos = [cm(r) for r in pos_rows]
+    yaw = [deg(r) for r in yaw_rows]
+    pos_ok = np.array([p for p in pos if p is not None])
+    yaw_ok = np.abs(np.array([y for y in yaw if y is not None]))
+    out: Dict[str, Any] = {
+        "position_error_cm": {
+            "median": float(np.median(pos_ok)) if pos_ok.size else None,
+            "max": float(np.max(pos_ok)) if pos_ok.size else None,
+            "mean": float(np.mean(pos_ok)) if pos_ok.size else None,
+            "per_position": {r.label: {"x": float(100 * r.errors[0]), "y": float(100 * r.errors[1]), "euclidean": p}
+                             if p is not None else None for r, p in zip(pos_rows, pos)},
+            "missing": len(pos) - int(pos_ok.size),
+        },
+        "yaw_error_deg": {
+            "mean_abs": float(np.mean(yaw_ok)) if yaw_ok.size else None,
+            "max_abs": float(np.max(yaw_ok)) if yaw_ok.size else None,
+            "per_orientation": {r.label: y for r, y in zip(yaw_rows, yaw)},
+            "missing": len(yaw) - int(yaw_ok.size),
+        },
+        "map_error_mm": None if map_err is None else {
+            "rms": map_err["position_rms_mm"], "max": map_err["position_max_mm"],
+            "rotation_mean_deg": map_err["rotation_mean_deg"], "rotation_max_deg": map_err["rotation_max_deg"],
+            "markers": map_err["n"], "missing": map_err["missing"]},
+        "fusion": fusion,
+        "map_method": method,
+        "mode": mode,
+        "runtime_s": float(runtime_s),
+        "paper": {"position_error_cm": {"median": 3.10, "max": 17.27}, "yaw_error_deg": {"mean_abs": 1.901, "max_abs": 4.501},
+                  "reference": "gmapping"},
+        "targets": {"position_error_cm": {"median": 1.0, "max": 3.0}, "yaw_error_deg": {"mean_abs": 0.3, "max_abs": 1.0}},
+        "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
+                    "cpus": os.cpu_count(), "python": platform.python_version()},
+        "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
+    return out
+
+
+def consistency(rows: Sequence[tr.StopError]) -> Optional[Dict[str, Any]]:
+    """Errors after the best-fit SE(2) alignment of all stop estimates onto the truth.
+
+    NOT the headline: a fitted alignment absorbs how well the map frame is fixed (the reference
+    marker's pose). It shows the localization's internal consistency, and with the headline
+    numbers how much of the error is the map frame's.
+    """
+    if len(rows) < 3:
+        return None
+    est = np.array([r.est for r in rows])
+    ref = np.array([r.ref for r in rows])
+    T = tr.align_se2(est, ref)
+    e = tr.pose_errors(ref, tr.apply_se2(T, est))
+    d, y = 100 * e[:, 2], np.degrees(np.abs(e[:, 3]))
+    return {"alignment": {"x_m": float(T[0]), "y_m": float(T[1]), "yaw_deg": float(np.degrees(T[2]))},
+            "position_error_cm": {"median": float(np.median(d)), "max": float(np.max(d))},
+            "yaw_error_deg": {"mean_abs": float(np.mean(y)), "max_abs": float(np.max(y))},
+            "note": "after a fitted SE(2) alignment of all stops: internal consistency, not the accuracy"}
+
+
+def summary_line(summary: Dict[str, Any]) -> str:
+    """One line: the demo's numbers beside the paper's."""
+    p, y, m = summary["position_error_cm"], summary["yaw_error_deg"], summary["map_error_mm"]
+
+    def f(v, fmt):
+        return "n/a" if v is None else format(v, fmt)
+
+    line = (f"position error median {f(p['median'], '.2f')} cm, max {f(p['max'], '.2f')} cm; "
+            f"|yaw| mean {f(y['mean_abs'], '.3f')} deg, max {f(y['max_abs'], '.3f')} deg")
+    if m is not None:
+        line += f"; map RMS {m['rms']:.1f} mm"
+    line += (f" ({summary['fusion']} fusion, {summary['map_method']} map, {summary['mode']} mode, "
+             f"{summary['runtime_s']:.0f} s)  [paper vs gmapping: 3.10 / 17.27 cm, 1.90 / 4.50 deg]")
+    return line
+
+
+def write_report(out_dir: Path, records: Sequence[StopRecord], est_map: MarkerMap, truth_map: MarkerMap, scene,
+                 trajectory_est: Sequence[Tuple[float, np.ndarray]], trajectory_truth: Sequence[Tuple[float, np.ndarray]],
+                 fusion: str, method: str, mode: str, runtime_s: float,
+                 fig9_labels: Sequence[str] = ("1", "8", "15")) -> Dict[str, Any]:
+    """Tables, summary.json, TUM trajectories and figures; returns the summary dict.
+
+    The truth (world frame) goes into the map frame through ``T_map_world`` from the map's own
+    frame definition applied to the true reference marker (no fitted alignment).
+    """
+    from . import evaluation, plots
+    from .fileio import atomic_write_text
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    T_world_map = evaluation.truth_in_map_frame(est_map, truth_map)
+    T_map_world = geo.inverse(T_world_map)
+    pos_rows = stop_rows(records, T_map_world, "position")
+    yaw_rows = stop_rows(records, T_map_world, "orientation")
+    try:
+        map_err = evaluation.map_error(est_map, truth_map)
+    except ArucoRingError as exc:
+        logger.warning("map error not computed: %s", exc)
+        map_err = None
+    ok_pos = [r for r in pos_rows if np.all(np.isfinite(r.est))]
+    ok_yaw = [r for r in yaw_rows if np.all(np.isfinite(r.est))]
+    t1 = tr.position_table_markdown(ok_pos, title="Table I. Errors in position (simulated lab)",
+                                    reference_name="ground truth")
+    t2 = tr.orientation_table_markdown(ok_yaw, title="Table II. Errors in orientation (simulated lab)",
+                                       reference_name="ground truth")
+    atomic_write_text(str(out_dir / "table1.md"), t1, keep_backup=False)
+    atomic_write_text(str(out_dir / "table2.md"), t2, keep_backup=False)
+    atomic_write_text(str(out_dir / "table1.csv"), tr.stops_csv(ok_pos), keep_backup=False)
+    atomic_write_text(str(out_dir / "table2.csv"), tr.stops_csv(ok_yaw), keep_backup=False)
+    summary = summary_dict(pos_rows, yaw_rows, map_err, fusion, method, mode, runtime_s)
+    summary["after_best_fit_se2"] = consistency(ok_pos + ok_yaw)
+    atomic_write_text(str(out_dir / "summary.json"), json.dumps(summary, indent=2) + "\n", keep_backup=False)
+    if trajectory_est:
+        tr.write_tum(str(out_dir / "trajectory_estimate.tum"),
+                     tr.Trajectory.from_se2([s for s, _ in trajectory_est], np.array([p for _, p in trajectory_est])),
+                     header=f"aruco_ring_localization demo: localizer ~pose in the marker map frame ({fusion} fusion)")
+    if trajectory_truth:
+        tr.write_tum(str(out_dir / "trajectory_truth.tum"),
+                     tr.Trajectory.from_se2([s for s, _ in trajectory_truth],
+                                            np.array([se2_in_frame(T_map_world, p) for _, p in trajectory_truth])),
+                     header="aruco_ring_localization demo: ground truth in the marker map frame")
+    # Figures in the scene's world frame (the room is axis-aligned there): the estimates go there
+    # through the same T_world_map (no fit), so every error is the one of the tables.
+    def world(p):
+        return se2_in_frame(T_world_map, p)
+
+    plate = plots.plate_polygon(scene.plate.centre, scene.plate.size)
+    room = plots.room_polygon(scene.room.origin, scene.room.size)
+    est_world = {e.marker_id: geo.transform_points(T_world_map, est_map.corners(e.marker_id)) for e in est_map}
+    truth_corners = {e.marker_id: truth_map.corners(e.marker_id) for e in truth_map}
+    plots.plot_map(str(out_dir / "map.png"), est_world, truth_corners, plate=plate, room=room,
+                   robot_pose=tuple(scene.mapping_pose), footprint=tuple(scene.robot.footprint),
+                   title=f"Marker map ({method}, reference marker {est_map.reference_marker}) in the lab, "
+                         f"RMS {map_err['position_rms_mm']:.1f} mm" if map_err else f"Marker map ({method})")
+    if ok_pos:
+        plots.plot_positions(str(out_dir / "fig8_positions.png"), np.array([world(r.ref)[:2] for r in ok_pos]),
+                             np.array([world(r.est)[:2] for r in ok_pos]), plate=plate, labels=[r.label for r in ok_pos],
+                             errors_cm=[100 * r.errors[2] for r in ok_pos],
+                             title="15 positions: ground truth and estimated (Fig. 8)")
+    cases = []
+    for rec in records:
+        if rec.plan.kind == "position" and rec.plan.label in fig9_labels and rec.estimates:
+            row = next((r for r in pos_rows if r.label == rec.plan.label), None)
+            if row is None or not np.all(np.isfinite(row.est)):
+                continue
+            cams = {f"c{k}": world(p) for k, p in enumerate(rec.camera_estimates)}
+            cases.append({"label": f"position {rec.plan.label}", "true": world(row.ref), "fused": world(row.est),
+                          "cameras": cams})
+    if cases:
+        plots.plot_camera_estimates(str(out_dir / "fig9_camera_estimates.png"), cases)
+    if ok_yaw:
+        plots.plot_orientations(str(out_dir / "fig10_orientations.png"), [world(r.ref)[2] for r in ok_yaw],
+                                [world(r.est)[2] for r in ok_yaw], labels=[r.label for r in ok_yaw])
+    return summary
+
+
+# --------------------------------------------------------------------------------------------
+# Processes (roscore, roslaunch) owned by the demo
+# --------------------------------------------------------------------------------------------
+class Progress:
+    """Progress lines on stdout with the elapsed time."""
+
+    def __init__(self) -> None:
+        self.t0 = time.monotonic()
+        self._last_inline = False
+
+    def elapsed(self) -> float:
+        return time.monotonic() - self.t0
+
+    def __call__(self, text: str, inline: bool = False) -> None:
+        line = f"[demo {self.elapsed():6.1f} s] {text}"
+        if inline and sys.stdout.isatty():
+            sys.stdout.write("\r" + line.ljust(100))
+            self._last_inline = True
+        else:
+            if self._last_inline:
+                sys.stdout.write("\n")
+                self._last_inline = False
+            if inline:  # not a terminal: fewer lines
+                return
+            sys.stdout.write(line + "\n")
+        sys.stdout.flush()
+
+    def always(self, text: str) -> None:
+        self(text)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return int(s.getsockname()[1])
+
+
+class RosSession:
+    """A roscore on a free port and the roslaunch processes of the demo; stops all of them on exit."""
+
+    def __init__(self, log_dir: Path, progress: Progress) -> None:
+        self.log_dir = log_dir
+        self.progress = progress
+        self.port = _free_port()
+        self.procs: List[subprocess.Popen] = []
+        self.env = dict(os.environ)
+        self.env["ROS_MASTER_URI"] = f"http://localhost:{self.port}"
+        self.env["ROS_HOSTNAME"] = "localhost"
+        self.env.pop("ROS_IP", None)
+        self.env["ROS_LOG_DIR"] = str(log_dir)
+        self.env["PYTHONUNBUFFERED"] = "1"
+
+    def __enter__(self) -> "RosSession":
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        os.environ.update({k: self.env[k] for k in ("ROS_MASTER_URI", "ROS_HOSTNAME", "ROS_LOG_DIR")})
+        os.environ.pop("ROS_IP", None)
+        self.core = self.spawn(["roscore", "-p", str(self.port)], "roscore")
+        import rosgraph
+
+        deadline = time.monotonic() + 30
+        while not rosgraph.Master("/aruco_ring_demo").is_online():
+            if time.monotonic() > deadline or self.core.poll() is not None:
+                raise RuntimeError(f"roscore did not start on port {self.port} (log: {self.log_dir}/roscore.log)")
+            time.sleep(0.2)
+        return self
+
+    def spawn(self, cmd: List[str], name: str) -> subprocess.Popen:
+        log = open(self.log_dir / f"{name}.log", "w")
+        proc = subprocess.Popen(cmd, env=self.env, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
+                                start_new_session=True)
+        log.close()
+        self.procs.append(proc)
+        return proc
+
+    def launch(self, name: str, args: List[str]) -> subprocess.Popen:
+        return self.spawn(["roslaunch", PACKAGE, "demo.launch"] + args, name)
+
+    def stop(self, proc: subprocess.Popen, timeout: float = 15.0) -> None:
+        if proc.poll() is None:
+            try:
+                os.killpg(proc.pid, signal.SIGINT)
+                proc.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait(timeout=5)
+            except ProcessLookupError:
+                pass
+        if proc in self.procs:
+            self.procs.remove(proc)
+
+    def __exit__(self, *exc) -> None:
+        for proc in reversed(list(self.procs)):
+            self.stop(proc)
+
+
+# --------------------------------------------------------------------------------------------
+# The simulated lab, played by this process (ROS side)
+# --------------------------------------------------------------------------------------------
+class LabPlayer:
+    """Publishes the simulated ring (corners or images), the truth, /clock and cmd_vel; records our pose."""
+
+    def __init__(self, scene, ring, sim, mode: str, rate_hz: float, seed: int) -> None:
+        import rospy
+        import tf2_ros
+        from fiducial_msgs.msg import FiducialArray
+        from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped, Twist
+        from rosgraph_msgs.msg import Clock
+        from sensor_msgs.msg import CameraInfo, Image
+
+        from .ros.conversions import model_to_camera_info
+
+        self.rospy = rospy
+        self.scene, self.ring, self.sim, self.mode = scene, ring, sim, mode
+        self.dt = 1.0 / rate_hz
+        self.t = 1000.0  # simulated clock, s
+        self.rng = np.random.default_rng(seed)
+        self.clock = rospy.Publisher("/clock", Clock, queue_size=10)
+        self.cmd = rospy.Publisher("/cmd_vel", Twist, queue_size=10)
+        self.tf = tf2_ros.TransformBroadcaster()
+        self.pubs: Dict[str, Tuple[Any, Any]] = {}
+        self.infos = {}
+        for cam in ring.cameras:
+            data = (rospy.Publisher(f"{cam.namespace}/image_raw", Image, queue_size=2) if mode == "images"
+                    else rospy.Publisher(f"{cam.namespace}/fiducial_vertices", FiducialArray, queue_size=10))
+            info = rospy.Publisher(f"{cam.namespace}/camera_info", CameraInfo, queue_size=10)
+            self.pubs[cam.name] = (data, info)
+            self.infos[cam.name] = model_to_camera_info(cam.model, cam.frame_id)
+        self._FiducialArray, self._Image, self._Clock, self._Twist = FiducialArray, Image, Clock, Twist
+        self.lock = threading.Condition()
+        self.poses: Dict[float, np.ndarray] = {}
+        self.cam_estimates: Dict[float, np.ndarray] = {}
+        self.detections: Dict[str, float] = {}
+        rospy.Subscriber("/localizer/pose", PoseWithCovarianceStamped, self._on_pose, queue_size=100)
+        rospy.Subscriber("/localizer/camera_estimates", PoseArray, self._on_cams, queue_size=100)
+        if mode == "images":
+            for cam in ring.cameras:
+                rospy.Subscriber(f"{cam.namespace}/fiducial_vertices", FiducialArray, self._on_det,
+                                 callback_args=cam.name, queue_size=10)
+        self.publish_clock()
+
+    # --- inputs from the nodes ------------------------------------------------------------------
+    @staticmethod
+    def _yaw(q) -> float:
+        return float(np.arctan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z)))
+
+    def _on_pose(self, msg) -> None:
+        p = msg.pose.pose
+        with self.lock:
+            self.poses[round(msg.header.stamp.to_sec(), 6)] = np.array([p.position.x, p.position.y, self._yaw(p.orientation)])
+            self.lock.notify_all()
+
+    def _on_cams(self, msg) -> None:
+        arr = np.array([[p.position.x, p.position.y, self._yaw(p.orientation)] for p in msg.poses]).reshape(-1, 3)
+        with self.lock:
+            self.cam_estimates[round(msg.header.stamp.to_sec(), 6)] = arr
+
+    def _on_det(self, msg, name) -> None:
+        with self.lock:
+            self.detections[name] = msg.header.stamp.to_sec()
+            self.lock.notify_all()
+
+    # --- outputs --------------------------------------------------------------------------------
+    def publish_clock(self) -> None:
+        self.clock.publish(self._Clock(clock=self.rospy.Time.from_sec(self.t)))
+
+    def wait_for(self, topic_suffix_subscribers: str, timeout: float = 30.0) -> bool:
+        """Wait until every camera's data topic has a subscriber (the nodes are up)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if all(p[0].get_num_connections() > 0 for p in self.pubs.values()):
+                return True
+            self.publish_clock()
+            time.sleep(0.1)
+        return False
+
+    def step(self, pose_world: np.ndarray, cmd: Optional[np.ndarray] = None) -> float:
+        """Advance the clock by one frame and publish everything for the robot at ``pose_world``."""
+        from .ros.conversions import make_transform_stamped, observations_to_fiducials
+
+        rospy = self.rospy
+        self.t = round(self.t + self.dt, 6)
+        stamp = rospy.Time.from_sec(self.t)
+        self.clock.publish(self._Clock(clock=stamp))
+        T = geo.transform_from_se2(*pose_world)
+        self.tf.sendTransform(make_transform_stamped(T, self.scene.world_frame, "sim_ground_truth", stamp))
+        tw = self._Twist()
+        if cmd is not None:
+            tw.linear.x, tw.linear.y, tw.angular.z = (float(v) for v in cmd)
+        self.cmd.publish(tw)
+        if self.mode == "images":
+            images = self.sim.render(T, rng=self.rng)
+            for name, (pub, info_pub) in self.pubs.items():
+                info = self.infos[name]
+                info.header.stamp = stamp
+                info_pub.publish(info)
+                img = images[name]
+                msg = self._Image()
+                msg.header.stamp, msg.header.frame_id = stamp, info.header.frame_id
+                msg.height, msg.width = int(img.shape[0]), int(img.shape[1])
+                msg.encoding, msg.step = "mono8", int(img.shape[1])
+                msg.data = np.ascontiguousarray(img, dtype=np.uint8).tobytes()
+                pub.publish(msg)
+        else:
+            frame = self.sim.observe(T, self.t, rng=self.rng)
+            for name, (pub, info_pub) in self.pubs.items():
+                info = self.infos[name]
+                info.header.stamp = stamp
+                info_pub.publish(info)
+                msg = self._FiducialArray()
+                msg.header.stamp, msg.header.frame_id = stamp, info.header.frame_id
+                msg.fiducials = observations_to_fiducials(frame.cameras[name].observations)
+                pub.publish(msg)
+        return self.t
+
+    def wait_pose(self, stamp: float, timeout: float) -> Optional[np.ndarray]:
+        """Our pose at ``stamp`` (waits up to ``timeout`` s wall time), or None."""
+        key = round(stamp, 6)
+        deadline = time.monotonic() + timeout
+        with self.lock:
+            while key not in self.poses:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return None
+                self.lock.wait(left)
+            return self.poses[key]
+
+    def wait_detections(self, stamp: float, timeout: float) -> bool:
+        """Image mode: wait until every detector has answered the frame at ``stamp``."""
+        deadline = time.monotonic() + timeout
+        with self.lock:
+            while not all(self.detections.get(c.name, -1.0) >= stamp - 1e-6 for c in self.ring.cameras):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self.lock.wait(left)
+        return True
+
+
+# --------------------------------------------------------------------------------------------
+# The run
+# --------------------------------------------------------------------------------------------
+def _parse(argv: Optional[Sequence[str]]) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="python -m aruco_ring_localization.demo",
+                                description="The paper's experiment on the simulated lab with the real ROS nodes.")
+    p.add_argument("--fusion", choices=("joint", "paper"), default="joint", help="localizer fusion (default joint)")
+    p.add_argument("--method", choices=("refined", "paper"), default="refined", help="map method (default refined)")
+    p.add_argument("--mode", choices=("images", "corners"), default=os.environ.get("DEMO_MODE", "auto"),
+                   help="images: rendered images through the detector nodes; corners: simulated detections "
+                        "(default: images when the detector node exists)")
+    p.add_argument("--out", default=str(REPO / "results" / "demo"), help="output directory")
+    p.add_argument("--gui", action="store_true", default=os.environ.get("GUI", "") not in ("", "0"),
+                   help="also open rviz (needs DISPLAY); GUI=1 in the environment does the same")
+    p.add_argument("--rate", type=float, default=5.0, help="simulated frames per simulated second")
+    p.add_argument("--mapping-frames", type=int, default=30, help="frames at the mapping pose")
+    p.add_argument("--hold-frames", type=int, default=8, help="frames held at each stop")
+    p.add_argument("--use-last", type=int, default=4, help="last frames of each stop averaged (median)")
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args(argv)
+    if args.mode == "auto":
+        args.mode = "images" if (REPO / "scripts" / "detector").exists() and \
+            (REPO / "launch" / "detector.launch").exists() else "corners"
+    if args.gui and not os.environ.get("DISPLAY"):
+        sys.stdout.write("demo: GUI requested but DISPLAY is not set; running without rviz\n")
+        args.gui = False
+    return args
+
+
+def run(args: argparse.Namespace) -> int:
+    from .rig import CameraRing
+    from .simulation.ring_sim import RingSimulator, perturb_ring
+    from .simulation.scene import Scene
+
+    progress = Progress()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    map_file = out / "map.yaml"
+    scene = Scene.default()
+    ring = CameraRing.load(str(REPO / "config" / "ring.yaml"))
+    true_ring = perturb_ring(ring, seed=args.seed)
+    sim = RingSimulator(scene, true_ring, pixel_noise=0.3, seed=args.seed + 1)
+    progress(f"simulated lab '{scene.name}': {len(scene.markers)} markers, plate {scene.plate.size[0]:.2f} x "
+             f"{scene.plate.size[1]:.2f} m; true rig = ring.yaml + 2 mm / 0.2 deg calibration error; mode {args.mode}")
+    if args.mode == "images":
+        progress("warming up the renderer")
+        sim.render(scene.T_world_base(scene.mapping_pose))
+    records: List[StopRecord] = []
+    traj_est: List[Tuple[float, np.ndarray]] = []
+    traj_truth: List[Tuple[float, np.ndarray]] = []
+    with RosSession(out / "logs", progress) as ros:
+        progress(f"roscore on port {ros.port} (logs: {out / 'logs'})")
+        import rospy
+
+        rospy.init_node("aruco_ring_demo", disable_signals=True)
+        player = LabPlayer(scene, ring, sim, args.mode, args.rate, args.seed + 2)
+        common = [f"map_file:={map_file}", f"gui:={'true' if args.gui else 'false'}"]
+        # --- mapping -----------------------------------------------------------------------------
+        if args.mode == "images":
+            _start_detectors(ros)
+        mapping = ros.launch("mapping", ["phase:=mapping", f"method:={args.method}"] + common)
+        if not player.wait_for("data", timeout=60):
+            raise RuntimeError(f"the mapping nodes did not subscribe (log: {out / 'logs'})")
+        pose = np.asarray(scene.mapping_pose, dtype=float)
+        progress(f"mapping from the plate centre ({pose[0]:.2f}, {pose[1]:.2f}) m: {args.mapping_frames} frames")
+        time.sleep(1.0)
+        for k in range(args.mapping_frames):
+            t = player.step(pose)
+            if args.mode == "images":
+                player.wait_detections(t, timeout=5.0)
+            time.sleep(0.1)
+            progress(f"mapping: frame {k + 1}/{args.mapping_frames}", inline=True)
+        time.sleep(1.0)
+        progress("mapping: /mapper/save_map (bundle adjustment)" if args.method == "refined" else "mapping: /mapper/save_map")
+        from std_srvs.srv import Trigger
+
+        rospy.wait_for_service("/mapper/save_map", timeout=30)
+        res = rospy.ServiceProxy("/mapper/save_map", Trigger)()
+        if not res.success:
+            raise RuntimeError(f"save_map failed: {res.message}")
+        progress(f"mapping: {res.message}")
+        ros.stop(mapping)
+        est_map = MarkerMap.load(str(map_file))
+        # --- localization --------------------------------------------------------------------------
+        loc = ros.launch("localization", ["phase:=localization", f"fusion:={args.fusion}"] + common)
+        if not player.wait_for("data", timeout=60):
+            raise RuntimeError(f"the localizer did not subscribe (log: {out / 'logs'})")
+        time.sleep(1.0)
+        stops = plan_stops(scene.test_positions, scene.test_orientations)
+        progress(f"localization ({args.fusion} fusion): driving through {sum(s.kind == 'position' for s in stops)} "
+                 f"positions and {sum(s.kind == 'orientation' for s in stops)} orientations")
+        current = np.asarray(scene.mapping_pose, dtype=float)
+        max_wait = 10.0 if args.mode == "images" else 3.0
+        latencies: List[float] = []
+        missed = 0
+
+        def frame(p, cmd=None) -> float:
+            # Lockstep with the localizer: wait for the pose of this frame, but not forever (a
+            # dropped frame must not stall the drive); the wait adapts to the observed latency.
+            nonlocal missed
+            t = player.step(p, cmd)
+            traj_truth.append((t, p.copy()))
+            wait = min(max_wait, max(0.3, 3.0 * float(np.median(latencies[-20:])))) if latencies else max_wait
+            t0 = time.monotonic()
+            if player.wait_pose(t, wait) is None:
+                missed += 1
+            else:
+                latencies.append(time.monotonic() - t0)
+            return t
+
+        for _ in range(5):  # initialise the filter where mapping left the robot
+            frame(current)
+        for k, stop in enumerate(stops):
+            goal = np.asarray(stop.pose, dtype=float)
+            for p, cmd in interpolate_motion(current, goal, player.dt):
+                frame(p, cmd)
+            rec = StopRecord(stop, goal.copy())
+            hold = [frame(goal, np.zeros(3)) for _ in range(args.hold_frames)]
+            player.wait_pose(hold[-1], max_wait)  # the stop's last pose, if it is late
+            with player.lock:
+                rec.estimates = [(t, player.poses[round(t, 6)]) for t in hold if round(t, 6) in player.poses]
+                if rec.estimates:
+                    rec.camera_estimates = list(player.cam_estimates.get(round(rec.estimates[-1][0], 6),
+                                                                         np.zeros((0, 3))))
+            records.append(rec)
+            current = goal
+            progress(f"{stop.kind} {stop.label:>2}: truth ({goal[0]:.2f}, {goal[1]:.2f}, {np.degrees(goal[2]):6.1f} deg), "
+                     f"{len(rec.estimates)}/{len(hold)} poses [{k + 1}/{len(stops)}]")
+        time.sleep(0.5)
+        with player.lock:
+            traj_est.extend((t, p) for t, p in sorted(player.poses.items()))
+        ros.stop(loc)
+        if missed:
+            progress(f"note: {missed} frames had no pose before the next frame (late or dropped by the localizer)")
+        rospy.signal_shutdown("demo done")
+    runtime = progress.elapsed()
+    summary = write_report(out, records, est_map, scene.truth_map(), scene, traj_est, traj_truth, args.fusion,
+                           args.method, args.mode, runtime)
+    sys.stdout.write("\n" + (out / "table1.md").read_text() + "\n" + (out / "table2.md").read_text() + "\n")
+    m = summary["map_error_mm"]
+    if m is not None:
+        sys.stdout.write(f"Map error ({len(est_map)} markers, {args.method}): position RMS {m['rms']:.2f} mm, max "
+                         f"{m['max']:.2f} mm; rotation mean {m['rotation_mean_deg']:.3f} deg\n\n")
+    c = summary.get("after_best_fit_se2")
+    if c:
+        sys.stdout.write(f"After a best-fit SE(2) alignment (internal consistency only, the map frame's error removed: "
+                         f"{c['alignment']['x_m'] * 100:+.1f} cm, {c['alignment']['y_m'] * 100:+.1f} cm, "
+                         f"{c['alignment']['yaw_deg']:+.2f} deg): position median {c['position_error_cm']['median']:.2f} cm, "
+                         f"max {c['position_error_cm']['max']:.2f} cm; |yaw| mean {c['yaw_error_deg']['mean_abs']:.3f} deg\n\n")
+    sys.stdout.write("SUMMARY: " + summary_line(summary) + "\n")
+    sys.stdout.write(f"outputs in {out}/ (summary.json, table1.md, table2.md, *.tum, *.png)\n")
+    return 0
+
+
+def _start_detectors(ros: RosSession) -> None:
+    """Image mode: one detector node per ring camera (launch/detector.launch in ring/camK)."""
+    from .rig import CameraRing
+
+    ring = CameraRing.load(str(REPO / "config" / "ring.yaml"))
+    for cam in ring.cameras:
+        ros.spawn(["roslaunch", PACKAGE, "detector.launch", f"__ns:={cam.namespace}"], f"detector_{cam.name}")
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    args = _parse(argv)
+
+    def _terminate(signum, _frame):  # so that `timeout`/CI stopping us still stops our roscore and nodes
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    signal.signal(signal.SIGTERM, _terminate)
+    try:
+        return run(args)
+    except KeyboardInterrupt:
+        sys.stderr.write("demo: interrupted\n")
+        return 130
+    except (RuntimeError, ArucoRingError) as exc:
+        sys.stderr.write(f"demo: error: {exc}\n")
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

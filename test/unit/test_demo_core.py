@@ -1,0 +1,106 @@
+"""The demo's pure parts: route, motion interpolation, report (tables, summary.json, figures) on synthetic data."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from aruco_ring_localization import demo
+from aruco_ring_localization import geometry as geo
+from aruco_ring_localization.marker_map import MarkerEntry, MarkerMap, map_frame_from_reference
+from aruco_ring_localization.simulation.scene import Scene
+
+
+def test_plan_has_paper_stops():
+    scene = Scene.default()
+    stops = demo.plan_stops(scene.test_positions, scene.test_orientations)
+    assert [s.kind for s in stops].count("position") == 15
+    assert [s.kind for s in stops].count("orientation") == 8
+    assert stops[0].label == "1" and stops[-1].label == "8"
+
+
+def test_interpolate_motion_reaches_goal_within_limits():
+    a, b, dt = (0.0, 0.0, 3.0), (1.0, 0.5, -3.0), 0.2
+    seq = demo.interpolate_motion(a, b, dt, max_speed=0.5, max_yaw_rate=1.0)
+    assert np.allclose(seq[-1][0], b), seq[-1][0]
+    poses = np.array([a] + [p for p, _ in seq])
+    step = np.hypot(*np.diff(poses[:, :2], axis=0).T)
+    assert step.max() <= 0.5 * dt + 1e-9, f"step {step.max()} m exceeds the speed limit"
+    dyaw = np.abs(np.angle(np.exp(1j * np.diff(poses[:, 2]))))
+    assert dyaw.max() <= 1.0 * dt + 1e-9, "turned the long way round or too fast"
+    # the command integrates to the motion (robot frame -> world)
+    p, cmd = seq[0]
+    c, s = np.cos(p[2]), np.sin(p[2])
+    v_world = np.array([c * cmd[0] - s * cmd[1], s * cmd[0] + c * cmd[1]])
+    assert np.allclose(v_world * dt, np.array(seq[1][0][:2]) - np.array(seq[0][0][:2]), atol=1e-9)
+    assert demo.interpolate_motion(b, b, dt) == []
+
+
+def _map_in_reference_frame(truth: MarkerMap, ref_id: int) -> MarkerMap:
+    """The truth expressed in the map frame fixed to ``ref_id`` (a perfect map)."""
+    T_world_map = map_frame_from_reference(truth.T_map_marker(ref_id))
+    T_map_world = geo.inverse(T_world_map)
+    m = MarkerMap(frame_id="map", reference_marker=ref_id)
+    for e in truth:
+        m.add(MarkerEntry(e.marker_id, T_map_world @ e.T_map_marker, e.size))
+    return m
+
+
+def test_report_on_synthetic_run(tmp_path):
+    rng = np.random.default_rng(4)
+    scene = Scene.default()
+    truth = scene.truth_map()
+    ref_id = truth.ids[0]
+    est_map = _map_in_reference_frame(truth, ref_id)
+    T_map_world = geo.inverse(map_frame_from_reference(truth.T_map_marker(ref_id)))
+    records, traj_est, traj_truth = [], [], []
+    t = 100.0
+    bias = np.array([0.004, -0.003, np.radians(0.1)])  # estimate - truth, map frame
+    for stop in demo.plan_stops(scene.test_positions, scene.test_orientations):
+        rec = demo.StopRecord(stop, np.asarray(stop.pose, dtype=float))
+        truth_map_frame = demo.se2_in_frame(T_map_world, stop.pose)
+        for _ in range(6):
+            est = truth_map_frame + bias + rng.normal(scale=[0.0005, 0.0005, 0.0002])
+            rec.estimates.append((t, est))
+            traj_est.append((t, est))
+            traj_truth.append((t, np.asarray(stop.pose, dtype=float)))
+            t += 0.2
+        rec.camera_estimates = [truth_map_frame + rng.normal(scale=[0.02, 0.02, 0.01]) for _ in range(4)]
+        records.append(rec)
+    summary = demo.write_report(tmp_path, records, est_map, truth, scene, traj_est, traj_truth, "joint", "refined",
+                                "corners", 12.0)
+    want = 100 * np.hypot(bias[0], bias[1])
+    med = summary["position_error_cm"]["median"]
+    assert abs(med - want) < 0.1, f"median {med} cm, want {want:.3f} cm"
+    assert len(summary["position_error_cm"]["per_position"]) == 15
+    assert abs(summary["yaw_error_deg"]["mean_abs"] - 0.1) < 0.02, summary["yaw_error_deg"]
+    assert summary["map_error_mm"]["rms"] < 1e-6, summary["map_error_mm"]
+    for key in ("fusion", "runtime_s"):
+        assert key in summary
+    on_disk = json.loads((tmp_path / "summary.json").read_text())
+    assert on_disk["position_error_cm"]["max"] == pytest.approx(summary["position_error_cm"]["max"])
+    for name in ("table1.md", "table2.md", "table1.csv", "table2.csv", "trajectory_estimate.tum",
+                 "trajectory_truth.tum", "map.png", "fig8_positions.png", "fig9_camera_estimates.png",
+                 "fig10_orientations.png"):
+        assert (tmp_path / name).is_file(), f"{name} missing"
+    assert "SUMMARY" not in demo.summary_line(summary) and "cm" in demo.summary_line(summary)
+
+
+def test_report_fails_visibly_on_a_rotated_map_frame(tmp_path):
+    """A map frame rotated by 1 deg about the reference marker must show up as position errors."""
+    scene = Scene.default()
+    truth = scene.truth_map()
+    ref_id = truth.ids[0]
+    est_map = _map_in_reference_frame(truth, ref_id)
+    T_map_world = geo.inverse(map_frame_from_reference(truth.T_map_marker(ref_id)))
+    R = geo.transform_from_se2(0, 0, np.radians(1.0))
+    records = []
+    for stop in demo.plan_stops(scene.test_positions, scene.test_orientations)[:15]:
+        rec = demo.StopRecord(stop, np.asarray(stop.pose, dtype=float))
+        rec.estimates.append((0.0, demo.se2_in_frame(R @ T_map_world, stop.pose)))
+        records.append(rec)
+    summary = demo.write_report(tmp_path, records, est_map, truth, scene, [], [], "joint", "refined", "corners", 1.0)
+    assert summary["position_error_cm"]["median"] > 3.0, summary["position_error_cm"]
+    c = summary["after_best_fit_se2"]
+    assert c["position_error_cm"]["max"] < 0.01 and abs(c["alignment"]["yaw_deg"] + 1.0) < 1e-6, c
