@@ -15,7 +15,7 @@ import pytest
 
 from aruco_ring_localization import geometry as geo
 from aruco_ring_localization.camera import CameraModel
-from aruco_ring_localization.detection import Detector, DetectorParams, marker_poses
+from aruco_ring_localization.detection import Detector, DetectorParams, image_to_gray, marker_poses
 from aruco_ring_localization.markers import MarkerSizes
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "ubiquity_fiducials"
@@ -39,15 +39,22 @@ EXPECTED_403_RPY = (1.5751, -0.014, -1.546)
 SIZE_403 = 0.145
 
 
+SUBPIX = DetectorParams(dictionary=7, corner_refinement="subpix")  # aruco_detect's refinement
+
+
 def _gray(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    """The image as the node sees it: decoded to BGR (as aruco_detect's cv_bridge) then mono8.
+
+    (imread's own grayscale PNG decoding rounds differently and moves corners by ~0.03 px.)
+    """
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     assert img is not None, f"cannot read {path}"
-    return img
+    return image_to_gray("bgr8", img.shape[1], img.shape[0], img.strides[0], img.tobytes())
 
 
 @pytest.mark.parametrize("path, ids", [(IMG_01, (1,)), (IMG_245, (245, 246))])
 def test_corners_match_aruco_detect(path, ids):
-    obs = {o.marker_id: o.corners for o in Detector(DetectorParams(dictionary=7)).detect(_gray(path))}
+    obs = {o.marker_id: o.corners for o in Detector(SUBPIX).detect(_gray(path))}
     assert sorted(obs) == sorted(ids), f"{path.name}: detected ids {sorted(obs)}, expected {sorted(ids)}"
     for marker_id in ids:
         expected = np.array(EXPECTED_CORNERS[marker_id]).reshape(4, 2)
@@ -65,7 +72,7 @@ def test_corner_refinement_none_is_worse_but_close():
 
 def test_marker_403_pose_in_map():
     model = CameraModel.from_yaml(str(CAMERA_INFO))
-    obs = Detector().detect(_gray(IMG_403))
+    obs = Detector(SUBPIX).detect(_gray(IMG_403))
     assert [o.marker_id for o in obs] == [403], f"detected {[o.marker_id for o in obs]}"
     poses = marker_poses(obs, model, MarkerSizes(SIZE_403))
     assert len(poses) == 1
@@ -82,7 +89,7 @@ def test_marker_403_pose_in_map():
 def test_marker_403_quality_figures():
     """image_error (mean squared px), object_error and fiducial_area as aruco_detect defines them."""
     model = CameraModel.from_yaml(str(CAMERA_INFO))
-    pose = marker_poses(Detector().detect(_gray(IMG_403)), model, MarkerSizes(SIZE_403))[0]
+    pose = marker_poses(Detector(SUBPIX).detect(_gray(IMG_403)), model, MarkerSizes(SIZE_403))[0]
     proj = model.project(geo.transform_points(pose.T_cam_marker, MarkerSizes(SIZE_403).corners(403)))
     mse = float(np.mean(np.sum((proj - pose.corners) ** 2, axis=1)))
     assert pose.image_error == pytest.approx(mse, rel=1e-9), f"image_error {pose.image_error} vs {mse}"
@@ -92,3 +99,20 @@ def test_marker_403_quality_figures():
     assert pose.object_error == pytest.approx(expected_obj, rel=1e-9)
     area = cv2.contourArea(pose.corners.astype(np.float32))
     assert pose.fiducial_area == pytest.approx(area, rel=1e-4), f"area {pose.fiducial_area} vs {area}"
+
+
+@pytest.mark.parametrize("path, size", [(IMG_01, 0.14), (IMG_245, 0.14), (IMG_403, SIZE_403)])
+def test_lines_refinement_on_real_images(path, size):
+    """The default ``lines`` refinement stays within 0.6 px of aruco_detect's corners, and its
+    corners fit a square through the lens model at least as well overall (lower total image_error)."""
+    model = CameraModel.from_yaml(str(CAMERA_INFO))
+    gray = _gray(path)
+    sub = {p.marker_id: p for p in marker_poses(Detector(SUBPIX).detect(gray), model, MarkerSizes(size))}
+    lin = {p.marker_id: p for p in marker_poses(Detector().detect(gray), model, MarkerSizes(size))}
+    assert sorted(sub) == sorted(lin), f"ids differ: subpix {sorted(sub)}, lines {sorted(lin)}"
+    for i in sub:
+        dev = np.abs(lin[i].corners - sub[i].corners).max()
+        assert dev < 0.6, f"marker {i}: lines vs subpix corners differ by {dev:.3f} px (limit 0.6)"
+    e_sub = sum(p.image_error for p in sub.values())
+    e_lin = sum(p.image_error for p in lin.values())
+    assert e_lin < 2.0 * e_sub, f"lines image_error {e_lin:.4f} px^2 vs subpix {e_sub:.4f}"
