@@ -1,0 +1,327 @@
+"""``detector`` node: ArUco detection on one camera, a drop-in for UbiquityRobotics' aruco_detect.
+
+Subscribes (relative names, so one node per camera namespace, e.g. ``ring/cam0``):
+    ``image`` (sensor_msgs/Image; mono8, mono16, bgr8, rgb8, bgra8, rgba8): queue_size 1 and a
+        large socket buffer, so a detector that falls behind drops old images, never queues them;
+    ``camera_info`` (sensor_msgs/CameraInfo): intrinsics for the poses (latest valid one wins).
+Publishes:
+    ``fiducial_vertices`` (fiducial_msgs/FiducialArray): one per usable image, header = the
+        image's header (frame_id falls back to camera_info's when the image has none),
+        ``image_seq`` = the image's seq; EMPTY when no marker is seen (the localizer relies on it
+        to know the camera is alive). Corners in aruco_detect order, raw pixels.
+    ``fiducial_transforms`` (fiducial_msgs/FiducialTransformArray, when ``do_pose_estimation``
+        and intrinsics are known): per-marker ``T_camera_marker`` in the image's optical frame
+        with aruco_detect's ``image_error``, ``object_error``, ``fiducial_area``
+        (:class:`aruco_ring_localization.detection.MarkerPose`).
+    ``fiducial_images`` (sensor_msgs/Image bgr8, when ``publish_images``): annotated image.
+
+Parameters (private, read once; aruco_detect's names; documented in config/detector.yaml):
+    ~dictionary (int, 7 = DICT_5X5_1000), ~fiducial_len (float m, 0.14 as aruco_detect),
+    ~fiducial_len_override (str, "1-10: 0.05, 12: 0.06"), ~ignore_fiducials (str, "1,4,9-12"),
+    ~publish_images (bool, false), ~do_pose_estimation (bool, true),
+    ~corner_refinement (str: lines | subpix | contour | apriltag | none; default lines),
+    ~max_image_age (float s, 0 = off): images older than this on arrival are dropped.
+
+Bad input never stops the node: an unusable image (unsupported encoding, zero size, wrong step
+or data length) or camera_info (missing, all-zero K, bad D) gives ONE warning per problem per
+``WARN_PERIOD`` seconds naming the field, and the next good message is processed normally.
+The logic is in :class:`DetectorCore` (no rospy; messages are duck-typed), tested without a master.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Dict, List, Optional, Sequence
+
+import numpy as np
+
+from ..camera import CameraModel
+from ..detection import Detector, DetectorParams, MarkerPose, annotate, image_to_gray, marker_poses
+from ..errors import ArucoRingError, ConfigError, MeasurementError
+from ..frames import MarkerObservation
+from ..markers import MarkerSizes, parse_id_list
+
+logger = logging.getLogger(__name__)
+
+#: Seconds between two warnings about the same problem.
+WARN_PERIOD = 10.0
+#: Socket buffer of the image subscription: several 1280x960 bgr8 images, so rospy never reads a
+#: frame in pieces (a small buff_size makes rospy fall behind and deliver stale images).
+IMAGE_BUFF_SIZE = 1 << 26
+
+
+@dataclass(frozen=True)
+class DetectorNodeParams:
+    """The node's parameters (aruco_detect's names where they exist)."""
+
+    dictionary: int = field(default=7, metadata={"doc": "OpenCV predefined dictionary index (7 = DICT_5X5_1000)"})
+    fiducial_len: float = field(default=0.14, metadata={"doc": "marker side (black square), m"})
+    fiducial_len_override: str = field(default="", metadata={"doc": "per-id sides: '1-10: 0.05, 12: 0.06'"})
+    ignore_fiducials: str = field(default="", metadata={"doc": "ids never published: '1,4,9-12'"})
+    publish_images: bool = field(default=False, metadata={"doc": "publish the annotated image on fiducial_images"})
+    do_pose_estimation: bool = field(default=True, metadata={"doc": "publish fiducial_transforms"})
+    corner_refinement: str = field(default="lines", metadata={"doc": "lines | subpix | contour | apriltag | none"})
+    max_image_age: float = field(default=0.0, metadata={"doc": "drop images older than this on arrival, s (0: off)"})
+
+    def detector_params(self) -> DetectorParams:
+        """The core detector's settings (raises ConfigError naming the key)."""
+        return DetectorParams(dictionary=self.dictionary, corner_refinement=self.corner_refinement)
+
+    def sizes(self) -> MarkerSizes:
+        """Marker sides per id (raises ConfigError naming fiducial_len / fiducial_len_override)."""
+        return MarkerSizes.parse(self.fiducial_len, self.fiducial_len_override)
+
+    def ignored(self):
+        """Ids never published (raises ConfigError naming ignore_fiducials)."""
+        return parse_id_list(self.ignore_fiducials, key="ignore_fiducials")
+
+
+@dataclass
+class Detections:
+    """What one image gives.
+
+    Attributes:
+        header: the image's header (stamp, seq; ``frame_id`` filled from camera_info if empty).
+        observations: markers kept (ignored ids removed), raw pixels.
+        poses: their poses, or None when not estimated (off, or no intrinsics).
+        annotated: (H, W, 3) uint8 BGR image, or None unless ``publish_images``.
+    """
+
+    header: object
+    observations: List[MarkerObservation]
+    poses: Optional[List[MarkerPose]]
+    annotated: Optional[np.ndarray] = None
+
+
+class ThrottledWarnings:
+    """One warning per problem key per ``period`` seconds, through ``sink`` (e.g. rospy.logwarn).
+
+    Keys are the problem (``image.encoding``, ``camera_info.K``, ...), so one bad field never
+    hides another, and a stream of bad messages gives one line per period, not one per message.
+    """
+
+    def __init__(self, sink: Callable[[str], None], period: float = WARN_PERIOD,
+                 clock: Callable[[], float] = time.monotonic):
+        self.sink = sink
+        self.period = float(period)
+        self.clock = clock
+        self._last: Dict[str, float] = {}
+        self.counts: Dict[str, int] = {}
+
+    def __call__(self, key: str, message: str) -> None:
+        self.counts[key] = self.counts.get(key, 0) + 1
+        now = self.clock()
+        last = self._last.get(key)
+        if last is not None and now - last < self.period:
+            return
+        self._last[key] = now
+        n = self.counts[key]
+        self.sink(message if n == 1 else f"{message} ({n} times so far)")
+
+
+def _field_key(exc: MeasurementError) -> str:
+    """``encoding`` from ``"encoding: unsupported ..."`` (the field the error names)."""
+    head = str(exc).split(":", 1)[0].strip()
+    return head if head and " " not in head else "other"
+
+
+class DetectorCore:
+    """The detector node's logic, without rospy: feed it messages, get detections to publish.
+
+    Args:
+        params: the node's parameters (validated here: raises ConfigError naming the key).
+        warn: sink of warning lines (throttled here per problem); default this module's logger.
+        name: label used in the warnings (the node's namespace).
+        clock: monotonic seconds for the throttling.
+    """
+
+    def __init__(self, params: DetectorNodeParams, warn: Optional[Callable[[str], None]] = None,
+                 name: str = "detector", clock: Callable[[], float] = time.monotonic):
+        self.params = params
+        self.detector = Detector(params.detector_params())
+        self.sizes = params.sizes()
+        self.ignored = params.ignored()
+        self.name = name
+        self.warnings = ThrottledWarnings(warn if warn is not None else logger.warning, clock=clock)
+        self.model: Optional[CameraModel] = None
+        self.camera_frame_id = ""
+        self._info_key: Optional[tuple] = None
+        self.images = 0          # images processed
+        self.dropped_stale = 0   # images dropped by max_image_age
+        self.rejected_images = 0  # unusable images
+
+    # --- camera_info ---------------------------------------------------------------------------
+
+    def on_camera_info(self, msg) -> None:
+        """Take the intrinsics of a ``sensor_msgs/CameraInfo`` (the latest valid one wins)."""
+        try:
+            K = np.asarray(msg.K, dtype=np.float64)
+            if K.size != 9 or not np.any(K):
+                raise MeasurementError("K: all zeros (uncalibrated camera); poses need a calibration")
+            key = (tuple(K.ravel()), tuple(np.asarray(msg.D, dtype=np.float64).ravel()), str(msg.distortion_model),
+                   int(msg.width), int(msg.height))
+            if key != self._info_key:
+                self.model = CameraModel.from_camera_info(K, msg.D, msg.distortion_model, msg.width, msg.height,
+                                                          name=self.name)
+                self._info_key = key
+            self.camera_frame_id = str(msg.header.frame_id)
+        except MeasurementError as exc:
+            self.warnings(f"camera_info.{_field_key(exc)}", f"{self.name}: camera_info ignored: {exc}")
+        except (ArucoRingError, TypeError, ValueError) as exc:
+            self.warnings("camera_info.other", f"{self.name}: camera_info ignored: {exc}")
+
+    # --- image ---------------------------------------------------------------------------------
+
+    def on_image(self, msg, now: Optional[float] = None) -> Optional[Detections]:
+        """Detect markers in a ``sensor_msgs/Image``.
+
+        Args:
+            msg: the image message (header, encoding, width, height, step, data, is_bigendian).
+            now: current ROS time, s (only for ``max_image_age``).
+
+        Returns:
+            :class:`Detections` to publish, or None when the image was unusable or stale (a
+            throttled warning says why; nothing should be published for it).
+        """
+        header = msg.header
+        if self.params.max_image_age > 0.0 and now is not None:
+            age = now - (float(header.stamp.secs) + 1e-9 * float(header.stamp.nsecs))
+            if age > self.params.max_image_age:
+                self.dropped_stale += 1
+                self.warnings("image.stale", f"{self.name}: dropped {self.dropped_stale} stale image(s) "
+                                             f"({age:.2f} s old > max_image_age {self.params.max_image_age} s)")
+                return None
+        try:
+            gray = image_to_gray(msg.encoding, msg.width, msg.height, msg.step, msg.data,
+                                 is_bigendian=bool(getattr(msg, "is_bigendian", 0)))
+            observations = self.detector.detect(gray)
+        except MeasurementError as exc:
+            self.rejected_images += 1
+            self.warnings(f"image.{_field_key(exc)}", f"{self.name}: image ignored: {exc}")
+            return None
+        self.images += 1
+        if self.ignored:
+            observations = [o for o in observations if o.marker_id not in self.ignored]
+        if not header.frame_id and self.camera_frame_id:
+            header.frame_id = self.camera_frame_id
+        poses = self._poses(observations, gray.shape)
+        annotated = annotate(gray, observations, poses or (), self.model) if self.params.publish_images else None
+        return Detections(header=header, observations=observations, poses=poses, annotated=annotated)
+
+    def _poses(self, observations: Sequence[MarkerObservation], shape) -> Optional[List[MarkerPose]]:
+        if not self.params.do_pose_estimation:
+            return None
+        if self.model is None:
+            self.warnings("camera_info.missing", f"{self.name}: no usable camera_info yet: publishing "
+                                                 "fiducial_vertices only, no fiducial_transforms")
+            return None
+        if (self.model.height, self.model.width) != tuple(shape):
+            self.warnings("camera_info.size", f"{self.name}: image is {shape[1]}x{shape[0]} but camera_info "
+                                              f"says {self.model.width}x{self.model.height}: no poses")
+            return None
+        return marker_poses(observations, self.model, self.sizes)
+
+
+# --- ROS adapter -----------------------------------------------------------------------------------
+
+def fiducial_array_msg(det: Detections):
+    """FiducialArray of one image's detections."""
+    from fiducial_msgs.msg import FiducialArray
+
+    from .conversions import observations_to_fiducials
+
+    out = FiducialArray()
+    out.header = det.header
+    out.image_seq = int(det.header.seq)
+    out.fiducials = observations_to_fiducials(det.observations)
+    return out
+
+
+def fiducial_transform_array_msg(det: Detections):
+    """FiducialTransformArray of one image's marker poses (``det.poses`` must not be None)."""
+    from fiducial_msgs.msg import FiducialTransform, FiducialTransformArray
+
+    from .conversions import transform_to_msg
+
+    out = FiducialTransformArray()
+    out.header = det.header
+    out.image_seq = int(det.header.seq)
+    for p in det.poses or ():
+        ft = FiducialTransform()
+        ft.fiducial_id = int(p.marker_id)
+        ft.transform = transform_to_msg(p.T_cam_marker)
+        ft.image_error = float(p.image_error)
+        ft.object_error = float(p.object_error)
+        ft.fiducial_area = float(p.fiducial_area)
+        out.transforms.append(ft)
+    return out
+
+
+def image_msg(bgr: np.ndarray, header):
+    """sensor_msgs/Image (bgr8) from an (H, W, 3) uint8 array."""
+    from sensor_msgs.msg import Image
+
+    out = Image()
+    out.header = header
+    out.height, out.width = int(bgr.shape[0]), int(bgr.shape[1])
+    out.encoding = "bgr8"
+    out.is_bigendian = 0
+    out.step = int(bgr.shape[1] * 3)
+    out.data = np.ascontiguousarray(bgr).tobytes()
+    return out
+
+
+class DetectorNode:
+    """Publishers/subscribers around a :class:`DetectorCore` (needs ``rospy.init_node`` first)."""
+
+    def __init__(self, params: DetectorNodeParams):
+        import rospy
+        from fiducial_msgs.msg import FiducialArray, FiducialTransformArray
+        from sensor_msgs.msg import CameraInfo, Image
+
+        self.rospy = rospy
+        self.core = DetectorCore(params, warn=rospy.logwarn, name=rospy.get_namespace().rstrip("/") or "detector")
+        self.vertices_pub = rospy.Publisher("fiducial_vertices", FiducialArray, queue_size=5)
+        self.transforms_pub = (rospy.Publisher("fiducial_transforms", FiducialTransformArray, queue_size=5)
+                               if params.do_pose_estimation else None)
+        self.image_pub = rospy.Publisher("fiducial_images", Image, queue_size=1) if params.publish_images else None
+        self.info_sub = rospy.Subscriber("camera_info", CameraInfo, self.core.on_camera_info, queue_size=1)
+        self.image_sub = rospy.Subscriber("image", Image, self.on_image, queue_size=1, buff_size=IMAGE_BUFF_SIZE,
+                                          tcp_nodelay=True)
+
+    def on_image(self, msg) -> None:
+        rospy = self.rospy
+        try:
+            det = self.core.on_image(msg, now=rospy.get_time())
+            if det is None:
+                return
+            self.vertices_pub.publish(fiducial_array_msg(det))
+            if self.transforms_pub is not None and det.poses is not None:
+                self.transforms_pub.publish(fiducial_transform_array_msg(det))
+            if self.image_pub is not None and det.annotated is not None:
+                self.image_pub.publish(image_msg(det.annotated, det.header))
+        except ArucoRingError as exc:
+            rospy.logwarn_throttle(WARN_PERIOD, f"detector: image skipped: {exc}")
+        except rospy.ROSException as exc:  # publishing during shutdown
+            rospy.logdebug("detector: %s", exc)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Run the node until shutdown; 1 on a bad parameter (fatal log naming it)."""
+    import rospy
+
+    from .params import read_params
+
+    rospy.init_node("detector", argv=list(argv) if argv is not None else None)
+    try:
+        params = read_params(DetectorNodeParams)
+        node = DetectorNode(params)
+    except ConfigError as exc:
+        rospy.logfatal("detector: bad parameter: %s", exc)
+        return 1
+    p = node.core.params
+    rospy.loginfo("detector: dictionary %d, fiducial_len %.3f m, corner refinement %s, pose estimation %s",
+                  p.dictionary, p.fiducial_len, p.corner_refinement, "on" if p.do_pose_estimation else "off")
+    rospy.spin()
+    return 0
