@@ -29,6 +29,7 @@ The logic is in :class:`DetectorCore` (no rospy; messages are duck-typed), teste
 """
 from __future__ import annotations
 
+import copy
 import logging
 import time
 from dataclasses import dataclass, field
@@ -232,7 +233,7 @@ def fiducial_array_msg(det: Detections):
     from .conversions import observations_to_fiducials
 
     out = FiducialArray()
-    out.header = det.header
+    out.header = copy.deepcopy(det.header)  # rospy's publish() rewrites header.seq in place
     out.image_seq = int(det.header.seq)
     out.fiducials = observations_to_fiducials(det.observations)
     return out
@@ -245,7 +246,7 @@ def fiducial_transform_array_msg(det: Detections):
     from .conversions import transform_to_msg
 
     out = FiducialTransformArray()
-    out.header = det.header
+    out.header = copy.deepcopy(det.header)
     out.image_seq = int(det.header.seq)
     for p in det.poses or ():
         ft = FiducialTransform()
@@ -263,7 +264,7 @@ def image_msg(bgr: np.ndarray, header):
     from sensor_msgs.msg import Image
 
     out = Image()
-    out.header = header
+    out.header = copy.deepcopy(header)
     out.height, out.width = int(bgr.shape[0]), int(bgr.shape[1])
     out.encoding = "bgr8"
     out.is_bigendian = 0
