@@ -116,3 +116,39 @@ def test_lines_refinement_on_real_images(path, size):
     e_sub = sum(p.image_error for p in sub.values())
     e_lin = sum(p.image_error for p in lin.values())
     assert e_lin < 2.0 * e_sub, f"lines image_error {e_lin:.4f} px^2 vs subpix {e_sub:.4f}"
+
+
+def test_cli_detect_json_on_conformance_image(capsys):
+    """``aruco_ring detect 403.jpg --camera-info ... --json``: the contract's JSON, aruco_detect's pose."""
+    import json
+
+    from aruco_ring_localization.cli import main
+
+    code = main(["detect", str(IMG_403), "--camera-info", str(CAMERA_INFO), "--fiducial-len", str(SIZE_403),
+                 "--corner-refinement", "subpix", "--json"])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    data = json.loads(out)
+    assert [m["id"] for m in data["markers"]] == [403]
+    m = data["markers"][0]
+    assert np.array(m["corners"]).shape == (4, 2)
+    T = np.array(m["T_camera_marker"])
+    assert T.shape == (4, 4) and np.allclose(T[3], [0, 0, 0, 1])
+    yaw, pitch, roll = BASE_CAM_YPR
+    T_map_marker = geo.make_transform(geo.matrix_from_rpy(roll, pitch, yaw), BASE_CAM_XYZ) @ T
+    dpos = T_map_marker[:3, 3] - np.array(EXPECTED_403_XYZ)
+    assert np.abs(dpos).max() <= 0.001, f"CLI pose: position error {dpos} m"
+
+
+def test_cli_detect_table_and_errors(capsys, tmp_path):
+    from aruco_ring_localization.cli import main
+
+    assert main(["detect", str(IMG_245), "--camera-info", str(CAMERA_INFO)]) == 0
+    out = capsys.readouterr().out
+    assert "2 marker(s)" in out and "id  245" in out and "id  246" in out, out
+    assert main(["detect", str(tmp_path / "missing.png"), "--camera-info", str(CAMERA_INFO)]) == 1
+    assert "missing.png" in capsys.readouterr().err
+    bad = tmp_path / "info.yaml"
+    bad.write_text("image_width: 10\n")
+    assert main(["detect", str(IMG_245), "--camera-info", str(bad)]) == 1
+    assert "info.yaml" in capsys.readouterr().err
