@@ -347,3 +347,58 @@ def test_fuzz_node_callbacks_never_raise(world, data):
             else:
                 n.ring_input._on_timer(None)
         n.publish_diagnostics()
+
+
+# --- start-up with bad files: a clear fatal message naming the file and key, exit code 1 ---------
+
+def _bad_files(tmp_path):
+    ok_map = (REPO / "test" / "data" / "lab_truth_map.yaml").read_text()
+    files = {
+        "missing": (str(tmp_path / "nope.yaml"), "not found"),
+        "empty": ("", "empty"),
+        "negative size": (ok_map.replace("size: 0.2", "size: -0.2", 1), "markers[0].size"),
+        "duplicate id": (ok_map.replace("- id: 42", "- id: 17", 1), "markers[1].id"),
+        "newer version": (ok_map.replace("format_version: 1", "format_version: 2", 1), "format_version"),
+        "truncated": (ok_map[: ok_map.index("rotation: [") + 14], "line"),
+    }
+    out = {}
+    for name, (text, key) in files.items():
+        if name == "missing":
+            out[name] = (text, key)
+            continue
+        path = tmp_path / f"{name.replace(' ', '_')}.yaml"
+        path.write_text(text)
+        out[name] = (str(path), key)
+    return out
+
+
+@pytest.mark.parametrize("case", ["missing", "empty", "negative size", "duplicate id", "newer version", "truncated"])
+def test_localizer_exits_cleanly_on_a_bad_map_file(tmp_path, monkeypatch, case):
+    from aruco_ring_localization.ros import localizer as loc_mod
+
+    path, key = _bad_files(tmp_path)[case]
+    rec = Recorder()
+    monkeypatch.setattr(rospy, "init_node", lambda *a, **k: None)
+    monkeypatch.setattr(rospy, "spin", lambda: pytest.fail("the node started with a bad map"))
+    monkeypatch.setattr(rospy, "signal_shutdown", lambda *a: None)
+    monkeypatch.setattr(rospy, "logfatal", rec.make("fatal", False))
+    monkeypatch.setattr(loc_mod, "read_params", lambda cls, **k: cls(map_file=path))
+    assert loc_mod.main([]) == 1
+    fatal = [m for lvl, _, m in rec.calls if lvl == "fatal"]
+    assert fatal and path in fatal[0] and key in fatal[0], f"{case}: {fatal}"
+
+
+def test_mapper_exits_cleanly_on_a_bad_ring_file(tmp_path, monkeypatch):
+    from aruco_ring_localization.ros import mapper as mapper_mod
+
+    ring = tmp_path / "ring.yaml"
+    ring.write_text(RING_YAML.read_text().replace("name: cam3", "name: cam2", 1)
+                    .replace("camera_info: camera_info/", f"camera_info: {RING_YAML.parent}/camera_info/"))
+    rec = Recorder()
+    monkeypatch.setattr(rospy, "init_node", lambda *a, **k: None)
+    monkeypatch.setattr(rospy, "spin", lambda: pytest.fail("the node started with a bad ring file"))
+    monkeypatch.setattr(rospy, "logfatal", rec.make("fatal", False))
+    monkeypatch.setattr(mapper_mod, "read_params", lambda cls, **k: cls(ring_file=str(ring)))
+    assert mapper_mod.main([]) == 1
+    fatal = [m for lvl, _, m in rec.calls if lvl == "fatal"]
+    assert fatal and str(ring) in fatal[0] and "duplicate" in fatal[0], fatal
