@@ -107,6 +107,26 @@ def map_error(est: MarkerMap, truth: MarkerMap, T_truth_est: Optional[np.ndarray
     }
 
 
+def map_frame_error(est: MarkerMap, truth: MarkerMap, floor_z: float = 0.0) -> Dict[str, float]:
+    """How far the map's own frame is from its definition applied to the truth.
+
+    Compares the frame definition alignment (:func:`truth_in_map_frame`: the truth's pose of
+    the estimate's reference marker) with the best-fit alignment (:func:`align_map_to_truth`):
+    their difference is the error of the frame itself (the reference marker's estimated pose),
+    which moves every marker of the map rigidly. Returns ``yaw_deg`` (rotation about the vertical,
+    signed), ``rotation_deg`` (whole rotation), ``mm_at_5m`` (the displacement that rotation makes
+    5 m from the origin) and ``origin_mm`` (offset of the origin).
+    """
+    T_own = truth_in_map_frame(est, truth, floor_z)
+    T_fit = align_map_to_truth(est, truth)
+    D = geo.inverse(T_fit) @ T_own
+    ang = geo.rotation_angle(D[:3, :3])
+    return {"yaw_deg": float(np.degrees(np.arctan2(D[1, 0], D[0, 0]))),
+            "rotation_deg": float(np.degrees(ang)),
+            "mm_at_5m": float(5000.0 * 2.0 * np.sin(ang / 2.0)),
+            "origin_mm": float(1000.0 * np.linalg.norm(D[:3, 3]))}
+
+
 def format_map_error(err: Dict[str, Any]) -> str:
     """One line for logs and reports."""
     return (f"{err['n']} markers ({err['alignment']} alignment): position RMS {err['position_rms_mm']:.2f} mm, "

@@ -55,7 +55,6 @@ from .marker_map import MarkerEntry, MarkerMap, map_frame_from_reference
 from .markers import MarkerSizes
 from .camera import CameraModel
 from .markers import marker_corners
-from .pnp import reprojection_errors, solve_marker_ippe
 from .rig import CameraRing
 
 logger = logging.getLogger(__name__)
@@ -80,6 +79,14 @@ class MappingOptions:
         consensus_angle, consensus_distance: agreement tolerance of that consensus (rad, m).
         max_marker_spread: reject a marker whose per-station positions disagree by more (m).
         refine_passes: alternating marker/station re-averaging passes in multi-station maps.
+        refined_reference: in ``refined`` maps without a user ``reference_marker``, fix the frame
+            to the marker whose heading the adjustment determines best (see
+            :meth:`MapBuilder._refined_reference`) instead of the paper's reference.
+        refined_reference_min_stations: ... among markers seen from at least this many stations.
+        init_window_stations: with more stations than this (a hall mapped along a chain of
+            stations), the initialisation adjusts as it grows: the ring extrinsics once
+            ``init_calibrate_after`` stations are linked (when ``ba.refine_extrinsics``), then the
+            last ``init_window_stations`` stations every ``init_ba_every`` new ones.
         ba: bundle adjustment settings (method ``refined``); by default the ring extrinsics are
             refined too, with priors around the calibration (several stations make them observable).
     """
@@ -94,6 +101,11 @@ class MappingOptions:
     consensus_distance: float = 0.10
     max_marker_spread: float = 0.25
     refine_passes: int = 3
+    refined_reference: bool = True
+    refined_reference_min_stations: int = 2
+    init_window_stations: int = 12
+    init_ba_every: int = 4
+    init_calibrate_after: int = 6
     ba: BAOptions = field(default_factory=lambda: BAOptions(refine_extrinsics=True))
 
 
@@ -130,67 +142,138 @@ class _Group:
     distance: float
     cos_facing: float
     T_base_cam: np.ndarray
+    xy: np.ndarray                # (4, 2) mean corners, undistorted normalised
+    focal: np.ndarray             # (2,) fx, fy px
 
     def T_base_marker(self, k: int = 0) -> np.ndarray:
         return self.T_base_cam @ self.candidates[k]
 
 
 _LM = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-10)
+_EYE3 = np.eye(3)
 
 
-def _mirror_about_ray(T_cam_marker: np.ndarray) -> Optional[np.ndarray]:
-    """The other pose of the planar ambiguity: the marker normal reflected about the line of sight."""
-    u = T_cam_marker[:3, 3] / np.linalg.norm(T_cam_marker[:3, 3])
-    n1 = T_cam_marker[:3, 2]
+def _mirror_about_ray(R: np.ndarray, t: np.ndarray) -> Optional[np.ndarray]:
+    """The other rotation of the planar ambiguity: the marker normal reflected about the line of sight."""
+    u = t / np.linalg.norm(t)
+    n1 = R[:, 2]
     n2 = 2.0 * (n1 @ u) * u - n1
     axis = np.cross(n1, n2)
     s = float(np.linalg.norm(axis))
     if s < 1e-9:
         return None
-    R = geo.rotation_from_rvec(axis / s * np.arctan2(s, float(n1 @ n2))) @ T_cam_marker[:3, :3]
-    return geo.make_transform(R, T_cam_marker[:3, 3])
+    return cv2.Rodrigues(axis / s * np.arctan2(s, float(n1 @ n2)))[0] @ R
+
+
+def _rms_px(R: np.ndarray, t: np.ndarray, obj: np.ndarray, xy: np.ndarray, focal: np.ndarray) -> float:
+    """RMS pinhole reprojection error in undistorted pixels of pose (R, t) for corners ``xy`` (4, 2)."""
+    p = obj @ R.T + t
+    if np.any(p[:, 2] <= 1e-9):
+        return float("inf")
+    d = (p[:, :2] / p[:, 2:3] - xy) * focal
+    return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
+
+
+def _ippe_check(xy: np.ndarray, size: float, focal: np.ndarray) -> Tuple[float, float]:
+    """(distance m, RMS error in undistorted px) of the best IPPE pose of one detection."""
+    obj = marker_corners(size)
+    try:
+        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, np.ascontiguousarray(xy.reshape(-1, 1, 2)), _EYE3, None,
+                                                 flags=cv2.SOLVEPNP_IPPE_SQUARE)
+    except cv2.error as exc:
+        raise MeasurementError(f"IPPE failed: {exc}") from None
+    best = (float("inf"), float("inf"))
+    for r, t in zip(rvecs[:n], tvecs[:n]):
+        t = t.ravel()
+        if t[2] > 0.0:
+            err = _rms_px(cv2.Rodrigues(r)[0], t, obj, xy, focal)
+            if err < best[1]:
+                best = (float(np.linalg.norm(t)), err)
+    if not np.isfinite(best[1]):
+        raise MeasurementError("IPPE found no pose in front of the camera")
+    return best
 
 
 def marker_pose_candidates(corners_px: np.ndarray, size: float, model: CameraModel,
-                           min_separation: float = np.radians(1.0)) -> Tuple[List[np.ndarray], List[float], float]:
+                           min_separation: float = np.radians(1.0),
+                           normalized: Optional[np.ndarray] = None) -> Tuple[List[np.ndarray], List[float], float]:
     """Both poses of the planar ambiguity of one marker, refined, best first.
 
-    IPPE (:func:`pnp.solve_marker_ippe`) seeds; each seed and its mirror about the line of sight
-    are polished by Levenberg-Marquardt on undistorted pixels (OpenCV's IPPE alone can miss the
-    exact pose of a small, off-axis, nearly face-on marker by tens of degrees while
-    reprojecting within 0.1 px). Returns (poses ``T_cam_marker``, RMS errors px, ambiguity ratio
-    best/second; 0.0 when both branches converge to one pose).
+    IPPE (``cv2.SOLVEPNP_IPPE_SQUARE``, as :func:`pnp.solve_marker_ippe`) seeds; each seed and
+    its mirror about the line of sight are polished by Levenberg-Marquardt on the undistorted
+    corners (OpenCV's IPPE alone can miss the exact pose of a small, off-axis, nearly face-on
+    marker by tens of degrees while reprojecting within 0.1 px). Errors are RMS reprojection
+    errors in undistorted pixels (the ideal pinhole camera with the same focal lengths).
+
+    Args:
+        corners_px: (4, 2) raw pixels, aruco_detect order.
+        size: marker side, m.
+        model: the camera.
+        min_separation: two solutions closer than this (rad) are one.
+        normalized: optional ``model.normalize(corners_px)`` when the caller has it.
+
+    Returns:
+        (poses ``T_cam_marker``, RMS errors px, ambiguity ratio best/second; 0.0 when both
+        branches converge to one pose).
+
+    Raises:
+        MeasurementError: malformed corners or no pose in front of the camera.
     """
-    seed = solve_marker_ippe(corners_px, size, model)
+    px = np.asarray(corners_px, dtype=np.float64)
+    if px.shape != (4, 2) or not np.all(np.isfinite(px)):
+        raise MeasurementError(f"marker corners: expected 4 finite (x, y), got {px.tolist()}")
+    xy = np.asarray(model.normalize(px) if normalized is None else normalized, dtype=np.float64).reshape(4, 2)
+    focal = np.array([model.fx, model.fy])
     obj = marker_corners(size)
-    und = model.undistort_pixels(corners_px).reshape(-1, 1, 2)
-    starts = list(seed.poses) + [m for m in (_mirror_about_ray(T) for T in seed.poses) if m is not None]
+    pts = np.ascontiguousarray(xy.reshape(-1, 1, 2))
+    try:
+        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, pts, _EYE3, None, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+    except cv2.error as exc:
+        raise MeasurementError(f"IPPE failed on corners {px.tolist()}: {exc}") from None
+    starts = []
+    for r, t in zip(rvecs[:n], tvecs[:n]):
+        R = cv2.Rodrigues(r)[0]
+        t = t.ravel()
+        starts.append((r.reshape(3, 1), t))
+        Rm = _mirror_about_ray(R, t)
+        if Rm is not None:
+            starts.append((cv2.Rodrigues(Rm)[0], t))
     solved = []
-    for T in starts:
-        r, t = geo.rvec_tvec_from_transform(T)
-        r2, t2 = cv2.solvePnPRefineLM(obj, und, model.K, None, r.reshape(3, 1).copy(), t.reshape(3, 1).copy(),
-                                      criteria=_LM)
-        try:
-            T2 = geo.transform_from_rvec_tvec(r2.ravel(), t2.ravel())
-        except GeometryError:
+    for r, t in starts:
+        r2, t2 = cv2.solvePnPRefineLM(obj, pts, _EYE3, None, r.copy(), t.reshape(3, 1).copy(), criteria=_LM)
+        R2, t2 = cv2.Rodrigues(r2)[0], t2.ravel()
+        if not (np.all(np.isfinite(R2)) and np.all(np.isfinite(t2))) or t2[2] <= 0.0:
             continue
-        if T2[2, 3] <= 0.0:
-            continue
-        err = float(np.sqrt(np.mean(reprojection_errors(T2, obj, corners_px, model) ** 2)))
-        solved.append((err, T2))
+        solved.append((_rms_px(R2, t2, obj, xy, focal), R2, t2))
     if not solved:
-        return list(seed.poses), list(seed.errors), float(seed.ambiguity)
+        raise MeasurementError(f"no marker pose in front of the camera for corners {px.tolist()}")
     solved.sort(key=lambda a: a[0])
     keep = [solved[0]]
-    for err, T in solved[1:]:
-        if geo.rotation_angle(T[:3, :3].T @ keep[0][1][:3, :3]) > min_separation:
-            keep.append((err, T))
+    for cand in solved[1:]:
+        dR = cand[1].T @ keep[0][1]
+        if np.arccos(np.clip((np.trace(dR) - 1.0) / 2.0, -1.0, 1.0)) > min_separation:
+            keep.append(cand)
             break
-    errors = [e for e, _ in keep]
+    errors = [e for e, _, _ in keep]
     # One distinct pose: both branches of the ambiguity converged together (face-on marker): the
     # orientation is not ambiguous between two discrete poses, only uncertain near that one.
     amb = errors[0] / errors[1] if len(errors) > 1 and errors[1] > 0 else 0.0
-    return [T for _, T in keep], errors, float(amb)
+    return [geo.make_transform(R, t) for _, R, t in keep], errors, float(amb)
+
+
+def heading_std(T_W_marker: np.ndarray, cov6: np.ndarray) -> float:
+    """Standard deviation (rad) of a marker's heading: its x axis made horizontal, about W's z.
+
+    ``cov6`` is the (w, t) covariance of :func:`bundle_adjustment.bundle_adjust` (w a left
+    rotation perturbation in W). Infinite when the x axis is vertical.
+    """
+    x = T_W_marker[:3, 0]
+    h2 = float(x[0] ** 2 + x[1] ** 2)
+    if h2 < 1e-6:
+        return float("inf")
+    g = np.array([-x[1], x[0], 0.0]) / h2          # d yaw / d x
+    a = np.cross(x, g)                              # d yaw / d w  (dx = w cross x)
+    return float(np.sqrt(max(a @ cov6[:3, :3] @ a, 0.0)))
 
 
 @dataclass
@@ -204,6 +287,7 @@ class _Init:
     marker_obs: Dict[int, List[int]]         # marker -> indices of the observations used
     unlinked: List[int]
     rejected: Dict[int, str]
+    extrinsics: Dict[str, np.ndarray] = field(default_factory=dict)   # refined during growth
 
 
 class MapBuilder:
@@ -294,24 +378,24 @@ class MapBuilder:
         self._station_frames[st] += 1
         for name, o, model, T_base_cam in detections:
             size = self.sizes(o.marker_id)
+            xy = model.normalize(o.corners)
+            focal = np.array([model.fx, model.fy])
             try:
-                cand = solve_marker_ippe(o.corners, size, model)
+                distance, error = _ippe_check(xy, size, focal)
+                if error > opts.max_reprojection_px:
+                    # OpenCV's IPPE can miss small off-axis markers: check with the refined pair first.
+                    poses, errors, _ = marker_pose_candidates(o.corners, size, model, normalized=xy)
+                    distance, error = float(np.linalg.norm(poses[0][:3, 3])), errors[0]
             except (MeasurementError, GeometryError) as exc:
                 self._reject("no pose", name, detail=str(exc))
                 continue
-            T_cam_marker, error = cand.T_cam_marker, cand.error
-            if error > opts.max_reprojection_px:
-                # OpenCV's IPPE can miss small off-axis markers: check with the refined pair first.
-                poses, errors, _ = marker_pose_candidates(o.corners, size, model)
-                T_cam_marker, error = poses[0], errors[0]
             if error > opts.max_reprojection_px:
                 self._reject("reprojection", name, detail=f"marker {o.marker_id}: {error:.2f} px")
                 continue
-            if float(np.linalg.norm(T_cam_marker[:3, 3])) > opts.max_distance:
+            if distance > opts.max_distance:
                 self._reject("too far", name)
                 continue
-            self._obs.append(_Obs(st, name, int(o.marker_id), o.corners, model.normalize(o.corners),
-                                  np.array([model.fx, model.fy]), np.array(T_base_cam), model))
+            self._obs.append(_Obs(st, name, int(o.marker_id), o.corners, xy, focal, np.array(T_base_cam), model))
         self._version += 1
         return st
 
@@ -351,14 +435,15 @@ class MapBuilder:
         for (st, cam, mid), idxs in sorted(members.items()):
             first = self._obs[idxs[0]]
             corners = np.mean([self._obs[i].corners for i in idxs], axis=0)
+            xy = np.mean([self._obs[i].xy for i in idxs], axis=0)
             try:
-                poses, errors, amb = marker_pose_candidates(corners, self.sizes(mid), first.model)
+                poses, errors, amb = marker_pose_candidates(corners, self.sizes(mid), first.model, normalized=xy)
             except (MeasurementError, GeometryError):
                 continue
             T = poses[0]
             dist = float(np.linalg.norm(T[:3, 3]))
             cosf = float(-T[:3, 2] @ (T[:3, 3] / dist))
-            out.append(_Group(st, cam, mid, idxs, poses, errors, amb, dist, cosf, first.T_base_cam))
+            out.append(_Group(st, cam, mid, idxs, poses, errors, amb, dist, cosf, first.T_base_cam, xy, first.focal))
         return out
 
     def _unambiguous(self, g: _Group) -> bool:
@@ -420,7 +505,16 @@ class MapBuilder:
         est_pos = self._station_marker_estimates(groups, lambda g: True)
         T_W_s: Dict[int, np.ndarray] = {ref_st: np.eye(4)}
         T_W_m: Dict[int, np.ndarray] = {m: v[0] for m, v in est[ref_st].items()}
-        # Greedy growth: the station that sees the most mapped markers enters next.
+        # Long chains of stations (halls): chaining alone drifts (a 0.2 deg calibration error of
+        # the ring turns a 40 m hall by degrees), so the growth is interleaved with adjustments:
+        # the ring extrinsics are refined once enough stations are linked, and the latest
+        # stations are adjusted together every few stations (a sliding window).
+        windowed = len(est_pos) > opts.init_window_stations
+        calibrated = not (windowed and opts.ba.refine_extrinsics)
+        order = [ref_st]
+        since_ba = 0
+        init_extr: Dict[str, np.ndarray] = {}
+        # Growth in co-visibility order: the station that sees the most mapped markers enters next.
         pending = set(est_pos) - {ref_st}
         while pending:
             links = {s: [m for m in est_pos[s] if m in T_W_m] for s in pending}
@@ -432,15 +526,35 @@ class MapBuilder:
                 if m not in T_W_m:
                     T_W_m[m] = T_W_s[s] @ T
             pending.discard(s)
-        # Alternating re-averaging (no-op with one station): markers over stations, stations over markers.
-        if len(T_W_s) > 1:
-            for _ in range(opts.refine_passes):
-                T_W_m = self._average_markers(est, T_W_s, T_W_m)
-                for s in T_W_s:
-                    if s != ref_st:
-                        T_W_s[s] = self._station_pose(est_pos[s], est.get(s, {}), T_W_m,
-                                                      [m for m in est_pos[s] if m in T_W_m])
-        T_W_m = self._average_markers(est, T_W_s, T_W_m)
+            order.append(s)
+            since_ba += 1
+            if not windowed:
+                continue
+            if not calibrated and len(order) >= opts.init_calibrate_after:
+                extr = self._init_adjust(groups, order, T_W_m, T_W_s, refine_extrinsics=True)
+                init_extr = dict(extr)
+                for g in groups:
+                    g.T_base_cam = extr[g.camera]
+                est = self._station_marker_estimates(groups, self._unambiguous)
+                est_pos = self._station_marker_estimates(groups, lambda g: True)
+                calibrated, since_ba = True, 0
+            elif calibrated and since_ba >= opts.init_ba_every:
+                self._init_adjust(groups, order[-opts.init_window_stations:], T_W_m, T_W_s)
+                since_ba = 0
+        if windowed:
+            if since_ba:
+                self._init_adjust(groups, order[-opts.init_window_stations:], T_W_m, T_W_s)
+        else:
+            # Alternating re-averaging (no-op with one station): markers over stations, stations
+            # over markers.
+            if len(T_W_s) > 1:
+                for _ in range(opts.refine_passes):
+                    T_W_m = self._average_markers(est, T_W_s, T_W_m)
+                    for s in T_W_s:
+                        if s != ref_st:
+                            T_W_s[s] = self._station_pose(est_pos[s], est.get(s, {}), T_W_m,
+                                                          [m for m in est_pos[s] if m in T_W_m])
+            T_W_m = self._average_markers(est, T_W_s, T_W_m)
         rejected = self._check_spread(est_pos, T_W_s, ref)
         for m in rejected:
             T_W_m.pop(m, None)
@@ -461,7 +575,54 @@ class MapBuilder:
             if o.marker_id in T_W_m and o.station in T_W_s:
                 marker_obs[o.marker_id].append(i)
         unlinked = [m for m in all_ids if m not in T_W_m and m not in rejected]
-        return _Init(ref, ref_st, T_W_m, T_W_s, dict(marker_obs), unlinked, rejected)
+        return _Init(ref, ref_st, T_W_m, T_W_s, dict(marker_obs), unlinked, rejected, init_extr)
+
+    def _init_adjust(self, groups: List[_Group], stations: List[int], T_W_m: Dict[int, np.ndarray],
+                     T_W_s: Dict[int, np.ndarray], refine_extrinsics: bool = False) -> Dict[str, np.ndarray]:
+        """Adjust ``stations`` (first one held fixed) and the markers they see, in place.
+
+        A quick bundle adjustment of the initialisation on the groups' averaged corners (one
+        observation per station, camera and marker). Returns the extrinsics per camera name
+        (refined when ``refine_extrinsics``, with the usual priors around the calibration).
+        """
+        st_set = set(stations)
+        use = [g for g in groups if g.station in st_set and g.marker_id in T_W_m]
+        cams = sorted({g.camera for g in groups})
+        calib = {}
+        for g in groups:
+            calib.setdefault(g.camera, g.T_base_cam)
+        mids = sorted({g.marker_id for g in use})
+        sts = list(stations)
+        mi = {m: k for k, m in enumerate(mids)}
+        si = {s: k for k, s in enumerate(sts)}
+        ci = {c: k for k, c in enumerate(cams)}
+        if not use or len(sts) < 2:
+            return calib
+        prob = BAProblem(
+            T_W_markers=np.stack([T_W_m[m] for m in mids]),
+            sizes=np.array([self.sizes(m) for m in mids]),
+            T_W_stations=np.stack([T_W_s[s] for s in sts]),
+            T_base_cams=np.stack([calib[c] for c in cams]),
+            obs_marker=np.array([mi[g.marker_id] for g in use], dtype=int),
+            obs_station=np.array([si[g.station] for g in use], dtype=int),
+            obs_camera=np.array([ci[g.camera] for g in use], dtype=int),
+            obs_xy=np.stack([g.xy for g in use]),
+            obs_focal=np.stack([g.focal for g in use]),
+            fixed_marker=None,
+            fixed_station=0,
+        )
+        o = self.options.ba
+        res = bundle_adjust(prob, BAOptions(pixel_sigma=o.pixel_sigma, loss=o.loss, robust_scale=o.robust_scale,
+                                            refine_extrinsics=refine_extrinsics,
+                                            extrinsics_trans_sigma=o.extrinsics_trans_sigma,
+                                            extrinsics_rot_sigma=o.extrinsics_rot_sigma, max_nfev=30,
+                                            ftol=1e-5, xtol=1e-8, gtol=1e-8, lsmr_tol=1e-6,
+                                            covariance=False))
+        for k, m in enumerate(mids):
+            T_W_m[m] = res.T_W_markers[k]
+        for k, s in enumerate(sts):
+            T_W_s[s] = res.T_W_stations[k]
+        return {c: res.T_base_cams[k] for k, c in enumerate(cams)}
 
     @staticmethod
     def _station_pose(est_pos_s, est_s, T_W_m, mids) -> np.ndarray:
@@ -481,6 +642,22 @@ class MapBuilder:
             src = est_s if all(m in est_s for m in full) else est_pos_s
             Ts = [T_W_m[m] @ geo.inverse(src[m][0]) for m in full]
             return geo.average_transforms(Ts, [src[m][1] for m in full]) if len(Ts) > 1 else Ts[0]
+        keep = np.ones(len(mids), dtype=bool)
+        for _ in range(3):
+            T = MapBuilder._planar_fit(P[keep], Q[keep], w[keep])
+            # Robust: a marker whose mapped position disagrees with the others (a bad link: a
+            # wrong size, a moved marker, a flipped pose) is left out and the fit redone.
+            res = np.linalg.norm(geo.transform_points(T, P) - Q, axis=1)
+            lim = max(0.05, 4.0 * float(np.median(res[keep])))
+            new = res <= lim
+            if keep.sum() < 3 or np.array_equal(new, keep) or new.sum() < 2:
+                break
+            keep = new
+        return T
+
+    @staticmethod
+    def _planar_fit(P: np.ndarray, Q: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """Weighted planar (x, y, yaw; z offset) rigid fit ``T`` with ``Q ≈ T · P``; (K, 3) points."""
         wn = w / w.sum()
         pc, qc = wn @ P, wn @ Q
         A, B = P[:, :2] - pc[:2], Q[:, :2] - qc[:2]
@@ -601,11 +778,14 @@ class MapBuilder:
             if self.reference_marker is not None:
                 raise ArucoRingError(f"reference marker {self.reference_marker} was never seen unambiguously")
             raise ArucoRingError("no usable marker detection yet: nothing to map")
-        definition = (f"origin on the floor below marker {init.reference}'s centre, z up, x along marker "
-                      f"{init.reference}'s x made horizontal")
-        out = MarkerMap(frame_id=self.frame_id, reference_marker=init.reference, frame_definition=definition,
-                        method=method)
+        def new_map(ref: int) -> MarkerMap:
+            definition = (f"origin on the floor below marker {ref}'s centre, z up, x along marker "
+                          f"{ref}'s x made horizontal")
+            return MarkerMap(frame_id=self.frame_id, reference_marker=ref, frame_definition=definition,
+                             method=method)
+
         if method == "paper":
+            out = new_map(init.reference)
             T_W_map = map_frame_from_reference(init.T_W_markers[init.reference])
             T_map_W = geo.inverse(T_W_map)
             for m, T in init.T_W_markers.items():
@@ -613,9 +793,11 @@ class MapBuilder:
                 out.add(MarkerEntry(m, T_map_W @ T, self.sizes(m), pstd, rstd, len(init.marker_obs.get(m, []))))
             return out
         res, mids = self._refine(init)
+        ref = self._refined_reference(init, res, mids)
+        out = new_map(ref)
         # The map frame is fixed to the *refined* reference marker (W's z stays up: the gauge of
         # the adjustment is the robot at the reference station).
-        T_W_map = map_frame_from_reference(res.T_W_markers[mids.index(init.reference)])
+        T_W_map = map_frame_from_reference(res.T_W_markers[mids.index(ref)])
         T_map_W = geo.inverse(T_W_map)
         for k, m in enumerate(mids):
             T = res.T_W_markers[k]
@@ -625,6 +807,37 @@ class MapBuilder:
                 pstd, rstd = np.zeros(3), np.zeros(3)
             out.add(MarkerEntry(m, T_map_W @ T, self.sizes(m), pstd, rstd, len(init.marker_obs.get(m, []))))
         return out
+
+    def _refined_reference(self, init: _Init, res: BAResult, mids: List[int]) -> int:
+        """The marker that fixes the refined map's frame.
+
+        The map's yaw is the reference marker's heading (its x axis made horizontal), so the
+        frame is only as good as that one marker's orientation: a 0.3 deg error turns the whole
+        map (26 mm at 5 m). The paper's rule (near, face-on, first placement) is a proxy for a
+        well-determined orientation; after the adjustment the real measure is known, so unless
+        the user named a ``reference_marker`` (or ``refined_reference`` is off) the reference is
+        the marker whose *heading* has the smallest standard deviation in the adjustment's
+        covariance, among markers seen from at least ``refined_reference_min_stations``
+        stations when there are any (no truth is involved in the choice).
+        """
+        if (self.reference_marker is not None or not self.options.refined_reference
+                or res.marker_cov is None or len(mids) < 2):
+            return init.reference
+        stations: Dict[int, set] = defaultdict(set)
+        for m, idxs in init.marker_obs.items():
+            stations[m] = {self._obs[i].station for i in idxs}
+        need = min(self.options.refined_reference_min_stations, max(len(v) for v in stations.values()))
+        best, best_std = init.reference, float("inf")
+        for k, m in enumerate(mids):
+            if len(stations.get(m, ())) < need:
+                continue
+            std = heading_std(res.T_W_markers[k], res.marker_cov[k])
+            if np.isfinite(std) and std < best_std:
+                best, best_std = m, std
+        if best != init.reference:
+            logger.info("mapping: map frame fixed to marker %d (heading std %.3f deg) instead of the paper's "
+                        "reference %d", best, np.degrees(best_std), init.reference)
+        return best
 
     def _paper_std(self, m: int, init: _Init, T_W_map: np.ndarray):
         """A documented approximation: the spread of the per-view estimates / sqrt(views).
@@ -666,6 +879,7 @@ class MapBuilder:
             obs_focal=np.stack([o.focal for o in obs]),
             fixed_marker=None,
             fixed_station=si[init.ref_station],
+            T_base_cams_start=np.stack([init.extrinsics.get(c, self.ring[c].T_base_cam) for c in cams]),
         )
         res = bundle_adjust(prob, self.options.ba)
         self.last_ba = res

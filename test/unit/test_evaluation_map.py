@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from aruco_ring_localization import geometry as geo
-from aruco_ring_localization.evaluation import align_map_to_truth, map_error
+from aruco_ring_localization.evaluation import align_map_to_truth, map_error, map_frame_error
 from aruco_ring_localization.marker_map import MarkerEntry, MarkerMap, map_frame_from_reference
 from aruco_ring_localization.simulation.scene import Scene
 
@@ -44,6 +44,10 @@ def test_frame_error_is_not_hidden_but_best_fit_removes_it():
     assert fit["position_rms_mm"] < 1e-6 and fit["alignment"] == "best_fit", fit["position_rms_mm"]
     T = align_map_to_truth(rotated, truth)
     assert np.allclose(geo.transform_points(T, rotated.corners(17)), truth.corners(17), atol=1e-9)
+    fe = map_frame_error(rotated, truth)
+    assert abs(abs(fe["yaw_deg"]) - 0.5) < 1e-6, fe
+    assert abs(fe["mm_at_5m"] - 5000 * np.radians(0.5)) < 0.01, fe
+    assert abs(map_frame_error(est, truth)["yaw_deg"]) < 1e-9
 
 
 def test_missing_and_extra_markers_listed():
