@@ -184,6 +184,15 @@ class DetectorNodesTest(unittest.TestCase):
         nodes = sorted(line.strip() for line in out.stdout.splitlines() if line.strip())
         self.assertEqual(nodes, [f"/ring/cam{k}/detector" for k in range(8)], out.stdout)
 
+    def test_detector_launch_namespaces(self):
+        """ns:=..., __ns:=... (as the demo uses it) and no namespace at all all resolve."""
+        for extra, expected in ((["ns:=ring/cam3"], "/ring/cam3/detector"), (["__ns:=ring/cam0"], "/ring/cam0/detector"),
+                                ([], "/detector")):
+            out = subprocess.run(["roslaunch", "--nodes", PKG, "detector.launch"] + extra, capture_output=True,
+                                 text=True, timeout=60)
+            self.assertEqual(out.returncode, 0, f"{extra}: {out.stdout[-500:]} {out.stderr[-1500:]}")
+            self.assertEqual(out.stdout.split(), [expected], f"{extra}: {out.stdout}")
+
 
 if __name__ == "__main__":
     rostest.rosrun(PKG, "detector_nodes", DetectorNodesTest)
