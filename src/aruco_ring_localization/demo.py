@@ -69,14 +69,25 @@ class StopPlan:
 
 
 def plan_stops(test_positions: Sequence[Sequence[float]], test_orientations: Sequence[Sequence[float]]) -> List[StopPlan]:
-    """The paper's route: the 15 positions (labels 1..15), then the 8 orientations (1..8)."""
-    stops = [StopPlan("position", str(k + 1), tuple(float(v) for v in p)) for k, p in enumerate(test_positions)]
-    stops += [StopPlan("orientation", str(k + 1), tuple(float(v) for v in p)) for k, p in enumerate(test_orientations)]
-    return stops
+    """The paper's stops: the positions (labels 1..N) in a serpentine order, then the orientations.
+
+    Positions are visited row by row (rows = equal y within 5 cm), alternating the direction
+    along x, so the robot never crosses the plate empty-handed; labels keep the scene's order.
+    """
+    pos = [StopPlan("position", str(k + 1), tuple(float(v) for v in p)) for k, p in enumerate(test_positions)]
+    rows: List[List[StopPlan]] = []
+    for stop in sorted(pos, key=lambda s: (s.pose[1], s.pose[0])):
+        if rows and abs(rows[-1][0].pose[1] - stop.pose[1]) <= 0.05:
+            rows[-1].append(stop)
+        else:
+            rows.append([stop])
+    ordered = [s for k, row in enumerate(rows) for s in (row if k % 2 == 0 else row[::-1])]
+    return ordered + [StopPlan("orientation", str(k + 1), tuple(float(v) for v in p))
+                      for k, p in enumerate(test_orientations)]
 
 
 def interpolate_motion(start: Sequence[float], goal: Sequence[float], dt: float, max_speed: float = 0.5,
-                       max_yaw_rate: float = 1.0) -> List[Tuple[np.ndarray, np.ndarray]]:
+                       max_yaw_rate: float = 0.6) -> List[Tuple[np.ndarray, np.ndarray]]:
     """Poses (and body-frame velocity commands) from ``start`` to ``goal``, one per ``dt`` s.
 
     Straight line and shortest rotation together, at constant speed limited by ``max_speed``
@@ -121,7 +132,7 @@ def se2_in_frame(T_frame_world: np.ndarray, pose_world: Sequence[float]) -> np.n
 def stop_rows(records: Sequence[StopRecord], T_map_world: np.ndarray, kind: str, use_last: int = 5) -> List[tr.StopError]:
     """Table rows of the stops of ``kind``: truth in the map frame vs the median of the last estimates."""
     rows = []
-    for rec in records:
+    for rec in sorted(records, key=lambda r: (int(r.plan.label) if r.plan.label.isdigit() else 0, r.plan.label)):
         if rec.plan.kind != kind:
             continue
         truth = se2_in_frame(T_map_world, rec.truth_world)
@@ -515,13 +526,22 @@ class LabPlayer:
         """Our pose at ``stamp`` (waits up to ``timeout`` s wall time), or None."""
         key = round(stamp, 6)
         deadline = time.monotonic() + timeout
-        with self.lock:
-            while key not in self.poses:
+        tick = 0.0
+        while True:
+            with self.lock:
+                if key in self.poses:
+                    return self.poses[key]
                 left = deadline - time.monotonic()
                 if left <= 0:
                     return None
-                self.lock.wait(left)
-            return self.poses[key]
+                self.lock.wait(min(left, 0.05))
+                if key in self.poses:
+                    return self.poses[key]
+            # Let the simulated clock creep forward (never reaching the next frame's stamp): the
+            # nodes' ROS-time timers (e.g. the ring assembler's flush of incomplete frames) only
+            # run while the clock moves, as they would on a robot.
+            tick = min(tick + 0.002, 0.4 * self.dt)
+            self.clock.publish(self._Clock(clock=self.rospy.Time.from_sec(self.t + tick)))
 
     def wait_detections(self, stamp: float, timeout: float) -> bool:
         """Image mode: wait until every detector has answered the frame at ``stamp``."""
@@ -551,7 +571,7 @@ def _parse(argv: Optional[Sequence[str]]) -> argparse.Namespace:
                    help="also open rviz (needs DISPLAY); GUI=1 in the environment does the same")
     p.add_argument("--rate", type=float, default=5.0, help="simulated frames per simulated second")
     p.add_argument("--mapping-frames", type=int, default=30, help="frames at the mapping pose")
-    p.add_argument("--hold-frames", type=int, default=8, help="frames held at each stop")
+    p.add_argument("--hold-frames", type=int, default=10, help="frames held at each stop")
     p.add_argument("--use-last", type=int, default=4, help="last frames of each stop averaged (median)")
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
@@ -596,8 +616,10 @@ def run(args: argparse.Namespace) -> int:
         if args.mode == "images":
             _start_detectors(ros)
         mapping = ros.launch("mapping", ["phase:=mapping", f"method:={args.method}"] + common)
-        if not player.wait_for("data", timeout=60):
-            raise RuntimeError(f"the mapping nodes did not subscribe (log: {out / 'logs'})")
+        if not player.wait_for("data", timeout=90):
+            raise RuntimeError(f"the {'detectors' if args.mode == 'images' else 'mapper'} did not subscribe "
+                               f"(logs: {out / 'logs'})")
+        rospy.wait_for_service("/mapper/save_map", timeout=60)
         pose = np.asarray(scene.mapping_pose, dtype=float)
         progress(f"mapping from the plate centre ({pose[0]:.2f}, {pose[1]:.2f}) m: {args.mapping_frames} frames")
         time.sleep(1.0)
@@ -622,6 +644,7 @@ def run(args: argparse.Namespace) -> int:
         loc = ros.launch("localization", ["phase:=localization", f"fusion:={args.fusion}"] + common)
         if not player.wait_for("data", timeout=60):
             raise RuntimeError(f"the localizer did not subscribe (log: {out / 'logs'})")
+        rospy.wait_for_service("/localizer/reset", timeout=60)
         time.sleep(1.0)
         stops = plan_stops(scene.test_positions, scene.test_orientations)
         progress(f"localization ({args.fusion} fusion): driving through {sum(s.kind == 'position' for s in stops)} "
@@ -689,13 +712,9 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _start_detectors(ros: RosSession) -> None:
-    """Image mode: one detector node per ring camera (launch/detector.launch in ring/camK)."""
-    from .rig import CameraRing
-
-    ring = CameraRing.load(str(REPO / "config" / "ring.yaml"))
-    for cam in ring.cameras:
-        ros.spawn(["roslaunch", PACKAGE, "detector.launch", f"__ns:={cam.namespace}"], f"detector_{cam.name}")
+def _start_detectors(ros: RosSession) -> subprocess.Popen:
+    """Image mode: the 8 detector nodes (launch/ring_detectors.launch), kept for both phases."""
+    return ros.spawn(["roslaunch", PACKAGE, "ring_detectors.launch", "do_pose_estimation:=false"], "detectors")
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:

@@ -18,6 +18,10 @@ def test_plan_has_paper_stops():
     assert [s.kind for s in stops].count("position") == 15
     assert [s.kind for s in stops].count("orientation") == 8
     assert stops[0].label == "1" and stops[-1].label == "8"
+    labels = [s.label for s in stops if s.kind == "position"]
+    assert sorted(labels, key=int) == [str(k) for k in range(1, 16)], labels
+    hops = [np.hypot(b.pose[0] - a.pose[0], b.pose[1] - a.pose[1]) for a, b in zip(stops[:14], stops[1:15])]
+    assert max(hops) < 1.0, f"serpentine route expected, longest hop {max(hops):.2f} m"
 
 
 def test_interpolate_motion_reaches_goal_within_limits():
