@@ -808,6 +808,18 @@ class MapBuilder:
             out.add(MarkerEntry(m, T_map_W @ T, self.sizes(m), pstd, rstd, len(init.marker_obs.get(m, []))))
         return out
 
+    def save_map(self, path: str, method: Optional[str] = None) -> MarkerMap:
+        """Build the map (:meth:`build`) and write it to ``path`` atomically (previous file kept as
+        ``<path>.bak``, :meth:`MarkerMap.save`): what the mapper's ``~save_map`` and
+        ``save_on_shutdown`` do. A crash at any instant leaves the old file or the new one whole.
+
+        Raises:
+            ArucoRingError: nothing to map yet; OSError: the file cannot be written.
+        """
+        m = self.build(method)
+        m.save(path)
+        return m
+
     def _refined_reference(self, init: _Init, res: BAResult, mids: List[int]) -> int:
         """The marker that fixes the refined map's frame.
 

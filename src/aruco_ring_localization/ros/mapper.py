@@ -217,11 +217,10 @@ class MapperNode:
     def save(self) -> str:
         """Build with the configured method, write atomically; returns a summary line."""
         with self._lock:
-            m = self.builder.build()
+            m = self.builder.save_map(self.map_file)
             summary = self.builder.format_summary()
             ba = self.builder.last_ba if self.params.method == "refined" else None
             self._published_version = self.builder.version
-        m.save(self.map_file)
         self.publish(m)
         extra = (f"; bundle adjustment RMS {ba.rms_px_before:.2f} -> {ba.rms_px_after:.2f} px in {ba.seconds:.1f} s"
                  if ba is not None else "")

@@ -1,0 +1,146 @@
+#!/usr/bin/env python3
+"""rostest node for mapper.test: maps the simulated lab through the mapper node.
+
+The robot stands at each of the lab's mapping stations for 2 s while :class:`FaultPlayer`
+(test/faults, no fault scheduled) publishes ``ring/camK/camera_info`` and
+``ring/camK/fiducial_vertices`` from the simulator (corners mode, 0.3 px noise, true rig = the
+ring file with a seeded 2 mm / 0.2 deg calibration error) and ``/clock``. Then ``~save_map`` is
+called and the written map file, the static tf ``map -> marker_<id>`` and ``~markers`` are
+checked. Named ``*_rostest.py`` so pytest does not collect it (it needs rostest's master).
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+import threading
+import unittest
+
+import numpy as np
+import rospkg
+import rospy
+import rostest
+import tf2_ros
+from rosgraph_msgs.msg import Clock
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import Marker, MarkerArray
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "faults"))
+
+from aruco_ring_localization import geometry as geo  # noqa: E402
+from aruco_ring_localization.evaluation import format_map_error, map_error  # noqa: E402
+from aruco_ring_localization.marker_map import MarkerMap  # noqa: E402
+from aruco_ring_localization.ros.conversions import msg_to_transform, pose_msg_to_transform  # noqa: E402
+from aruco_ring_localization.simulation.scene import Scene  # noqa: E402
+
+from fault_player import FaultPlayer  # noqa: E402
+from faults import FaultSchedule  # noqa: E402
+
+PKG = "aruco_ring_localization"
+SECONDS_PER_STATION = 2.0
+RATE_HZ = 5.0
+TOL_FIT_MAX_MM = 10.0        # best-fit (the map's geometry): measured ~1-2 mm
+TOL_OWN_RMS_MM = 60.0        # in the map's own frame (adds the frame's heading error): sanity bound
+TOL_TF = 1e-6
+
+
+class MapperSimTest(unittest.TestCase):
+    @classmethod
+    def setUpClass(cls):
+        rospy.init_node("mapper_rostest")
+        root = rospkg.RosPack().get_path(PKG)
+        cls.map_file = rospy.get_param("/mapper/map_file")
+        shutil.rmtree(os.path.dirname(cls.map_file), ignore_errors=True)
+        stations = Scene.default().mapping_stations
+
+        def path(t: float) -> np.ndarray:
+            return np.array(stations[min(int(t // SECONDS_PER_STATION), len(stations) - 1)], dtype=float) * \
+                np.array([1.0, 1.0, np.pi / 180.0])
+
+        cls.stations = [path(k * SECONDS_PER_STATION) for k in range(len(stations))]
+        schedule = FaultSchedule()
+        schedule.add("mapping", SECONDS_PER_STATION * len(stations))
+        cls.lock = threading.Lock()
+        cls.marker_arrays = []
+        rospy.Subscriber("/mapper/markers", MarkerArray, cls._on_markers, queue_size=5)
+        cls.player = FaultPlayer(path, schedule, f"{root}/config/ring.yaml", rate_hz=RATE_HZ, seed=3, node="/mapper")
+        assert cls.player.wait_for_subscribers(30.0), "the mapper never subscribed to the detections"
+        cls.player.play()
+        # let the last frames through the assembler (wall-time timeout)
+        for k in range(1, 6):
+            cls.player.clock_pub.publish(Clock(clock=rospy.Time.from_sec(cls.player.t0 + schedule.duration + 0.1 * k)))
+            rospy.rostime.wallsleep(0.1)
+        rospy.wait_for_service("/mapper/save_map", timeout=30.0)
+        cls.response = rospy.ServiceProxy("/mapper/save_map", Trigger)()
+        cls.tf_buffer = tf2_ros.Buffer()
+        cls.tf_listener = tf2_ros.TransformListener(cls.tf_buffer)
+
+    @classmethod
+    def _on_markers(cls, msg):
+        with cls.lock:
+            cls.marker_arrays.append(msg)
+
+    def _visible_truth(self) -> MarkerMap:
+        """The truth restricted to the markers some camera sees from some station."""
+        sim = self.player.sim
+        seen = {mid for st in self.stations for views in sim.visible(Scene.T_world_base(st)).values()
+                for mid, _ in views}
+        truth = self.player.scene.truth_map()
+        for mid in list(truth.ids):
+            if mid not in seen:
+                truth.remove(mid)
+        return truth
+
+    def test_1_saved_map_matches_the_truth(self):
+        self.assertTrue(self.response.success, f"save_map failed: {self.response.message}")
+        self.assertIn(self.map_file, self.response.message)
+        m = MarkerMap.load(self.map_file)
+        truth = self._visible_truth()
+        self.assertGreaterEqual(len(truth), 5, f"only {len(truth)} markers visible: test setup broken")
+        missing = [i for i in truth.ids if i not in m]
+        self.assertEqual(missing, [], f"visible markers missing from the map: {missing}; {self.response.message}")
+        fit = map_error(m, truth, best_fit=True)
+        self.assertLess(fit["position_max_mm"], TOL_FIT_MAX_MM, format_map_error(fit))
+        own = map_error(m, truth)
+        self.assertLess(own["position_rms_mm"], TOL_OWN_RMS_MM, format_map_error(own))
+        self.assertEqual(m.method, "refined")
+
+    def test_2_static_tf_of_every_marker(self):
+        m = MarkerMap.load(self.map_file)
+        bad = []
+        for e in m:
+            try:
+                ts = self.tf_buffer.lookup_transform(m.frame_id, f"marker_{e.marker_id}", rospy.Time(0),
+                                                     rospy.Duration(5.0))
+            except (tf2_ros.LookupException, tf2_ros.ExtrapolationException, tf2_ros.ConnectivityException) as exc:
+                bad.append((e.marker_id, str(exc)))
+                continue
+            dp, dr = geo.pose_distance(msg_to_transform(ts.transform), e.T_map_marker)
+            if dp > TOL_TF or dr > TOL_TF:
+                bad.append((e.marker_id, f"tf differs from the file by {dp:.2e} m, {dr:.2e} rad"))
+        self.assertEqual(bad, [], f"static tf {m.frame_id} -> marker_<id>: {bad}")
+
+    def test_3_marker_array_shows_every_marker(self):
+        m = MarkerMap.load(self.map_file)
+        deadline = rospy.Time.now() + rospy.Duration(5.0)
+        while not rospy.is_shutdown():
+            with self.lock:
+                last = self.marker_arrays[-1] if self.marker_arrays else None
+            if last is not None or rospy.Time.now() > deadline:
+                break
+            rospy.rostime.wallsleep(0.1)
+        self.assertIsNotNone(last, "no ~markers message")
+        cubes = [mk for mk in last.markers if mk.type == Marker.CUBE and mk.action == Marker.ADD]
+        labels = {int(mk.text.split()[0]) for mk in last.markers if mk.type == Marker.TEXT_VIEW_FACING}
+        self.assertEqual(len(cubes), len(m), f"{len(cubes)} boxes for {len(m)} markers")
+        missing = [i for i in m.ids if i not in labels]
+        self.assertEqual(missing, [], f"markers without an id label: {missing}")
+        frames = {mk.header.frame_id for mk in last.markers if mk.action == Marker.ADD}
+        self.assertEqual(frames, {m.frame_id}, f"marker frames {frames}")
+        # The boxes sit where the file says (the saved, refined map is what is shown).
+        worst = max(geo.pose_distance(pose_msg_to_transform(mk.pose), m.T_map_marker(mk.id // 2))[0] for mk in cubes)
+        self.assertLess(worst, 1e-6, f"a box is {worst:.2e} m from its marker in the file")
+
+
+if __name__ == "__main__":
+    rostest.rosrun(PKG, "mapper_sim", MapperSimTest)
