@@ -679,9 +679,12 @@ def run(args: argparse.Namespace) -> int:
             player.wait_pose(hold[-1], max_wait)  # the stop's last pose, if it is late
             with player.lock:
                 rec.estimates = [(t, player.poses[round(t, 6)]) for t in hold if round(t, 6) in player.poses]
-                if rec.estimates:
-                    rec.camera_estimates = list(player.cam_estimates.get(round(rec.estimates[-1][0], 6),
-                                                                         np.zeros((0, 3))))
+                # the per-camera estimates (Fig. 9) of the latest hold frame that has them
+                for t in reversed(hold):
+                    cams = player.cam_estimates.get(round(t, 6))
+                    if cams is not None and len(cams):
+                        rec.camera_estimates = list(cams)
+                        break
             records.append(rec)
             current = goal
             progress(f"{stop.kind} {stop.label:>2}: truth ({goal[0]:.2f}, {goal[1]:.2f}, {np.degrees(goal[2]):6.1f} deg), "
