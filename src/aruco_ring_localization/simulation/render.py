@@ -1,0 +1,265 @@
+"""Image mode: render what each ring camera sees (:class:`RingRenderer`).
+
+Per camera image (mono8, the camera's size):
+
+1. a textured background: a seeded 360-degree panorama of the hall (smooth shading, grey
+   shelves and pipes, no pure black or white blocks) sliced by the camera's heading, so the
+   background moves when the robot turns;
+2. every marker whose printed sheet is in front of the camera and faces it, far to near (nearer
+   markers are drawn over farther ones): the marker image from ``cv2.aruco.generateImageMarker``
+   plus its white quiet zone, warped into the RAW (distorted) image exactly: for each pixel of
+   the sheet's bounding box the undistorted viewing ray (precomputed once per camera with
+   :meth:`CameraModel.normalize`) is intersected with the marker plane and the texture is
+   sampled there (``cv2.remap``, from a mip level that matches the marker's size on the image,
+   so small markers are area-filtered rather than aliased);
+3. optical blur (Gaussian, ``blur_sigma`` px) and sensor noise (Gaussian, ``noise_std`` grey
+   levels, drawn from a seeded bank at a random offset per image).
+
+Each marker gets its own seeded print contrast (black 15..45, white 200..235), like real prints
+under uneven light. Pixel centres are at integer coordinates, as in OpenCV and
+:meth:`CameraModel.project`, so rendered corners agree with the projected ones.
+"""
+from __future__ import annotations
+
+import logging
+from typing import Dict, List, Tuple
+
+import cv2
+import numpy as np
+
+from .. import geometry as geo
+from ..camera import CameraModel
+from ..rig import CameraRing
+from .scene import Scene
+
+logger = logging.getLogger(__name__)
+
+_MODULE_PX = 48          # texture pixels per marker module at the finest mip level
+_GRID_STEP = 8           # the ray grid is computed exactly every 8 px and interpolated (< 0.002 px error)
+
+
+def ray_grid(model: CameraModel, step: int = _GRID_STEP) -> Tuple[np.ndarray, np.ndarray]:
+    """Undistorted normalised coordinates (x/z, y/z) of every raw pixel: two (height, width) float32 arrays.
+
+    Computed exactly on a coarse grid and bilinearly interpolated; the distortion is smooth, so
+    the error is far below a thousandth of a pixel for ordinary lenses.
+    """
+    w, h = model.width, model.height
+    uc, vc = np.meshgrid(np.arange(0, w + step, step, dtype=np.float64),
+                         np.arange(0, h + step, step, dtype=np.float64))
+    xy = model.normalize(np.stack([uc.ravel(), vc.ravel()], axis=1)).reshape(uc.shape + (2,)).astype(np.float32)
+    mx, my = np.meshgrid(np.arange(w, dtype=np.float32) / step, np.arange(h, dtype=np.float32) / step)
+    xn = cv2.remap(np.ascontiguousarray(xy[..., 0]), mx, my, cv2.INTER_LINEAR)
+    yn = cv2.remap(np.ascontiguousarray(xy[..., 1]), mx, my, cv2.INTER_LINEAR)
+    return xn, yn
+
+
+def background_panorama(height: int, period: int, width: int, seed: int) -> np.ndarray:
+    """A seeded (height, period + width) uint8 panorama, periodic in x with ``period``.
+
+    Smooth shading plus grey rectangles and lines (shelves, doors, pipes) of moderate contrast;
+    values stay within about 45..215 so nothing looks like a black-bordered marker.
+    """
+    rng = np.random.default_rng(seed)
+    low = rng.normal(0.0, 1.0, (6, max(4, period // 160)))
+    low = np.concatenate([low, low[:, :1]], axis=1)
+    pano = cv2.resize(low.astype(np.float32), (period + 160, height), interpolation=cv2.INTER_CUBIC)[:, :period]
+    pano = 125.0 + 25.0 * pano / max(float(np.std(pano)), 1e-6)
+    mid = rng.normal(0.0, 1.0, (height // 24, period // 24)).astype(np.float32)
+    pano += 8.0 * cv2.resize(mid, (period, height), interpolation=cv2.INTER_CUBIC)
+    for _ in range(max(8, period // 90)):
+        x0 = int(rng.integers(0, period))
+        w = int(rng.integers(20, 260))
+        y0 = int(rng.integers(0, height))
+        hh = int(rng.integers(10, height // 2))
+        level = float(rng.uniform(-35.0, 35.0))
+        x1 = min(period, x0 + w)
+        pano[y0:y0 + hh, x0:x1] += level
+    for _ in range(max(4, period // 400)):
+        y = int(rng.integers(0, height))
+        pano[y:y + int(rng.integers(2, 6)), :] += float(rng.uniform(-25.0, 25.0))
+    pano = cv2.GaussianBlur(pano, (0, 0), 1.2)
+    pano += rng.normal(0.0, 3.0, pano.shape).astype(np.float32)
+    pano = np.clip(pano, 45.0, 215.0).astype(np.uint8)
+    return np.concatenate([pano, pano[:, :width]], axis=1)
+
+
+class RingRenderer:
+    """Renders mono8 images of a scene for the cameras of a (true) ring.
+
+    Args:
+        scene: the hall.
+        ring: the TRUE rig (the simulator's).
+        seed: seed of the background and the markers' print contrast.
+        blur_sigma: optical blur, px (Gaussian sigma).
+        noise_std: sensor noise, grey levels (Gaussian sigma).
+        min_depth: sheets with a corner closer than this (m) in front of the camera are not drawn.
+    """
+
+    def __init__(self, scene: Scene, ring: CameraRing, seed: int = 0, blur_sigma: float = 0.6,
+                 noise_std: float = 2.0, min_depth: float = 0.05):
+        self.scene = scene
+        self.ring = ring
+        self.blur_sigma = float(blur_sigma)
+        self.noise_std = float(noise_std)
+        self.min_depth = float(min_depth)
+        rng = np.random.default_rng([int(seed), 0x7e11])
+        dictionary = cv2.aruco.getPredefinedDictionary(scene.dictionary)
+        modules = int(dictionary.markerSize) + 2
+        quiet = float(scene.quiet_zone_modules)
+        self.sheet_scale = (modules + 2.0 * quiet) / modules
+        self._rays: Dict[str, Tuple[np.ndarray, np.ndarray, Tuple[float, float, float, float]]] = {}
+        self._textures: Dict[int, List[np.ndarray]] = {}
+        for m in scene.markers:
+            # Seeded per id, so a marker looks the same whatever else is in the scene.
+            mrng = np.random.default_rng([int(seed), int(m.marker_id)])
+            black = float(mrng.uniform(15.0, 45.0))
+            white = float(mrng.uniform(200.0, 235.0))
+            self._textures[m.marker_id] = _marker_mips(dictionary, m.marker_id, modules, quiet, black, white)
+        fmax = max(c.model.fx for c in ring.cameras)
+        self._period = int(round(2.0 * np.pi * fmax))
+        wmax = max(c.model.width for c in ring.cameras)
+        hmax = max(c.model.height for c in ring.cameras)
+        self._pano = background_panorama(hmax, self._period, wmax, int(rng.integers(2 ** 31)))
+        pad = 16
+        self._noise = np.clip(np.round(rng.normal(0.0, self.noise_std, (hmax + pad, wmax + pad)) + 128.0),
+                              0, 255).astype(np.uint8)
+        self._noise_pad = pad
+
+    def rays(self, name: str) -> Tuple[np.ndarray, np.ndarray, Tuple[float, float, float, float]]:
+        """The camera's ray grid and its normalised field-of-view box (computed on first use)."""
+        if name not in self._rays:
+            xn, yn = ray_grid(self.ring[name].model)
+            self._rays[name] = (xn, yn, _fov_box(xn, yn))
+        return self._rays[name]
+
+    def render_camera(self, sim, T_world_base: np.ndarray, name: str, rng: np.random.Generator) -> np.ndarray:
+        """One camera's mono8 image for the robot at ``T_world_base`` (4x4, world frame).
+
+        ``sim`` is the :class:`RingSimulator` (unused beyond the scene today; kept so a renderer
+        can share the simulator's visibility cache). ``rng`` draws the noise offsets.
+        """
+        cam = self.ring[name]
+        model = cam.model
+        W, H = model.width, model.height
+        T_world_cam = T_world_base @ cam.T_base_cam
+        T_cam_world = geo.inverse(T_world_cam)
+        z_world = T_world_cam[:3, 2]
+        heading = float(np.arctan2(z_world[1], z_world[0]))
+        off = int(round((-heading % (2.0 * np.pi)) / (2.0 * np.pi) * self._period)) % self._period
+        img = self._pano[:H, off:off + W].copy()
+        xn, yn, fov = self.rays(name)
+        draw = []
+        for m in self.scene.markers:
+            T_cam_marker = T_cam_world @ m.T_world_marker
+            half = 0.5 * m.size * self.sheet_scale
+            p0, n = T_cam_marker[:3, 3], T_cam_marker[:3, 2]
+            if float(n @ p0) >= 0.0:      # seen from the back (or edge on)
+                continue
+            sheet = geo.transform_points(T_cam_marker, np.array(
+                [[-half, half, 0.0], [half, half, 0.0], [half, -half, 0.0], [-half, -half, 0.0]]))
+            if np.any(sheet[:, 2] <= self.min_depth):
+                continue
+            draw.append((float(np.linalg.norm(p0)), m, T_cam_marker, half))
+        draw.sort(key=lambda d: -d[0])
+        for _, m, T_cam_marker, half in draw:
+            self._draw_marker(img, model, xn, yn, fov, m.marker_id, T_cam_marker, half)
+        if self.blur_sigma > 0:
+            img = cv2.GaussianBlur(img, (0, 0), self.blur_sigma)
+        if self.noise_std > 0:
+            oy, ox = (int(v) for v in rng.integers(0, self._noise_pad, 2))
+            img = cv2.addWeighted(img, 1.0, self._noise[oy:oy + H, ox:ox + W], 1.0, -128.0)
+        return img
+
+    def _draw_marker(self, img: np.ndarray, model: CameraModel, xn: np.ndarray, yn: np.ndarray, fov, marker_id: int,
+                     T_cam_marker: np.ndarray, half: float) -> None:
+        bbox = _sheet_bbox(model, fov, T_cam_marker, half)
+        if bbox is None:
+            return
+        x0, y0, x1, y1 = bbox
+        rx = xn[y0:y1, x0:x1]
+        ry = yn[y0:y1, x0:x1]
+        R = T_cam_marker[:3, :3].astype(np.float32)
+        p0 = T_cam_marker[:3, 3].astype(np.float32)
+        n = R[:, 2]
+        # Ray r = (x, y, 1); plane n.(t r - p0) = 0 -> t = n.p0 / n.r; marker coords of the hit point.
+        denom = n[0] * rx + n[1] * ry + n[2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = float(n @ p0) / denom
+        dx = t * rx - p0[0]
+        dy = t * ry - p0[1]
+        dz = t - p0[2]
+        u = R[0, 0] * dx + R[1, 0] * dy + R[2, 0] * dz
+        v = R[0, 1] * dx + R[1, 1] * dy + R[2, 1] * dz
+        inside = (t > 0) & (np.abs(u) <= half) & (np.abs(v) <= half)
+        if not np.any(inside):
+            return
+        # Pick the mip level whose size is just above the sheet's size on the image.
+        extent = max(x1 - x0, y1 - y0)
+        mips = self._textures[marker_id]
+        tex = mips[0]
+        for level in mips:
+            if level.shape[0] >= extent:
+                tex = level
+        S = float(tex.shape[0])
+        map_x = ((u / (2.0 * half) + 0.5) * S - 0.5).astype(np.float32)
+        map_y = ((0.5 - v / (2.0 * half)) * S - 0.5).astype(np.float32)
+        map_x[~inside] = -10.0
+        map_y[~inside] = -10.0
+        sampled = cv2.remap(tex, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        roi = img[y0:y1, x0:x1]
+        roi[inside] = sampled[inside]
+
+
+def _marker_mips(dictionary, marker_id: int, modules: int, quiet: float, black: float,
+                 white: float) -> List[np.ndarray]:
+    """Mip pyramid (largest first) of the printed sheet: marker + white quiet zone, print contrast applied."""
+    side = modules * _MODULE_PX
+    marker = cv2.aruco.generateImageMarker(dictionary, int(marker_id), side, borderBits=1)
+    q = int(round(quiet * _MODULE_PX))
+    sheet = cv2.copyMakeBorder(marker, q, q, q, q, cv2.BORDER_CONSTANT, value=255)
+    sheet = (black + (white - black) * (sheet.astype(np.float32) / 255.0)).astype(np.float32)
+    mips = [sheet]
+    while mips[-1].shape[0] > 24:
+        s = mips[-1].shape[0] // 2
+        mips.append(cv2.resize(mips[-1], (s, s), interpolation=cv2.INTER_AREA))
+    return [np.clip(np.round(m), 0, 255).astype(np.uint8) for m in mips]
+
+
+def _sheet_bbox(model: CameraModel, fov: Tuple[float, float, float, float], T_cam_marker: np.ndarray,
+                half: float):
+    """Pixel bounding box (x0, y0, x1, y1), end-exclusive, of the sheet in the raw image, or None.
+
+    Samples a 9x9 grid over the sheet, keeps the samples inside the camera's field of view (so
+    the distortion polynomial is only evaluated where it is valid), projects them and pads.
+    """
+    s = np.linspace(-half, half, 9)
+    gu, gv = np.meshgrid(s, s)
+    pts = np.stack([gu.ravel(), gv.ravel(), np.zeros(gu.size)], axis=1)
+    pc = geo.transform_points(T_cam_marker, pts)
+    if np.any(pc[:, 2] <= 1e-6):
+        return None
+    nx, ny = pc[:, 0] / pc[:, 2], pc[:, 1] / pc[:, 2]
+    keep = (nx >= fov[0]) & (nx <= fov[1]) & (ny >= fov[2]) & (ny <= fov[3])
+    if not np.any(keep):
+        # The whole sheet may still cover the image centre (very close); then use the image.
+        if nx.min() < 0 < nx.max() and ny.min() < 0 < ny.max():
+            return 0, 0, model.width, model.height
+        return None
+    px = model.project(pc[keep])
+    step_px = 2.0 * half / 8.0 * model.fx / float(np.min(pc[:, 2]))   # grid spacing on the image
+    pad = int(np.ceil(step_px)) + 2
+    x0 = max(0, int(np.floor(px[:, 0].min())) - pad)
+    y0 = max(0, int(np.floor(px[:, 1].min())) - pad)
+    x1 = min(model.width, int(np.ceil(px[:, 0].max())) + pad + 1)
+    y1 = min(model.height, int(np.ceil(px[:, 1].max())) + pad + 1)
+    if x1 <= x0 or y1 <= y0:
+        return None
+    return x0, y0, x1, y1
+
+
+def _fov_box(xn: np.ndarray, yn: np.ndarray) -> Tuple[float, float, float, float]:
+    """(xmin, xmax, ymin, ymax) of the normalised coordinates seen by the image, slightly enlarged."""
+    mx = 0.03 * float(xn.max() - xn.min())
+    my = 0.03 * float(yn.max() - yn.min())
+    return float(xn.min()) - mx, float(xn.max()) + mx, float(yn.min()) - my, float(yn.max()) + my
