@@ -1,0 +1,165 @@
+"""Robot motion for the simulator: a holonomic base, drifting wheel odometry, a waypoint driver.
+
+* :class:`HolonomicBase` — the true SE(2) pose of base_link in the world; follows a velocity
+  command (vx, vy in the base frame, m/s; wz, rad/s) within velocity and acceleration limits.
+* :class:`WheelOdometry` — integrates the true body motion with seeded errors: a per-run scale
+  error per axis (wheel radius, ~1 %), a yaw-rate scale error and Gaussian noise per step, so the
+  odometry drifts like a real omnidirectional base (``odom -> base_link``, REP-105).
+* :class:`WaypointDriver` — visits a list of poses (the paper's test positions/orientations),
+  holds each for ``hold_time`` seconds, and reports the index being held (-1 while moving).
+
+All poses are (x, y, yaw rad); all times in seconds.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from .. import geometry as geo
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class MotionLimits:
+    """Velocity (m/s, rad/s) and acceleration (m/s^2, rad/s^2) limits of the base."""
+
+    max_speed: float = 0.5
+    max_yaw_rate: float = 1.0
+    max_accel: float = 0.5
+    max_yaw_accel: float = 1.5
+
+
+class HolonomicBase:
+    """True pose of an omnidirectional base following velocity commands."""
+
+    def __init__(self, pose: Sequence[float], limits: MotionLimits = MotionLimits()):
+        self.pose = np.array(pose, dtype=float).reshape(3)
+        self.velocity = np.zeros(3)   # vx, vy (base frame), wz
+        self.limits = limits
+
+    def step(self, cmd: Sequence[float], dt: float) -> np.ndarray:
+        """Advance by ``dt`` toward the commanded (vx, vy, wz); returns the body motion (dx, dy, dyaw)
+        in the base frame at the start of the step."""
+        if dt <= 0:
+            return np.zeros(3)
+        lim = self.limits
+        target = np.array(cmd, dtype=float).reshape(3)
+        if not np.all(np.isfinite(target)):
+            target = np.zeros(3)
+        speed = float(np.hypot(target[0], target[1]))
+        if speed > lim.max_speed:
+            target[:2] *= lim.max_speed / speed
+        target[2] = float(np.clip(target[2], -lim.max_yaw_rate, lim.max_yaw_rate))
+        dv = target - self.velocity
+        dlin = float(np.hypot(dv[0], dv[1]))
+        if dlin > lim.max_accel * dt:
+            dv[:2] *= lim.max_accel * dt / dlin
+        dv[2] = float(np.clip(dv[2], -lim.max_yaw_accel * dt, lim.max_yaw_accel * dt))
+        v_mid = self.velocity + 0.5 * dv
+        self.velocity = self.velocity + dv
+        body = v_mid * dt
+        self.pose = compose_se2(self.pose, body)
+        return body
+
+    def teleport(self, pose: Sequence[float]) -> None:
+        self.pose = np.array(pose, dtype=float).reshape(3)
+        self.velocity = np.zeros(3)
+
+
+def compose_se2(pose: Sequence[float], body: Sequence[float]) -> np.ndarray:
+    """Apply a body-frame motion (dx, dy, dyaw) to an SE(2) pose (midpoint heading for the translation)."""
+    x, y, th = pose
+    dx, dy, dth = body
+    mid = th + 0.5 * dth
+    c, s = np.cos(mid), np.sin(mid)
+    return np.array([x + c * dx - s * dy, y + s * dx + c * dy, geo.wrap_angle(th + dth)])
+
+
+class WheelOdometry:
+    """Drifting odometry: ``pose`` is base_link in the odom frame (starts at the origin).
+
+    Args:
+        seed: seed of the scale errors and the per-step noise.
+        scale_std: 1-sigma scale error of x, y translation (fraction).
+        yaw_scale_std: 1-sigma scale error of the yaw rate (fraction).
+        noise_std: per-metre translation noise (m per sqrt(m)) and per-radian yaw noise.
+    """
+
+    def __init__(self, seed: int = 0, scale_std: float = 0.01, yaw_scale_std: float = 0.01,
+                 noise_std: float = 0.005):
+        self.rng = np.random.default_rng([int(seed), 0x0d0])
+        self.scale = 1.0 + self.rng.normal(0.0, scale_std, 2)
+        self.yaw_scale = 1.0 + float(self.rng.normal(0.0, yaw_scale_std))
+        self.noise_std = float(noise_std)
+        self.pose = np.zeros(3)
+        self.velocity = np.zeros(3)
+
+    def update(self, body: Sequence[float], dt: float) -> np.ndarray:
+        """Integrate one true body motion; returns the odometry pose (x, y, yaw) in odom."""
+        b = np.array(body, dtype=float).reshape(3)
+        meas = np.array([b[0] * self.scale[0], b[1] * self.scale[1], b[2] * self.yaw_scale])
+        mag = np.array([abs(b[0]), abs(b[1]), abs(b[2])])
+        meas += self.rng.normal(0.0, 1.0, 3) * self.noise_std * np.sqrt(mag)
+        self.pose = compose_se2(self.pose, meas)
+        self.velocity = meas / dt if dt > 0 else np.zeros(3)
+        return self.pose.copy()
+
+
+class WaypointDriver:
+    """Drive to each pose in turn and hold it.
+
+    Args:
+        waypoints: poses (x, y, yaw) in the world.
+        hold_time: seconds to stay at each pose once reached.
+        gain: proportional gain (1/s) of the position and heading controller.
+        tolerance: (m, rad) within which a pose counts as reached.
+        loop: start again after the last pose.
+    """
+
+    def __init__(self, waypoints: Sequence[Sequence[float]], hold_time: float = 3.0, gain: float = 1.5,
+                 tolerance: Tuple[float, float] = (0.005, np.radians(0.5)), loop: bool = False):
+        self.waypoints: List[np.ndarray] = [np.array(w, dtype=float).reshape(3) for w in waypoints]
+        self.hold_time = float(hold_time)
+        self.gain = float(gain)
+        self.tolerance = tolerance
+        self.loop = loop
+        self.index = 0
+        self._held_since: Optional[float] = None
+        self.finished = not self.waypoints
+
+    @property
+    def holding(self) -> int:
+        """Index of the waypoint being held, or -1 while moving (or finished)."""
+        return self.index if self._held_since is not None and not self.finished else -1
+
+    def command(self, pose: Sequence[float], t: float) -> np.ndarray:
+        """Velocity command (vx, vy, wz) in the base frame for the robot at ``pose`` at time ``t``."""
+        if self.finished:
+            return np.zeros(3)
+        goal = self.waypoints[self.index]
+        p = np.asarray(pose, dtype=float)
+        d_world = goal[:2] - p[:2]
+        dyaw = float(geo.angle_diff(goal[2], p[2]))
+        reached = np.hypot(*d_world) < self.tolerance[0] and abs(dyaw) < self.tolerance[1]
+        if self._held_since is not None:
+            if t - self._held_since >= self.hold_time:
+                self._held_since = None
+                self.index += 1
+                if self.index >= len(self.waypoints):
+                    if self.loop:
+                        self.index = 0
+                    else:
+                        self.finished = True
+                        return np.zeros(3)
+                return self.command(pose, t)
+            return np.zeros(3)
+        if reached:
+            self._held_since = t
+            return np.zeros(3)
+        c, s = np.cos(p[2]), np.sin(p[2])
+        v_body = self.gain * np.array([c * d_world[0] + s * d_world[1], -s * d_world[0] + c * d_world[1]])
+        return np.array([v_body[0], v_body[1], self.gain * dyaw])

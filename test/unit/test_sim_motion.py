@@ -1,0 +1,74 @@
+"""Simulator motion, odometry, waypoint driver and laser scan."""
+from __future__ import annotations
+
+import numpy as np
+
+from aruco_ring_localization import geometry as geo
+from aruco_ring_localization.simulation.laser import LaserScanner
+from aruco_ring_localization.simulation.motion import (HolonomicBase, MotionLimits, WaypointDriver,
+                                                       WheelOdometry)
+from aruco_ring_localization.simulation.scene import Scene
+
+
+def test_base_respects_velocity_and_acceleration_limits():
+    base = HolonomicBase((0, 0, 0), MotionLimits(max_speed=0.5, max_accel=0.5, max_yaw_rate=1.0))
+    base.step((2.0, 0.0, 0.0), 0.1)
+    assert np.isclose(base.velocity[0], 0.05), base.velocity       # accel limit: 0.5 m/s^2 * 0.1 s
+    for _ in range(100):
+        base.step((2.0, 0.0, 5.0), 0.1)
+    assert np.isclose(np.hypot(*base.velocity[:2]), 0.5) and np.isclose(base.velocity[2], 1.0), base.velocity
+    base.step((np.nan, 0, 0), 0.1)   # a NaN command is treated as stop
+    assert np.all(np.isfinite(base.pose))
+
+
+def test_straight_motion_and_rotation():
+    base = HolonomicBase((1.0, 2.0, np.pi / 2), MotionLimits(max_accel=100.0, max_yaw_accel=100.0))
+    for _ in range(10):
+        base.step((0.2, 0.0, 0.0), 0.1)
+    # First step accelerates from rest: mean speed 0.1 m/s, so 0.19 m in 1 s.
+    assert np.allclose(base.pose, (1.0, 2.19, np.pi / 2), atol=1e-9), base.pose
+
+
+def test_odometry_drifts_but_stays_close():
+    odo = WheelOdometry(seed=1)
+    base = HolonomicBase((0, 0, 0))
+    for _ in range(600):
+        body = base.step((0.3, 0.1, 0.2), 0.1)
+        odo.update(body, 0.1)
+    # Compare in the odom frame (both start at the origin).
+    err = np.hypot(*(odo.pose[:2] - base.pose[:2]))
+    assert 0.001 < err < 0.5, f"odometry error after 60 s: {err:.3f} m"
+    assert WheelOdometry(seed=1).scale.tolist() == odo.scale.tolist()
+
+
+def test_waypoint_driver_visits_and_holds():
+    wps = [(1.0, 0.0, 0.0), (1.0, 0.5, np.pi / 2)]
+    drv = WaypointDriver(wps, hold_time=1.0)
+    base = HolonomicBase((0, 0, 0))
+    held, t = [], 0.0
+    for _ in range(1000):
+        cmd = drv.command(base.pose, t)
+        held.append(drv.holding)
+        if drv.holding >= 0:
+            goal = wps[drv.holding]
+            assert np.hypot(base.pose[0] - goal[0], base.pose[1] - goal[1]) < 0.01
+        base.step(cmd, 0.05)
+        t += 0.05
+        if drv.finished:
+            break
+    assert drv.finished, "did not finish the waypoints in 50 s"
+    assert 0 in held and 1 in held and held[0] == -1
+    assert sum(1 for h in held if h == 0) * 0.05 >= 0.95
+
+
+def test_laser_sees_the_room_walls():
+    scene = Scene.default()
+    scanner = LaserScanner(scene.room.wall_segments(), beams=4, angle_min=0.0, angle_max=1.5 * np.pi, noise_std=0.0)
+    r = scanner.scan((5.5, 4.5, 0.0))
+    assert np.allclose(r, [5.5, 4.5, 5.5, 4.5]), r
+    r = scanner.scan((5.5, 4.5, np.pi / 2))
+    assert np.allclose(r, [4.5, 5.5, 4.5, 5.5]), r
+    full = LaserScanner(scene.obstacle_segments(), noise_std=0.0).scan(scene.mapping_pose)
+    assert np.all(np.isfinite(full)) and full.max() < np.hypot(11, 9)
+    short = LaserScanner(scene.obstacle_segments(), range_max=4.0, noise_std=0.0).scan(scene.mapping_pose)
+    assert np.isinf(short).any()
