@@ -209,3 +209,25 @@ def test_detector_finds_every_rendered_marker():
     assert not missed, f"missed {len(missed)} of {n_visible} visible markers: {missed}"
     med = float(np.median(errors))
     assert med < 0.3, f"median corner error {med:.3f} px (limit 0.3) over {len(errors)} corners"
+
+
+# --- fuzz: whatever a sensor_msgs/Image carries, only MeasurementError escapes -----------------------
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@settings(max_examples=150)
+@given(encoding=st.sampled_from(["mono8", "mono16", "bgr8", "rgb8", "bgra8", "rgba8", "8UC1", "yuv422", "", "bgr16"]),
+       width=st.integers(-3, 40), height=st.integers(-3, 40), step=st.integers(-5, 200),
+       data=st.binary(max_size=3000))
+def test_image_to_gray_fuzz(encoding, width, height, step, data):
+    try:
+        img = image_to_gray(encoding, width, height, step, data)
+    except MeasurementError:
+        return
+    assert img.shape == (height, width) and img.dtype == np.uint8
+    try:
+        assert isinstance(Detector().detect(img), list)
+    except MeasurementError:
+        pass
