@@ -72,3 +72,30 @@ def test_laser_sees_the_room_walls():
     assert np.all(np.isfinite(full)) and full.max() < np.hypot(11, 9)
     short = LaserScanner(scene.obstacle_segments(), range_max=4.0, noise_std=0.0).scan(scene.mapping_pose)
     assert np.isinf(short).any()
+
+
+def test_sim_robot_follows_external_commands_and_times_out():
+    from aruco_ring_localization.simulation.motion import SimRobot
+    robot = SimRobot((0, 0, 0), limits=MotionLimits(max_accel=100.0))
+    robot.set_command((0.2, 0, 0), 0.0)
+    s = robot.step(0.1, 0.1)
+    assert s.holding == -1 and s.cmd[0] == 0.2 and s.pose[0] > 0.0
+    x = s.pose[0]
+    s = robot.step(1.0, 0.1)      # command older than 0.5 s: stop
+    assert s.cmd[0] == 0.0
+
+
+def test_sim_robot_direct_waypoints_hold_exactly():
+    from aruco_ring_localization.simulation.motion import SimRobot
+    wps = [(1.0, 2.0, 0.3), (2.0, 2.0, -0.3)]
+    robot = SimRobot((0, 0, 0), waypoints=wps, hold_time=0.5, direct=True)
+    seen = {}
+    t = 0.0
+    for _ in range(40):
+        t += 0.1
+        s = robot.step(t, 0.1)
+        if s.holding >= 0:
+            seen.setdefault(s.holding, s.pose)
+    assert set(seen) == {0, 1}
+    for i, p in seen.items():
+        assert np.allclose(p, wps[i], atol=1e-9), (i, p)

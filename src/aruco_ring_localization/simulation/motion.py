@@ -163,3 +163,82 @@ class WaypointDriver:
         c, s = np.cos(p[2]), np.sin(p[2])
         v_body = self.gain * np.array([c * d_world[0] + s * d_world[1], -s * d_world[0] + c * d_world[1]])
         return np.array([v_body[0], v_body[1], self.gain * dyaw])
+
+
+@dataclass
+class RobotState:
+    """What the simulator publishes after one step.
+
+    Attributes:
+        pose: true (x, y, yaw) of base_link in the world.
+        odom_pose: (x, y, yaw) of base_link in the odom frame (drifting).
+        odom_velocity: measured body velocity (vx, vy, wz).
+        cmd: the velocity command that was followed (vx, vy, wz).
+        holding: index of the waypoint being held, -1 while moving (or without waypoints).
+    """
+
+    pose: np.ndarray
+    odom_pose: np.ndarray
+    odom_velocity: np.ndarray
+    cmd: np.ndarray
+    holding: int
+
+
+class SimRobot:
+    """The simulated robot: true base, odometry and (optionally) the waypoint driver.
+
+    Args:
+        start: initial true pose (x, y, yaw) in the world.
+        waypoints: poses to visit (empty: follow external commands only).
+        hold_time: seconds at each waypoint.
+        direct: jump to each waypoint instead of driving there (no motion blur of the schedule).
+        limits: base limits.
+        seed: odometry seed.
+        loop: revisit the waypoints forever.
+    """
+
+    def __init__(self, start: Sequence[float], waypoints: Sequence[Sequence[float]] = (), hold_time: float = 3.0,
+                 direct: bool = False, limits: MotionLimits = MotionLimits(), seed: int = 0, loop: bool = False):
+        self.base = HolonomicBase(start, limits)
+        self.odometry = WheelOdometry(seed=seed)
+        self.driver = WaypointDriver(waypoints, hold_time=hold_time, loop=loop) if len(waypoints) else None
+        self.direct = direct
+        self._cmd_ext = np.zeros(3)
+        self._cmd_time = -np.inf
+
+    def set_command(self, cmd: Sequence[float], t: float) -> None:
+        """An external velocity command (cmd_vel), used when no waypoint driver is active."""
+        c = np.array(cmd, dtype=float).reshape(3)
+        self._cmd_ext = c if np.all(np.isfinite(c)) else np.zeros(3)
+        self._cmd_time = t
+
+    @property
+    def driving(self) -> bool:
+        return self.driver is not None and not self.driver.finished
+
+    def step(self, t: float, dt: float, cmd_timeout: float = 0.5) -> RobotState:
+        """Advance the robot to time ``t`` (s) by ``dt`` (s)."""
+        if self.driving:
+            if self.direct and self.driver.holding < 0:
+                # Jump onto the current goal; the driver then holds it.
+                self.base.teleport(self.driver.waypoints[self.driver.index])
+            cmd = self.driver.command(self.base.pose, t)
+        else:
+            cmd = self._cmd_ext if t - self._cmd_time <= cmd_timeout else np.zeros(3)
+        before = self.base.pose.copy()
+        body = self.base.step(cmd, dt)
+        if self.direct and self.driving:
+            body = _body_motion(before, self.base.pose)
+        self.odometry.update(body, dt)
+        holding = self.driver.holding if self.driver is not None else -1
+        return RobotState(self.base.pose.copy(), self.odometry.pose.copy(), self.odometry.velocity.copy(),
+                          np.asarray(cmd, dtype=float).copy(), holding)
+
+
+def _body_motion(a: Sequence[float], b: Sequence[float]) -> np.ndarray:
+    """Body-frame motion (dx, dy, dyaw) from pose a to pose b (approximate inverse of compose_se2)."""
+    dth = float(geo.angle_diff(b[2], a[2]))
+    mid = a[2] + 0.5 * dth
+    c, s = np.cos(mid), np.sin(mid)
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return np.array([c * dx + s * dy, -s * dx + c * dy, dth])
