@@ -136,8 +136,11 @@ class WaypointDriver:
         """Index of the waypoint being held, or -1 while moving (or finished)."""
         return self.index if self._held_since is not None and not self.finished else -1
 
-    def command(self, pose: Sequence[float], t: float) -> np.ndarray:
-        """Velocity command (vx, vy, wz) in the base frame for the robot at ``pose`` at time ``t``."""
+    def command(self, pose: Sequence[float], t: float, velocity: Optional[Sequence[float]] = None) -> np.ndarray:
+        """Velocity command (vx, vy, wz) in the base frame for the robot at ``pose`` at time ``t``.
+
+        ``velocity`` (vx, vy, wz), when given, must also be small (< 1 cm/s, < 0.6 deg/s) for a
+        waypoint to count as reached, so the robot is at rest while it holds the pose."""
         if self.finished:
             return np.zeros(3)
         goal = self.waypoints[self.index]
@@ -145,6 +148,9 @@ class WaypointDriver:
         d_world = goal[:2] - p[:2]
         dyaw = float(geo.angle_diff(goal[2], p[2]))
         reached = np.hypot(*d_world) < self.tolerance[0] and abs(dyaw) < self.tolerance[1]
+        if velocity is not None:
+            v = np.asarray(velocity, dtype=float)
+            reached = reached and np.hypot(v[0], v[1]) < 0.01 and abs(v[2]) < 0.01
         if self._held_since is not None:
             if t - self._held_since >= self.hold_time:
                 self._held_since = None
@@ -155,7 +161,7 @@ class WaypointDriver:
                     else:
                         self.finished = True
                         return np.zeros(3)
-                return self.command(pose, t)
+                return self.command(pose, t, velocity)
             return np.zeros(3)
         if reached:
             self._held_since = t
@@ -222,7 +228,7 @@ class SimRobot:
             if self.direct and self.driver.holding < 0:
                 # Jump onto the current goal; the driver then holds it.
                 self.base.teleport(self.driver.waypoints[self.driver.index])
-            cmd = self.driver.command(self.base.pose, t)
+            cmd = self.driver.command(self.base.pose, t, None if self.direct else self.base.velocity)
         else:
             cmd = self._cmd_ext if t - self._cmd_time <= cmd_timeout else np.zeros(3)
         before = self.base.pose.copy()
