@@ -85,8 +85,10 @@ class MappingOptions:
         refined_reference_min_stations: ... among markers seen from at least this many stations.
         init_window_stations: with more stations than this (a hall mapped along a chain of
             stations), the initialisation adjusts as it grows: the ring extrinsics once
-            ``init_calibrate_after`` stations are linked (when ``ba.refine_extrinsics``), then the
-            last ``init_window_stations`` stations every ``init_ba_every`` new ones.
+            ``init_calibrate_after`` stations are linked (when ``ba.refine_extrinsics``) and again
+            each time the linked set doubles, up to ``init_calibrate_max`` stations (all linked
+            stations adjusted), and in between the last ``init_window_stations`` stations every
+            ``init_ba_every`` new ones.
         ba: bundle adjustment settings (method ``refined``); by default the ring extrinsics are
             refined too, with priors around the calibration (several stations make them observable).
     """
@@ -106,6 +108,7 @@ class MappingOptions:
     init_window_stations: int = 12
     init_ba_every: int = 4
     init_calibrate_after: int = 6
+    init_calibrate_max: int = 96
     ba: BAOptions = field(default_factory=lambda: BAOptions(refine_extrinsics=True))
 
 
@@ -511,6 +514,8 @@ class MapBuilder:
         # stations are adjusted together every few stations (a sliding window).
         windowed = len(est_pos) > opts.init_window_stations
         calibrated = not (windowed and opts.ba.refine_extrinsics)
+        next_calibration = opts.init_calibrate_after
+        calib0 = {g.camera: g.T_base_cam for g in groups}
         order = [ref_st]
         since_ba = 0
         init_extr: Dict[str, np.ndarray] = {}
@@ -530,15 +535,20 @@ class MapBuilder:
             since_ba += 1
             if not windowed:
                 continue
-            if not calibrated and len(order) >= opts.init_calibrate_after:
-                extr = self._init_adjust(groups, order, T_W_m, T_W_s, refine_extrinsics=True)
+            if not calibrated and len(order) >= next_calibration:
+                # All linked stations, extrinsics refined; again each time the linked set doubles
+                # (up to init_calibrate_max stations): a calibration from the first few stations
+                # alone still leaves a bias that the chain accumulates.
+                extr = self._init_adjust(groups, order, T_W_m, T_W_s, refine_extrinsics=True, prior=calib0)
                 init_extr = dict(extr)
                 for g in groups:
                     g.T_base_cam = extr[g.camera]
                 est = self._station_marker_estimates(groups, self._unambiguous)
                 est_pos = self._station_marker_estimates(groups, lambda g: True)
-                calibrated, since_ba = True, 0
-            elif calibrated and since_ba >= opts.init_ba_every:
+                since_ba = 0
+                next_calibration = 2 * len(order)
+                calibrated = next_calibration > opts.init_calibrate_max
+            elif len(order) >= opts.init_calibrate_after and since_ba >= opts.init_ba_every:
                 self._init_adjust(groups, order[-opts.init_window_stations:], T_W_m, T_W_s)
                 since_ba = 0
         if windowed:
@@ -578,26 +588,29 @@ class MapBuilder:
         return _Init(ref, ref_st, T_W_m, T_W_s, dict(marker_obs), unlinked, rejected, init_extr)
 
     def _init_adjust(self, groups: List[_Group], stations: List[int], T_W_m: Dict[int, np.ndarray],
-                     T_W_s: Dict[int, np.ndarray], refine_extrinsics: bool = False) -> Dict[str, np.ndarray]:
+                     T_W_s: Dict[int, np.ndarray], refine_extrinsics: bool = False,
+                     prior: Optional[Dict[str, np.ndarray]] = None) -> Dict[str, np.ndarray]:
         """Adjust ``stations`` (first one held fixed) and the markers they see, in place.
 
         A quick bundle adjustment of the initialisation on the groups' averaged corners (one
         observation per station, camera and marker). Returns the extrinsics per camera name
-        (refined when ``refine_extrinsics``, with the usual priors around the calibration).
+        (refined when ``refine_extrinsics``, with the usual priors around ``prior``, the
+        calibration; the groups' extrinsics are the starting values).
         """
         st_set = set(stations)
         use = [g for g in groups if g.station in st_set and g.marker_id in T_W_m]
         cams = sorted({g.camera for g in groups})
-        calib = {}
+        current = {}
         for g in groups:
-            calib.setdefault(g.camera, g.T_base_cam)
+            current.setdefault(g.camera, g.T_base_cam)
+        calib = {c: (prior or current)[c] for c in cams}
         mids = sorted({g.marker_id for g in use})
         sts = list(stations)
         mi = {m: k for k, m in enumerate(mids)}
         si = {s: k for k, s in enumerate(sts)}
         ci = {c: k for k, c in enumerate(cams)}
         if not use or len(sts) < 2:
-            return calib
+            return current
         prob = BAProblem(
             T_W_markers=np.stack([T_W_m[m] for m in mids]),
             sizes=np.array([self.sizes(m) for m in mids]),
@@ -610,6 +623,7 @@ class MapBuilder:
             obs_focal=np.stack([g.focal for g in use]),
             fixed_marker=None,
             fixed_station=0,
+            T_base_cams_start=np.stack([current[c] for c in cams]),
         )
         o = self.options.ba
         res = bundle_adjust(prob, BAOptions(pixel_sigma=o.pixel_sigma, loss=o.loss, robust_scale=o.robust_scale,
