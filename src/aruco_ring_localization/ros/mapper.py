@@ -224,7 +224,8 @@ class MapperNode:
         self.publish(m)
         extra = (f"; bundle adjustment RMS {ba.rms_px_before:.2f} -> {ba.rms_px_after:.2f} px in {ba.seconds:.1f} s"
                  if ba is not None else "")
-        return f"saved {len(m)} markers ({self.params.method}) to {self.map_file}: {summary}{extra}"
+        return (f"saved {len(m)} markers ({self.params.method}, map frame fixed to marker {m.reference_marker}) "
+                f"to {self.map_file}: {summary}{extra}")
 
     def on_save_map(self, _req) -> TriggerResponse:
         try:
