@@ -820,6 +820,11 @@ class MapBuilder:
             else:
                 pstd, rstd = np.zeros(3), np.zeros(3)
             out.add(MarkerEntry(m, T_map_W @ T, self.sizes(m), pstd, rstd, len(init.marker_obs.get(m, []))))
+        if self.options.ba.refine_extrinsics:
+            # The markers were estimated through these extrinsics: localizing with them removes the
+            # ring's calibration error from every pose (ring_tf publishes them given the map file).
+            out.ring_extrinsics = {c: res.T_base_cams[k] for k, c in enumerate(self.ring.names)}
+            out.ring_base_frame = self.ring.base_frame
         return out
 
     def save_map(self, path: str, method: Optional[str] = None) -> MarkerMap:

@@ -81,7 +81,8 @@ def test_reference_follows_the_papers_rule(ring):
 def test_refined_reduces_map_error_on_noisy_multi_station(ring, scene):
     from aruco_ring_localization.simulation.ring_sim import perturb_ring
 
-    sim = RingSimulator(scene, perturb_ring(ring, seed=1), pixel_noise=0.3, seed=2)
+    true_ring = perturb_ring(ring, seed=1)
+    sim = RingSimulator(scene, true_ring, pixel_noise=0.3, seed=2)
     b = MapBuilder(ring, MarkerSizes(0.2))
     for f in _frames(sim, scene.mapping_stations, 6):
         b.add_frame(f)
@@ -96,6 +97,13 @@ def test_refined_reduces_map_error_on_noisy_multi_station(ring, scene):
     assert refined["position_rms_mm"] < 6.0, f"refined RMS {refined['position_rms_mm']:.2f} mm"
     stds = np.array([np.max(e.position_std) for e in refined_map if e.marker_id != refined_map.reference_marker])
     assert np.all(stds > 0) and np.all(stds < 0.05), f"position std (m) {stds}"
+    # The map carries the refined ring calibration, and it is closer to the true rig than the file's.
+    assert sorted(refined_map.ring_extrinsics) == sorted(ring.names)
+    before = [np.degrees(geo.pose_distance(ring[c].T_base_cam, true_ring[c].T_base_cam)[1]) for c in ring.names]
+    after = [np.degrees(geo.pose_distance(refined_map.ring_extrinsics[c], true_ring[c].T_base_cam)[1])
+             for c in ring.names]
+    assert np.mean(after) < 0.5 * np.mean(before), \
+        f"mean extrinsic rotation error {np.mean(after):.3f} deg refined vs {np.mean(before):.3f} deg in the ring file"
 
 
 def test_disconnected_marker_is_reported(ring, scene):
