@@ -180,11 +180,19 @@ def test_stale_images_dropped_when_max_image_age_set(real_image):
 @pytest.mark.parametrize("params, key", [(dict(dictionary=42), "dictionary"), (dict(fiducial_len=0.0), "fiducial_len"),
                                          (dict(corner_refinement="fast"), "corner_refinement"),
                                          (dict(ignore_fiducials="a-b"), "ignore_fiducials"),
-                                         (dict(fiducial_len_override="3: x"), "fiducial_len_override")])
+                                         (dict(fiducial_len_override="3: x"), "fiducial_len_override"),
+                                         (dict(adaptiveThreshWinSizeMin=1), "adaptive_thresh_win_size_min"),
+                                         (dict(adaptiveThreshWinSizeStep=0), "adaptive_thresh_win_size_step")])
 def test_bad_parameters_name_the_key(params, key):
     with pytest.raises(ConfigError) as exc:
         DetectorCore(DetectorNodeParams(**params))
     assert key in str(exc.value), str(exc.value)
+
+
+def test_threshold_windows_reach_opencv():
+    core, _, _ = make_core(adaptiveThreshWinSizeMin=5, adaptiveThreshWinSizeMax=21, adaptiveThreshWinSizeStep=16)
+    p = core.detector.params.opencv()
+    assert (p.adaptiveThreshWinSizeMin, p.adaptiveThreshWinSizeMax, p.adaptiveThreshWinSizeStep) == (5, 21, 16)
 
 
 def test_throttled_warnings_are_per_key():
