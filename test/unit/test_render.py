@@ -10,7 +10,7 @@ import pytest
 
 from aruco_ring_localization import geometry as geo
 from aruco_ring_localization.rig import CameraRing
-from aruco_ring_localization.simulation.render import RingRenderer, ray_grid
+from aruco_ring_localization.simulation.render import RingRenderer, background_panorama, ray_grid
 from aruco_ring_localization.simulation.ring_sim import RingSimulator
 from aruco_ring_localization.simulation.scene import Plate, Room, Scene, SceneMarker, marker_pose
 
@@ -122,3 +122,66 @@ def test_background_turns_with_the_robot(ring):
     # Turning the robot left by 45 deg shows cam4 what cam5 saw before... almost: cam3's view moves to cam4.
     b = renderer.render_camera(None, geo.transform_from_se2(0, 0, np.radians(45)), "cam3", np.random.default_rng(0))
     assert np.mean(np.abs(a.astype(int) - b.astype(int))) < 3.0
+
+
+def _edge_offsets(img, model, T_cam_marker, L):
+    """Signed distance (px, + outward) between the rendered outer edge of the black square and its
+    true projection, at 3 points per side: where the grey profile across the edge crosses the
+    mean of the border (half a module inside) and quiet-zone (half a module outside) levels."""
+    h, mod = L / 2.0, L / 7.0
+    C = np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
+    out = []
+    for k in range(4):
+        a, b = C[k], C[(k + 1) % 4]
+        e = (b - a) / np.linalg.norm(b - a)
+        nrm = np.array([e[1], -e[0], 0.0])
+        for s in (0.35, 0.5, 0.65):
+            p = a + (b - a) * s
+            if nrm @ p < 0:
+                nrm = -nrm
+            px = model.project(geo.transform_points(T_cam_marker, np.array(
+                [p, p + nrm * 1e-4, p - nrm * 0.5 * mod, p + nrm * 0.5 * mod])))
+            t = (px[1] - px[0]) / np.linalg.norm(px[1] - px[0])
+            mid = 0.5 * (_sample(img, px[2:3])[0] + _sample(img, px[3:4])[0])
+            ds = np.linspace(-2.0, 2.0, 401)
+            prof = _sample(img, px[0][None, :] + ds[:, None] * t[None, :]) - mid
+            i = np.flatnonzero(prof[:-1] * prof[1:] <= 0)
+            i = i[np.argmin(np.abs(ds[i]))]
+            step = prof[i + 1] - prof[i]
+            out.append(ds[i] if step == 0 else ds[i] - prof[i] / step * (ds[i + 1] - ds[i]))
+    return np.array(out)
+
+
+def test_marker_edges_are_area_sampled_at_their_true_subpixel_position(ring):
+    """Unbiased edges, and no snapping to pixel boundaries: point sampling (supersample=1, the
+    control) scatters them by up to half a pixel."""
+    L = 0.2
+    rng = np.random.default_rng(5)
+    spread = {}
+    for ss in (2, 1):
+        offs = []
+        for k in range(6):
+            m = _facing_cam0(3, rng.uniform(1.5, 3.5), y=rng.uniform(-0.4, 0.4), z=rng.uniform(0.6, 0.9),
+                             turn_deg=rng.uniform(-40, 40))
+            scene = _scene([m])
+            r = RingRenderer(scene, ring, seed=0, blur_sigma=0.0, noise_std=0.0, supersample=ss)
+            img = r.render_camera(None, np.eye(4), "cam0", np.random.default_rng(0))
+            T_cam_marker = geo.inverse(ring["cam0"].T_base_cam) @ m.T_world_marker
+            offs.append(_edge_offsets(img, ring["cam0"].model, T_cam_marker, L))
+        offs = np.concatenate(offs)
+        spread[ss] = float(np.std(offs))
+        if ss == 2:
+            assert abs(offs.mean()) < 0.03, f"edges biased by {offs.mean():+.3f} px"
+            assert spread[2] < 0.12 and np.abs(offs).max() < 0.25, \
+                f"edge offsets std {spread[2]:.3f} px, max {np.abs(offs).max():.3f} px"
+    assert spread[1] > 1.5 * spread[2], f"point sampling std {spread[1]:.3f} vs area sampling {spread[2]:.3f} px"
+
+
+def test_background_panorama_wraps_without_a_seam():
+    period, width = 3000, 640
+    pano = background_panorama(200, period, width, seed=3).astype(float)
+    assert pano.shape == (200, period + width)
+    assert np.array_equal(pano[:, period:], pano[:, :width]), "not periodic"
+    steps = np.abs(np.diff(pano[:, :period], axis=1)).mean(axis=0)     # neighbour-column differences
+    wrap = float(np.abs(pano[:, 0] - pano[:, period - 1]).mean())
+    assert wrap < np.percentile(steps, 99), f"wrap step {wrap:.2f} grey vs p99 column step {np.percentile(steps, 99):.2f}"

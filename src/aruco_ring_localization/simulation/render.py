@@ -11,7 +11,8 @@ Per camera image (mono8, the camera's size):
    the sheet's bounding box the undistorted viewing ray (precomputed once per camera with
    :meth:`CameraModel.normalize`) is intersected with the marker plane and the texture is
    sampled there (``cv2.remap``, from a mip level that matches the marker's size on the image,
-   so small markers are area-filtered rather than aliased);
+   so small markers are area-filtered rather than aliased); each pixel averages 2 x 2 such
+   samples (``supersample``), so an edge's sub-pixel position survives in the grey level;
 3. optical blur (Gaussian, ``blur_sigma`` px) and sensor noise (Gaussian, ``noise_std`` grey
    levels, drawn from a seeded bank at a random offset per image).
 
@@ -36,6 +37,7 @@ logger = logging.getLogger(__name__)
 
 _MODULE_PX = 48          # texture pixels per marker module at the finest mip level
 _GRID_STEP = 8           # the ray grid is computed exactly every 8 px and interpolated (< 0.002 px error)
+_SEAM_PX = 256           # width of the cross-fade that makes the background panorama periodic
 
 
 def ray_grid(model: CameraModel, step: int = _GRID_STEP) -> Tuple[np.ndarray, np.ndarray]:
@@ -59,26 +61,34 @@ def background_panorama(height: int, period: int, width: int, seed: int) -> np.n
 
     Smooth shading plus grey rectangles and lines (shelves, doors, pipes) of moderate contrast;
     values stay within about 45..215 so nothing looks like a black-bordered marker.
+    The field is drawn ``_SEAM_PX`` columns wider than one period and its first columns are
+    cross-faded with the columns past the period, so the panorama has no seam where it wraps
+    (a vertical step there would be an edge that turns with the robot).
     """
     rng = np.random.default_rng(seed)
+    wide = period + _SEAM_PX
     low = rng.normal(0.0, 1.0, (6, max(4, period // 160)))
-    low = np.concatenate([low, low[:, :1]], axis=1)
-    pano = cv2.resize(low.astype(np.float32), (period + 160, height), interpolation=cv2.INTER_CUBIC)[:, :period]
+    pano = cv2.resize(low.astype(np.float32), (wide, height), interpolation=cv2.INTER_CUBIC)
     pano = 125.0 + 25.0 * pano / max(float(np.std(pano)), 1e-6)
-    mid = rng.normal(0.0, 1.0, (height // 24, period // 24)).astype(np.float32)
-    pano += 8.0 * cv2.resize(mid, (period, height), interpolation=cv2.INTER_CUBIC)
+    mid = rng.normal(0.0, 1.0, (height // 24, wide // 24)).astype(np.float32)
+    pano += 8.0 * cv2.resize(mid, (wide, height), interpolation=cv2.INTER_CUBIC)
     for _ in range(max(8, period // 90)):
         x0 = int(rng.integers(0, period))
         w = int(rng.integers(20, 260))
         y0 = int(rng.integers(0, height))
         hh = int(rng.integers(10, height // 2))
         level = float(rng.uniform(-35.0, 35.0))
-        x1 = min(period, x0 + w)
+        x1 = min(wide, x0 + w)
         pano[y0:y0 + hh, x0:x1] += level
     for _ in range(max(4, period // 400)):
         y = int(rng.integers(0, height))
         pano[y:y + int(rng.integers(2, 6)), :] += float(rng.uniform(-25.0, 25.0))
     pano = cv2.GaussianBlur(pano, (0, 0), 1.2)
+    # Column 0 becomes column `period` (which follows column period - 1 smoothly), fading back to
+    # the field's own column _SEAM_PX: periodic and continuous.
+    a = np.linspace(0.0, 1.0, _SEAM_PX, dtype=np.float32)[None, :]
+    pano[:, :_SEAM_PX] = a * pano[:, :_SEAM_PX] + (1.0 - a) * pano[:, period:wide]
+    pano = pano[:, :period]
     pano += rng.normal(0.0, 3.0, pano.shape).astype(np.float32)
     pano = np.clip(pano, 45.0, 215.0).astype(np.uint8)
     return np.concatenate([pano, pano[:, :width]], axis=1)
@@ -94,11 +104,14 @@ class RingRenderer:
         blur_sigma: optical blur, px (Gaussian sigma).
         noise_std: sensor noise, grey levels (Gaussian sigma).
         min_depth: sheets with a corner closer than this (m) in front of the camera are not drawn.
+        supersample: samples per pixel along each axis on the markers (area sampling; 1 = point
+            sampling, edges then snap to pixel boundaries).
     """
 
     def __init__(self, scene: Scene, ring: CameraRing, seed: int = 0, blur_sigma: float = 0.6,
-                 noise_std: float = 2.0, min_depth: float = 0.05):
+                 noise_std: float = 2.0, min_depth: float = 0.05, supersample: int = 2):
         self.scene = scene
+        self.supersample = max(1, int(supersample))
         self.ring = ring
         self.blur_sigma = float(blur_sigma)
         self.noise_std = float(noise_std)
@@ -173,42 +186,82 @@ class RingRenderer:
 
     def _draw_marker(self, img: np.ndarray, model: CameraModel, xn: np.ndarray, yn: np.ndarray, fov, marker_id: int,
                      T_cam_marker: np.ndarray, half: float) -> None:
+        """Composite one printed sheet into ``img`` (in place), area-sampled.
+
+        Each pixel is the mean of ``supersample`` x ``supersample`` point samples at sub-pixel
+        offsets (rays interpolated from the per-pixel ray grid): a pixel that an edge crosses gets
+        the covered fraction of each side, so edges sit at their true sub-pixel position instead
+        of snapping to pixel boundaries (point sampling alone quantises them by up to 0.5 px).
+        """
         bbox = _sheet_bbox(model, fov, T_cam_marker, half)
         if bbox is None:
             return
         x0, y0, x1, y1 = bbox
-        rx = xn[y0:y1, x0:x1]
-        ry = yn[y0:y1, x0:x1]
         R = T_cam_marker[:3, :3].astype(np.float32)
         p0 = T_cam_marker[:3, 3].astype(np.float32)
-        n = R[:, 2]
-        # Ray r = (x, y, 1); plane n.(t r - p0) = 0 -> t = n.p0 / n.r; marker coords of the hit point.
-        denom = n[0] * rx + n[1] * ry + n[2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = float(n @ p0) / denom
-        dx = t * rx - p0[0]
-        dy = t * ry - p0[1]
-        dz = t - p0[2]
-        u = R[0, 0] * dx + R[1, 0] * dy + R[2, 0] * dz
-        v = R[0, 1] * dx + R[1, 1] * dy + R[2, 1] * dz
-        inside = (t > 0) & (np.abs(u) <= half) & (np.abs(v) <= half)
-        if not np.any(inside):
-            return
-        # Pick the mip level whose size is just above the sheet's size on the image.
-        extent = max(x1 - x0, y1 - y0)
+        # Pick the mip level whose size is just above the sheet's size in samples.
+        ss = self.supersample
+        extent = max(x1 - x0, y1 - y0) * ss
         mips = self._textures[marker_id]
         tex = mips[0]
         for level in mips:
             if level.shape[0] >= extent:
                 tex = level
         S = float(tex.shape[0])
-        map_x = ((u / (2.0 * half) + 0.5) * S - 0.5).astype(np.float32)
-        map_y = ((0.5 - v / (2.0 * half)) * S - 0.5).astype(np.float32)
-        map_x[~inside] = -10.0
-        map_y[~inside] = -10.0
-        sampled = cv2.remap(tex, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         roi = img[y0:y1, x0:x1]
-        roi[inside] = sampled[inside]
+        if ss <= 1:
+            u, v, inside = _sheet_hit(xn[y0:y1, x0:x1], yn[y0:y1, x0:x1], R, p0, half)
+            if np.any(inside):
+                sampled = _sample_sheet(tex, S, u, v, inside, half)
+                roi[inside] = sampled[inside]
+            return
+        gx, gy = np.meshgrid(np.arange(x0, x1, dtype=np.float32), np.arange(y0, y1, dtype=np.float32))
+        acc = np.zeros(roi.shape, np.float32)
+        cover = np.zeros(roi.shape, np.float32)
+        for oy in (np.arange(ss, dtype=np.float32) + 0.5) / ss - 0.5:
+            for ox in (np.arange(ss, dtype=np.float32) + 0.5) / ss - 0.5:
+                mx, my = gx + ox, gy + oy
+                rx = cv2.remap(xn, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                ry = cv2.remap(yn, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                u, v, inside = _sheet_hit(rx, ry, R, p0, half)
+                if not np.any(inside):
+                    continue
+                sampled = _sample_sheet(tex, S, u, v, inside, half).astype(np.float32)
+                acc += np.where(inside, sampled, 0.0)
+                cover += inside
+        hit = cover > 0
+        if not np.any(hit):
+            return
+        n = float(ss * ss)
+        out = roi.astype(np.float32) * (1.0 - cover / n) + acc / n
+        roi[hit] = np.clip(np.round(out[hit]), 0, 255).astype(np.uint8)
+
+
+def _sheet_hit(rx: np.ndarray, ry: np.ndarray, R: np.ndarray, p0: np.ndarray, half: float):
+    """Marker-plane coordinates (u, v), m, where the rays (rx, ry, 1) hit the sheet, and the mask of
+    rays that hit it in front of the camera inside the sheet (+-half)."""
+    n = R[:, 2]
+    # Ray r = (x, y, 1); plane n.(t r - p0) = 0 -> t = n.p0 / n.r; marker coords of the hit point.
+    denom = n[0] * rx + n[1] * ry + n[2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = float(n @ p0) / denom
+    dx = t * rx - p0[0]
+    dy = t * ry - p0[1]
+    dz = t - p0[2]
+    u = R[0, 0] * dx + R[1, 0] * dy + R[2, 0] * dz
+    v = R[0, 1] * dx + R[1, 1] * dy + R[2, 1] * dz
+    inside = (t > 0) & (np.abs(u) <= half) & (np.abs(v) <= half)
+    return u, v, inside
+
+
+def _sample_sheet(tex: np.ndarray, S: float, u: np.ndarray, v: np.ndarray, inside: np.ndarray,
+                  half: float) -> np.ndarray:
+    """Texture values (bilinear) at marker-plane coordinates; texel i covers [i, i+1)/S of the sheet."""
+    map_x = ((u / (2.0 * half) + 0.5) * S - 0.5).astype(np.float32)
+    map_y = ((0.5 - v / (2.0 * half)) * S - 0.5).astype(np.float32)
+    map_x[~inside] = -10.0
+    map_y[~inside] = -10.0
+    return cv2.remap(tex, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
 def _marker_mips(dictionary, marker_id: int, modules: int, quiet: float, black: float,
