@@ -213,6 +213,7 @@ class Detector:
 # 6 % are left out because the corner itself blurs both edges together).
 _EDGE_T0, _EDGE_T1 = 0.06, 0.5
 _MODULES = 7.0  # modules across a 5x5 marker with its border; only sets the sampling scale
+_MIN_EDGE_CONTRAST = 12.0  # grey levels: median dark -> light step across a usable edge
 
 
 def refine_corners_lines(gray: np.ndarray, corners, iterations: int = 2) -> np.ndarray:
@@ -223,7 +224,9 @@ def refine_corners_lines(gray: np.ndarray, corners, iterations: int = 2) -> np.n
     edge position as the centroid of the positive (dark -> light) gradient, which a symmetric blur
     does not shift. A gradient-weighted line is fitted to each half-side, and corner i becomes the
     intersection of the half-sides that meet there. Two passes re-centre the profiles. A corner
-    whose lines are parallel, empty or move it more than two profile half-widths keeps its input.
+    whose lines are parallel, whose edges have a median step below 12 grey levels (no white
+    margin, occluded, very dark) or that would move more than two profile half-widths keeps its
+    input.
 
     Args:
         gray: (H, W) uint8 image.
@@ -284,7 +287,11 @@ def refine_corners_lines(gray: np.ndarray, corners, iterations: int = 2) -> np.n
         cl = -np.sum(nl * m, axis=1)
         M = np.stack([nl[i_prev], nl[i_next]], axis=1)       # (4, 2, 2): n . x + c = 0 for both lines
         rhs = -np.stack([cl[i_prev], cl[i_next]], axis=1)
-        good = (np.abs(np.linalg.det(M)) > 1e-3) & (wsum[i_prev] > 0) & (wsum[i_next] > 0)
+        # an edge needs a real dark -> light step along most of it (a marker printed without a
+        # white margin, or cut by an occluder, has none): otherwise keep OpenCV's corner
+        contrast = np.median(w, axis=1)
+        edged = contrast >= _MIN_EDGE_CONTRAST
+        good = (np.abs(np.linalg.det(M)) > 1e-3) & edged[i_prev] & edged[i_next]
         new = c.copy()
         if np.any(good):
             sol = np.linalg.solve(M[good], rhs[good][..., None])[..., 0]

@@ -21,7 +21,7 @@ _DICT = cv2.aruco.getPredefinedDictionary(7)
 
 
 def supersampled_marker(marker_id: int, x0: float, y0: float, side: float, width: int = 400, height: int = 300,
-                        blur: float = 0.6, factor: int = 16) -> np.ndarray:
+                        blur: float = 0.6, factor: int = 16, background: float = 215.0) -> np.ndarray:
     """mono8 image of an axis-aligned marker whose black square spans [x0, x0+side] x [y0, y0+side]
     (pixel centres at integer coordinates), area-integrated by supersampling, then blurred.
     Written independently of the simulator's renderer."""
@@ -30,7 +30,7 @@ def supersampled_marker(marker_id: int, x0: float, y0: float, side: float, width
     ys = (np.arange(height * factor) + 0.5) / factor - 0.5
     iu = np.floor((xs - x0) / side * 7).astype(int)
     iv = np.floor((ys - y0) / side * 7).astype(int)
-    fine = np.full((height * factor, width * factor), 215.0, np.float32)
+    fine = np.full((height * factor, width * factor), background, np.float32)
     mask = ((iv >= 0) & (iv < 7))[:, None] & ((iu >= 0) & (iu < 7))[None, :]
     tex = bits[np.clip(iv, 0, 6)][:, np.clip(iu, 0, 6)].astype(np.float32) * (185.0 / 255.0) + 30.0
     fine[mask] = tex[mask]
@@ -148,6 +148,14 @@ def test_refine_corners_lines_keeps_corners_on_flat_image():
     c = np.array([[10.0, 10.0], [40.0, 10.0], [40.0, 40.0], [10.0, 40.0]])
     out = refine_corners_lines(np.full((60, 60), 100, np.uint8), c)
     assert np.allclose(out, c), out
+
+
+def test_refine_corners_lines_keeps_corners_without_white_margin():
+    """A marker with its black border on a black background has no outer edge to fit: the
+    refinement must leave OpenCV's corners alone rather than fit noise."""
+    start = Detector(DetectorParams(corner_refinement="subpix")).detect(supersampled_marker(42, 100.3, 80.7, 60.0))[0]
+    dark = supersampled_marker(42, 100.3, 80.7, 60.0, background=30.0)  # background as dark as the border
+    assert np.allclose(refine_corners_lines(dark, start.corners), start.corners)
 
 
 def test_fiducial_area_is_polygon_area():
