@@ -4,9 +4,10 @@ memory (RSS of each node over time), dropped frames and the position error.
 
 Modes (``--mode``):
 
-* ``images`` — the simulator node in image mode, 8 detector nodes and the localizer
-  (``launch/localization.launch sim:=true sim_mode:=images``); needs ``scripts/simulator`` and
-  ``scripts/detector``. The error is read from tf (``sim_ground_truth`` vs the localizer's pose).
+* ``images`` — the simulator node in image mode (owning ``/clock``, paced at ``--speed``
+  simulated seconds per wall second, looping over the paper's 23 poses), 8 detector nodes and
+  the localizer; needs ``scripts/simulator`` and ``scripts/detector``. The error compares
+  ``localizer/pose`` with ``sim/ground_truth`` at the same stamp (the map is the scene's truth).
 * ``corners`` — the localizer fed by this process: :class:`FaultPlayer` (test/faults/) publishes
   the ring's simulated detections (corners mode, pixel noise, a miscalibrated true rig) and
   ``/clock``, so the error is exact and the run is paced at ``--speed`` simulated seconds per wall
@@ -92,12 +93,19 @@ def node_pids(master_uri: str) -> Dict[str, int]:
     return out
 
 
-def launch_text(mode: str) -> str:
+def launch_text(mode: str, speed: float = 1.0, rate: float = 10.0) -> str:
     sim = ""
     if mode == "images":
-        sim = """  <include file="$(find aruco_ring_localization)/launch/simulation.launch">
+        # The simulator owns /clock; it drives the paper's 23 poses (15 positions + 8
+        # orientations) again and again, holding each 3 s.
+        sim = f"""  <param name="simulator/loop" value="true"/>
+  <include file="$(find aruco_ring_localization)/launch/simulation.launch">
     <arg name="mode" value="images"/>
     <arg name="detectors" value="true"/>
+    <arg name="sim_time" value="true"/>
+    <arg name="speed" value="{speed}"/>
+    <arg name="rate" value="{rate}"/>
+    <arg name="waypoints" value="paper"/>
   </include>
 """
     return f"""<launch>
@@ -135,10 +143,6 @@ def main(argv=None) -> int:
     if mode == "images" and not have_images:
         print("soak: image mode needs scripts/simulator, scripts/detector and launch/simulation.launch")
         return 2
-    if mode == "images":
-        print("soak: image mode is not implemented in this version (ground truth from the simulator's tf); "
-              "use --mode corners")
-        return 2
     if args.mode == "auto":
         print(f"soak: mode {mode} (image mode needs the simulator and detector nodes)")
 
@@ -149,12 +153,12 @@ def main(argv=None) -> int:
     tmp = tempfile.mkdtemp(prefix="soak_")
     launch_file = os.path.join(tmp, "soak.launch")
     with open(launch_file, "w") as handle:
-        handle.write(launch_text(mode))
+        handle.write(launch_text(mode, args.speed, args.rate))
     log = open(os.path.join(tmp, "roslaunch.log"), "w")
     proc = subprocess.Popen(["roslaunch", "-p", str(port), launch_file], stdout=log, stderr=subprocess.STDOUT,
                             start_new_session=True)
     try:
-        return run(args, mode, master_uri, proc)
+        return run_images(args, master_uri, proc) if mode == "images" else run(args, mode, master_uri, proc)
     finally:
         try:
             os.killpg(proc.pid, signal.SIGINT)
@@ -222,6 +226,89 @@ def run(args, mode: str, master_uri: str, proc: subprocess.Popen) -> int:
             break
     wall = time.time() - t_wall0
     return report(args, mode, samples, all_errors, frames_total, wall)
+
+
+def run_images(args, master_uri: str, proc: subprocess.Popen) -> int:
+    """Image mode: the simulator (owning /clock) + 8 detectors + the localizer; this process only records."""
+    import threading
+
+    for _ in range(100):
+        try:
+            xmlrpc.client.ServerProxy(master_uri).getPid("/soak")
+            break
+        except OSError:
+            time.sleep(0.2)
+    import rospy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+
+    rospy.init_node("soak", disable_signals=True)
+    lock = threading.Lock()
+    truth: Dict[int, tuple] = {}
+    poses: List[tuple] = []
+    diag: Dict[str, str] = {}
+
+    def on_truth(msg):
+        with lock:
+            truth[int(round(msg.header.stamp.to_sec() * 1000))] = (msg.pose.position.x, msg.pose.position.y)
+
+    def on_pose(msg):
+        with lock:
+            poses.append((int(round(msg.header.stamp.to_sec() * 1000)), msg.pose.pose.position.x,
+                          msg.pose.pose.position.y))
+
+    def on_diag(msg):
+        for st in msg.status:
+            if "filter" in st.name:
+                with lock:
+                    diag.update({v.key: v.value for v in st.values})
+
+    rospy.Subscriber("sim/ground_truth", PoseStamped, on_truth, queue_size=50)
+    rospy.Subscriber("localizer/pose", PoseWithCovarianceStamped, on_pose, queue_size=50)
+    rospy.Subscriber("/diagnostics", DiagnosticArray, on_diag, queue_size=10)
+    duration = args.minutes * 60.0
+    t_wall0 = time.time()
+    samples: List[dict] = []
+    errors: List[float] = []
+    frames_total = 0
+    print(f"soak: images mode, {args.minutes:g} simulated min, simulator speed {args.speed:g}", flush=True)
+    t0 = None
+    next_sample = args.sample
+    while True:
+        rospy.rostime.wallsleep(1.0)
+        if proc.poll() is not None:
+            print("soak: roslaunch exited early")
+            break
+        now = rospy.get_time()
+        if now <= 0:
+            continue
+        t0 = now if t0 is None else t0
+        if now - t0 < next_sample and now - t0 < duration:
+            continue
+        with lock:
+            got, poses[:] = list(poses), []
+            keys = sorted(truth)
+            frames_total += len(keys)
+            errs = [float(np.hypot(x - truth[k][0], y - truth[k][1])) for k, x, y in got if k in truth]
+            for k in keys[:-20]:  # keep the last frames: their poses may still be on the way
+                del truth[k]
+            frames_total -= min(20, len(keys))
+            d = dict(diag)
+        errors += errs
+        rss = {name: rss_mb(pid) for name, pid in node_pids(master_uri).items()}
+        sample = {"t_sim_s": round(now - t0, 1), "t_wall_s": round(time.time() - t_wall0, 1), "poses": len(got),
+                  "err_cm_median": round(100 * float(np.median(errs)), 2) if errs else None,
+                  "err_cm_max": round(100 * max(errs), 2) if errs else None,
+                  "rss_mb": {k: round(v, 1) for k, v in rss.items() if v is not None},
+                  "frames": d.get("frames"), "dropped_stale": d.get("dropped_stale"),
+                  "latency_ms_median": d.get("latency_ms_median")}
+        samples.append(sample)
+        print(json.dumps(sample), flush=True)
+        next_sample += args.sample
+        if now - t0 >= duration:
+            break
+    frames_total += 20
+    return report(args, "images", samples, errors, frames_total, time.time() - t_wall0)
 
 
 def error_line(err: np.ndarray, samples: List[dict]) -> str:
