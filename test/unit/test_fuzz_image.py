@@ -77,3 +77,44 @@ def test_fuzz_detect_arbitrary_arrays(shape, dtype, seed):
 def test_bad_image_names_the_field(kwargs, field):
     with pytest.raises(MeasurementError, match=field):
         image_to_gray(**kwargs)
+
+
+# --- the detector node's logic (ros/detector.py DetectorCore: no rospy needed) ----------------
+
+def _msg(**fields):
+    from types import SimpleNamespace
+
+    header = SimpleNamespace(stamp=SimpleNamespace(secs=fields.pop("secs", 100), nsecs=0),
+                             frame_id=fields.pop("frame_id", "cam0_optical_frame"))
+    return SimpleNamespace(header=header, **fields)
+
+
+@FUZZ
+@given(st.data())
+def test_fuzz_detector_core_callbacks_never_raise(data):
+    """Any camera_info and Image field values: the detector's callbacks return (None or
+    detections) and warn through the throttled sink; they never raise."""
+    from aruco_ring_localization.ros.detector import DetectorCore, DetectorNodeParams
+
+    warnings = []
+    core = DetectorCore(DetectorNodeParams(), warn=warnings.append, name="fuzz")
+    floats = st.floats(allow_nan=True, allow_infinity=True) | st.floats(-2000, 2000)
+    for _ in range(data.draw(st.integers(1, 4), label="events")):
+        if data.draw(st.booleans(), label="camera_info?"):
+            core.on_camera_info(_msg(
+                K=data.draw(st.lists(floats, max_size=10) | st.just([800.0, 0, 320, 0, 800, 240, 0, 0, 1]), label="K"),
+                D=data.draw(st.lists(floats, max_size=9), label="D"),
+                distortion_model=data.draw(st.sampled_from(["plumb_bob", "equidistant", "", "rational_polynomial",
+                                                            "x"]), label="model"),
+                width=data.draw(st.integers(0, 4000), label="w"), height=data.draw(st.integers(0, 4000), label="h")))
+        else:
+            w, h = data.draw(st.integers(0, 80), label="w"), data.draw(st.integers(0, 60), label="h")
+            enc = data.draw(st.sampled_from(sorted(ENCODINGS) + ["yuv422", ""]), label="encoding")
+            step = data.draw(st.sampled_from([w, w * 3, w * 2 + 1, 0]), label="step")
+            n = data.draw(st.sampled_from([step * h, max(step * h - 7, 0), 0]), label="n")
+            out = core.on_image(_msg(encoding=enc, width=w, height=h, step=step, is_bigendian=0,
+                                     data=data.draw(st.binary(min_size=n, max_size=n), label="data"),
+                                     secs=data.draw(st.integers(0, 2 ** 31 - 1), label="secs")),
+                                now=data.draw(st.none() | st.floats(0, 1e10), label="now"))
+            assert out is None or isinstance(out.observations, list)
+    assert all(isinstance(w, str) for w in warnings)
