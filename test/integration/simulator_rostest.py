@@ -21,7 +21,7 @@ import rospy
 import rostest
 import tf2_ros
 from fiducial_msgs.msg import FiducialArray
-from geometry_msgs.msg import PoseStamped, Twist
+from geometry_msgs.msg import Pose2D, PoseArray, PoseStamped, Twist
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import CameraInfo, Image, LaserScan
 from std_msgs.msg import Int32
@@ -63,7 +63,8 @@ class SimulatorTest(unittest.TestCase):
                              queue_size=2, buff_size=2 ** 24)
             rospy.Subscriber(f"img/{ns}/camera_info", CameraInfo, cls._keep, callback_args=name + "/img_info")
         for topic, typ in (("sim/ground_truth", PoseStamped), ("sim/at_waypoint", Int32), ("odom", Odometry),
-                           ("scan", LaserScan), ("cmd_vel", Twist), ("img/sim/ground_truth", PoseStamped)):
+                           ("scan", LaserScan), ("cmd_vel", Twist), ("img/sim/ground_truth", PoseStamped),
+                           ("sim/waypoints", PoseArray)):
             rospy.Subscriber(topic, typ, cls._keep, callback_args=topic)
 
     @classmethod
@@ -231,6 +232,22 @@ class SimulatorTest(unittest.TestCase):
             self.assertLess(err, 1.0, f"{name}: worst detected corner {err:.2f} px from the true projection")
             info = self._get(name + "/img_info")[-1]
             self.assertTrue(np.allclose(np.reshape(info.K, (3, 3)), cam.model.K))
+
+    def test_8_waypoint_list_and_teleport(self):
+        self._wait_for(lambda: self._get("sim/waypoints"), "the latched sim/waypoints")
+        poses = [geo.se2_from_transform(pose_msg_to_transform(p)) for p in self._get("sim/waypoints")[-1].poses]
+        self.assertTrue(np.allclose(poses, self.scene.test_positions, atol=1e-9), "sim/waypoints vs test_positions")
+        param = rospy.get_param("simulator/waypoint_poses")
+        self.assertTrue(np.allclose(param, self.scene.test_positions), "~waypoint_poses vs test_positions")
+        # Kidnap the image-mode robot (holding the mapping pose) and see its ground truth follow.
+        pub = rospy.Publisher("img/sim/teleport", Pose2D, queue_size=1, latch=True)
+        pub.publish(Pose2D(x=4.3, y=3.8, theta=1.0))
+
+        def moved():
+            gts = self._get("img/sim/ground_truth")
+            return gts and np.allclose(geo.se2_from_transform(pose_msg_to_transform(gts[-1].pose)),
+                                       [4.3, 3.8, 1.0], atol=1e-6)
+        self._wait_for(moved, "the image-mode robot at the teleported pose", timeout=30.0)
 
 
 if __name__ == "__main__":

@@ -71,3 +71,26 @@ def test_waypoint_sets(scene_ring):
     scene, _ = scene_ring
     assert len(waypoint_list(scene, "paper")) == 23
     assert waypoint_list(scene, "none") == []
+
+
+def test_teleport_is_a_kidnap_the_odometry_does_not_see(scene_ring):
+    scene, ring = scene_ring
+    core = SimulatorCore(SimulatorParams(waypoints="none"), scene, ring)
+    for k in range(5):
+        core.step(0.1 * k, 0.1)
+    odom_before = core.state.odom_pose.copy()
+    core.request_teleport(4.3, 3.8, np.radians(90.0))
+    core.request_teleport(np.nan, 0.0, 0.0)            # ignored, the valid request stands
+    state = core.step(0.5, 0.1)
+    assert np.allclose(state.pose, [4.3, 3.8, np.radians(90.0)], atol=1e-9), state.pose
+    assert np.allclose(state.odom_pose, odom_before, atol=1e-9), "odometry saw the kidnap"
+    assert np.allclose(core.step(0.6, 0.1).pose, state.pose, atol=1e-9), "teleport applied twice or drifted"
+
+
+def test_teleport_drive_is_direct_and_waypoints_are_listed(scene_ring):
+    scene, ring = scene_ring
+    core = SimulatorCore(SimulatorParams(waypoints="paper", drive="teleport", hold_time=0.2), scene, ring)
+    assert core.waypoints() == [tuple(p) for p in scene.test_positions + scene.test_orientations]
+    state = core.step(0.0, 0.1)
+    assert np.allclose(state.pose, scene.test_positions[0]) and state.holding == 0, (state.pose, state.holding)
+    assert SimulatorCore(SimulatorParams(waypoints="none"), scene, ring).waypoints() == []

@@ -12,10 +12,15 @@ Every ``1/rate`` seconds it moves the robot (waypoint driver or ``cmd_vel``), th
 * ``odom`` (nav_msgs/Odometry, drifting wheel odometry) and, if ``~publish_odom_tf``, tf
   ``odom -> base_link``;
 * ``scan`` (sensor_msgs/LaserScan of the walls and posts, frame ``~laser_frame``);
-* ``sim/at_waypoint`` (std_msgs/Int32: index of the waypoint being held, -1 while moving);
+* ``sim/at_waypoint`` (std_msgs/Int32: index of the waypoint being held, -1 while moving) and
+  ``sim/waypoints`` (geometry_msgs/PoseArray, latched: the waypoint list in the world frame; also
+  the parameter ``~waypoint_poses``, [[x, y, yaw_rad], ...]);
 * ``cmd_vel`` (geometry_msgs/Twist) while its waypoint driver drives; otherwise it follows
   ``cmd_vel`` from others (holonomic: linear.x, linear.y, angular.z; stops 0.5 s after the last);
 * ``/clock`` when ``~publish_clock`` (run everything with ``use_sim_time``).
+
+It subscribes ``sim/teleport`` (geometry_msgs/Pose2D, world frame): the robot is carried there
+between two steps (a kidnap: the wheel odometry does not see it), for fault tests.
 
 The true rig is the ring file perturbed by a seeded calibration error (``~calibration_*``):
 the estimators get the ring file, the simulator sees with the true rig.
@@ -57,7 +62,8 @@ class SimulatorParams:
     calibration_rot_std_deg: float = field(default=0.2, metadata={"doc": "true rig vs ring file, deg per axis"})
     waypoints: str = field(default="test_positions", metadata={"doc": "|".join(WAYPOINT_SETS)})
     hold_time: float = field(default=3.0, metadata={"doc": "seconds held at each waypoint"})
-    drive: str = field(default="cmd_vel", metadata={"doc": "cmd_vel (drive between waypoints) | direct (jump)"})
+    drive: str = field(default="cmd_vel",
+                       metadata={"doc": "cmd_vel (drive between waypoints) | direct or teleport (jump)"})
     loop: bool = field(default=False, metadata={"doc": "visit the waypoints again and again"})
     start_pose: Tuple[float, ...] = field(default=(), metadata={"doc": "[x, y, yaw_deg]; empty = mapping pose"})
     max_speed: float = 0.3
@@ -82,8 +88,8 @@ class SimulatorParams:
             raise ConfigError(f"expected corners or images, got {self.mode!r}", key="mode")
         if self.waypoints not in WAYPOINT_SETS:
             raise ConfigError(f"expected one of {WAYPOINT_SETS}, got {self.waypoints!r}", key="waypoints")
-        if self.drive not in ("cmd_vel", "direct"):
-            raise ConfigError(f"expected cmd_vel or direct, got {self.drive!r}", key="drive")
+        if self.drive not in ("cmd_vel", "direct", "teleport"):
+            raise ConfigError(f"expected cmd_vel, direct or teleport, got {self.drive!r}", key="drive")
         if not self.rate > 0 or not self.speed > 0:
             raise ConfigError("rate and speed must be positive", key="rate")
         if self.start_pose and len(self.start_pose) != 3:
@@ -122,15 +128,29 @@ class SimulatorCore:
             if params.start_pose else scene.mapping_pose
         limits = MotionLimits(params.max_speed, params.max_yaw_rate, params.max_accel, params.max_yaw_accel)
         self.robot = SimRobot(start, waypoint_list(scene, params.waypoints), hold_time=params.hold_time,
-                              direct=params.drive == "direct", limits=limits, seed=params.seed,
+                              direct=params.drive in ("direct", "teleport"), limits=limits, seed=params.seed,
                               loop=params.loop)
         self.laser = LaserScanner(scene.obstacle_segments(), beams=params.scan_beams,
                                   range_max=params.scan_range_max, seed=params.seed)
         self.state = RobotState(self.robot.base.pose.copy(), np.zeros(3), np.zeros(3), np.zeros(3), -1)
+        self._teleport: Optional[Tuple[float, float, float]] = None
+
+    def request_teleport(self, x: float, y: float, yaw: float) -> None:
+        """Carry the robot to (x, y, yaw rad) in the world before the next step (kidnap: the
+        odometry does not see it). Safe to call from another thread; non-finite poses are ignored."""
+        if all(np.isfinite(v) for v in (x, y, yaw)):
+            self._teleport = (float(x), float(y), float(yaw))
 
     def step(self, t: float, dt: float) -> RobotState:
+        pending, self._teleport = self._teleport, None
+        if pending is not None:
+            self.robot.base.teleport(pending)
         self.state = self.robot.step(t, dt)
         return self.state
+
+    def waypoints(self) -> List[Tuple[float, float, float]]:
+        """The waypoint list being visited, (x, y, yaw rad) in the world."""
+        return [tuple(float(v) for v in w) for w in (self.robot.driver.waypoints if self.robot.driver else [])]
 
     def T_world_base(self) -> np.ndarray:
         return Scene.T_world_base(self.state.pose)
@@ -158,7 +178,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     import rospy
     import tf2_ros
     from fiducial_msgs.msg import FiducialArray
-    from geometry_msgs.msg import PoseStamped, Twist
+    from geometry_msgs.msg import Pose2D, PoseArray, PoseStamped, Twist
     from nav_msgs.msg import Odometry
     from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import CameraInfo, Image, LaserScan
@@ -207,6 +227,19 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         core.robot.set_command((msg.linear.x, msg.linear.y, msg.angular.z), now())
 
     rospy.Subscriber("cmd_vel", Twist, on_cmd, queue_size=5)
+
+    def on_teleport(msg: Pose2D) -> None:
+        core.request_teleport(msg.x, msg.y, msg.theta)
+        rospy.loginfo("simulator: teleported to (%.3f, %.3f, %.1f deg)", msg.x, msg.y, np.degrees(msg.theta))
+
+    rospy.Subscriber("sim/teleport", Pose2D, on_teleport, queue_size=2)
+    waypoints = core.waypoints()
+    rospy.set_param("~waypoint_poses", [list(w) for w in waypoints])
+    wp_list = PoseArray()
+    wp_list.header.frame_id = scene.world_frame
+    wp_list.poses = [pose_to_msg(Scene.T_world_base(w)) for w in waypoints]
+    wp_list_pub = rospy.Publisher("sim/waypoints", PoseArray, queue_size=1, latch=True)
+    wp_list_pub.publish(wp_list)
     rospy.loginfo("simulator: scene '%s' (%d markers), %s mode, %d cameras, %.1f Hz, waypoints %s, seed %d",
                   scene.name, len(scene.markers), params.mode, len(cams), params.rate, params.waypoints, params.seed)
 
