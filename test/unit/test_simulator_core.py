@@ -94,3 +94,17 @@ def test_teleport_drive_is_direct_and_waypoints_are_listed(scene_ring):
     state = core.step(0.0, 0.1)
     assert np.allclose(state.pose, scene.test_positions[0]) and state.holding == 0, (state.pose, state.holding)
     assert SimulatorCore(SimulatorParams(waypoints="none"), scene, ring).waypoints() == []
+
+
+def test_config_simulator_yaml_documents_real_parameters():
+    """Every key of config/simulator.yaml is a simulator parameter, parses, and keeps the code's default."""
+    import dataclasses
+
+    from aruco_ring_localization.camera import load_yaml_file
+    from aruco_ring_localization.ros.params import params_from_dict
+
+    path = os.path.join(REPO, "config", "simulator.yaml")
+    data = load_yaml_file(path)
+    fields = {f.name for f in dataclasses.fields(SimulatorParams)}
+    assert set(data) <= fields, f"unknown keys {sorted(set(data) - fields)}"
+    assert params_from_dict(SimulatorParams, data, source=path).validate() == SimulatorParams()
