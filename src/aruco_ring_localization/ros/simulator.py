@@ -17,7 +17,10 @@ Every ``1/rate`` seconds it moves the robot (waypoint driver or ``cmd_vel``), th
   the parameter ``~waypoint_poses``, [[x, y, yaw_rad], ...]);
 * ``cmd_vel`` (geometry_msgs/Twist) while its waypoint driver drives; otherwise it follows
   ``cmd_vel`` from others (holonomic: linear.x, linear.y, angular.z; stops 0.5 s after the last);
-* ``/clock`` when ``~publish_clock`` (run everything with ``use_sim_time``).
+* ``/clock`` when ``~publish_clock`` (run everything with ``use_sim_time``). With ``~lockstep``
+  too, in images mode, the clock only moves on once every simulated camera's detector has
+  published ``<ns>/fiducial_vertices`` for the current frame (at most ``~lockstep_timeout`` wall
+  seconds): no frame is dropped on a slow CPU, the simulated clock just runs slower.
 
 It subscribes ``sim/teleport`` (geometry_msgs/Pose2D, world frame): the robot is carried there
 between two steps (a kidnap: the wheel odometry does not see it), for fault tests.
@@ -39,6 +42,7 @@ from .. import geometry as geo
 from ..errors import ArucoRingError, ConfigError
 from ..rig import CameraRing
 from ..simulation.laser import LaserScanner
+from ..simulation.lockstep import FrameGate
 from ..simulation.motion import MotionLimits, RobotState, SimRobot
 from ..simulation.ring_sim import RingSimulator, perturb_ring
 from ..simulation.scene import Scene
@@ -82,6 +86,9 @@ class SimulatorParams:
     publish_clock: bool = field(default=False, metadata={"doc": "publish /clock (run with use_sim_time)"})
     speed: float = field(default=1.0, metadata={"doc": "with publish_clock: simulated seconds per wall second"})
     start_time: float = field(default=1.0, metadata={"doc": "with publish_clock: first simulated time, s"})
+    lockstep: bool = field(default=False, metadata={
+        "doc": "images mode with publish_clock: wait for every camera's fiducial_vertices of a frame before the next"})
+    lockstep_timeout: float = field(default=2.0, metadata={"doc": "longest wait for the detectors, wall s"})
 
     def validate(self) -> "SimulatorParams":
         if self.mode not in ("corners", "images"):
@@ -243,6 +250,21 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     rospy.loginfo("simulator: scene '%s' (%d markers), %s mode, %d cameras, %.1f Hz, waypoints %s, seed %d",
                   scene.name, len(scene.markers), params.mode, len(cams), params.rate, params.waypoints, params.seed)
 
+    gate: Optional[FrameGate] = None
+    if params.lockstep and params.mode == "images" and params.publish_clock:
+        gate = FrameGate([c.name for c in cams])
+        for c in cams:
+            rospy.Subscriber(f"{c.namespace}/fiducial_vertices", FiducialArray,
+                             lambda m, name=c.name: gate.report(name, m.header.stamp.to_sec()), queue_size=5)
+        # Let the detectors connect first, or the first frames would only time out.
+        wait_until = time.monotonic() + 10.0 * params.lockstep_timeout
+        while not rospy.is_shutdown() and time.monotonic() < wait_until and \
+                any(img_pubs[c.name].get_num_connections() == 0 for c in cams):
+            time.sleep(0.05)
+        rospy.loginfo("simulator: lockstep with the detectors of %s", " ".join(c.name for c in cams))
+    elif params.lockstep:
+        rospy.logwarn_once("simulator: ~lockstep needs mode images and publish_clock; ignored")
+
     dt = 1.0 / params.rate
     seq = 0
     last_t: Optional[float] = None
@@ -284,6 +306,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                     img_pubs[name].publish(msg)
         except ArucoRingError as exc:
             rospy.logwarn_throttle(5.0, f"simulator: step failed: {exc}")
+        if gate is not None:
+            silent = gate.wait(t, params.lockstep_timeout)
+            if silent:
+                rospy.logwarn_throttle(10.0, f"simulator: lockstep: no fiducial_vertices for t={t:.2f} from "
+                                             f"{' '.join(silent)} within {params.lockstep_timeout} s; going on")
         # Pace: wall time when we own the clock (speed x), ROS time otherwise.
         wall_next += dt / params.speed
         delay = wall_next - time.monotonic()
