@@ -188,7 +188,9 @@ def run(quick: bool = False) -> dict:
                      f"{r['params']} | {r['rms_px_before']:.2f} -> {r['rms_px']:.3f} | {r['nfev']} | "
                      f"{r['ba_seconds']:.1f} | {r['build_seconds']:.1f} | {r['fit_rms_mm']:.2f} / {r['fit_max_mm']:.1f} |")
     lines.append("")
-    lines.append(f"Python {platform.python_version()} on {platform.machine()}.")
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    lines.append(f"Python {platform.python_version()} on {platform.machine()}; load average at the end "
+                 f"{load:.1f} on {os.cpu_count()} cores (times on a shared machine are upper bounds).")
     return {"results": results, "markdown": "\n".join(lines) + "\n"}
 
 
