@@ -84,12 +84,17 @@ class RingFrameAssembler:
         timeout: a group that is still incomplete this long (s, caller's clock) after its first
             member arrived goes out without the missing cameras.
         max_pending: at most this many incomplete groups are kept; older ones are flushed.
+        silence: a camera that has sent nothing for this long (s) is not waited for: a group
+            is complete once every camera heard from within ``silence`` has reported. So a
+            dead camera costs one ``timeout`` per frame only until it is found silent, not for ever.
+            ``None`` always waits for every camera (up to ``timeout``).
 
     Usage: call :meth:`add` for every camera frame and :meth:`poll` periodically; both return
     the ring frames that are ready, oldest first.
     """
 
-    def __init__(self, cameras: Sequence[str], slop: float = 0.03, timeout: float = 0.25, max_pending: int = 8):
+    def __init__(self, cameras: Sequence[str], slop: float = 0.03, timeout: float = 0.25, max_pending: int = 8,
+                 silence: Optional[float] = 1.0):
         if not cameras:
             raise ValueError("RingFrameAssembler needs at least one camera name")
         if slop < 0 or timeout <= 0:
@@ -98,6 +103,8 @@ class RingFrameAssembler:
         self.slop = float(slop)
         self.timeout = float(timeout)
         self.max_pending = int(max_pending)
+        self.silence = silence
+        self._first_seen: Optional[float] = None
         self._pending: List[Tuple[float, RingFrame]] = []  # (arrival time, frame), stamp order
         self._last_emitted = -np.inf
         self.last_seen: Dict[str, float] = {}   # camera -> caller's clock at its last frame
@@ -113,6 +120,9 @@ class RingFrameAssembler:
         if frame.camera not in self.cameras:
             logger.debug("ignoring frame from unknown camera %s", frame.camera)
             return []
+        if self.silence is not None and (not self.last_seen or max(self.last_seen.values()) < now - self.silence):
+            # Start-up, or every camera was silent: wait for all of them again while they come back.
+            self._first_seen = now
         self.last_seen[frame.camera] = now
         if frame.stamp < self._last_emitted - 1.0:
             # Time went backwards by more than a second (a bag loop, a clock reset): start over.
@@ -141,8 +151,9 @@ class RingFrameAssembler:
     def poll(self, now: float) -> List[RingFrame]:
         """Return the groups that are complete or timed out, and every older group before them."""
         ready_upto = -1
+        awaited = self._awaited(now)
         for i, (arrived, g) in enumerate(self._pending):
-            if len(g.cameras) == len(self.cameras) or now - arrived >= self.timeout:
+            if awaited.issubset(g.cameras) or now - arrived >= self.timeout:
                 ready_upto = i
         overflow = len(self._pending) - self.max_pending
         ready_upto = max(ready_upto, overflow - 1)
@@ -153,6 +164,16 @@ class RingFrameAssembler:
             self._last_emitted = max(self._last_emitted, g.stamp)
         del self._pending[: ready_upto + 1]
         return out
+
+    def _awaited(self, now: float) -> set:
+        """The cameras a group waits for: all, less those silent for ``silence`` seconds.
+
+        For ``silence`` seconds after start-up, or after every camera was silent, all cameras are
+        awaited: they come up one by one, and the first frame must not go out with one camera.
+        """
+        if self.silence is None or (self._first_seen is not None and now - self._first_seen < self.silence):
+            return set(self.cameras)
+        return {c for c in self.cameras if now - self.last_seen.get(c, -np.inf) <= self.silence}
 
     def silent_cameras(self, now: float, silence: float) -> List[str]:
         """Cameras that have sent nothing for ``silence`` seconds (or never)."""

@@ -217,3 +217,44 @@ def test_sanitize_without_image_size_keeps_far_corners():
 
 def test_sanitize_empty():
     assert sanitize_observations([]) == ([], {})
+
+
+def _run_10hz(a: RingFrameAssembler, cams, t0: float, n: int):
+    """Feed ``n`` frames at 10 Hz from ``cams`` (arrival = stamp + 20 ms); return (latencies, frames)."""
+    latencies, frames = [], []
+    for i in range(n):
+        t = t0 + 0.1 * i
+        for k, cam in enumerate(cams):
+            for rf in a.add(_frame(cam, t), now=t + 0.02 + 0.001 * k):
+                latencies.append(t + 0.02 + 0.001 * k - rf.stamp)
+                frames.append(rf)
+        for rf in a.poll(now=t + 0.099):
+            latencies.append(t + 0.099 - rf.stamp)
+            frames.append(rf)
+    return np.array(latencies), frames
+
+
+def test_a_dead_camera_stops_delaying_frames_once_it_is_silent():
+    a = _assembler(timeout=0.25, silence=1.0)
+    _run_10hz(a, CAMS, 0.0, 10)              # all 8 cameras for 1 s
+    lat, frames = _run_10hz(a, CAMS[:7], 1.0, 30)   # cam7 dies at t = 1 s
+    late = lat[frames.index(next(f for f in frames if f.stamp >= 2.5)):]
+    assert np.all(late < 0.05), f"frames still wait for the dead camera: latency up to {late.max():.3f} s"
+    assert all(f.missing == ["cam7"] for f in frames), [f.missing for f in frames if f.missing != ["cam7"]]
+    # While it was not yet known silent, the frames waited (up to the timeout), they were not cut short.
+    assert lat[:5].max() > 0.09, f"latency right after the death {lat[:5]}"
+
+
+def test_without_silence_every_frame_waits_for_the_dead_camera():
+    a = _assembler(timeout=0.25, silence=None)
+    _run_10hz(a, CAMS, 0.0, 10)
+    lat, frames = _run_10hz(a, CAMS[:7], 1.0, 30)
+    assert np.median(lat) > 0.09, f"median latency {np.median(lat):.3f} s"
+
+
+def test_after_a_blackout_the_first_frame_waits_for_every_camera():
+    a = _assembler(timeout=0.25, silence=1.0)
+    _run_10hz(a, CAMS, 0.0, 10)
+    a.poll(now=10.0)
+    _, frames = _run_10hz(a, CAMS, 20.0, 3)  # all cameras back after 19 s of silence
+    assert frames and all(sorted(f.cameras) == CAMS for f in frames), [sorted(f.cameras) for f in frames]
