@@ -21,6 +21,7 @@ def atomic_write_text(path: str, text: str, keep_backup: bool = True) -> None:
     directory = os.path.dirname(path)
     try:
         os.makedirs(directory, exist_ok=True)
+        _remove_stale_temporaries(path)
         fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", suffix=".tmp", dir=directory)
     except OSError as exc:
         raise ConfigError(f"cannot create a file in {directory} ({exc})", path=path) from None
@@ -51,6 +52,25 @@ def atomic_write_text(path: str, text: str, keep_backup: bool = True) -> None:
         if isinstance(exc, OSError):
             raise ConfigError(f"cannot write file ({exc})", path=path) from None
         raise
+
+
+def _remove_stale_temporaries(path: str, older_than: float = 60.0) -> None:
+    """Delete temporaries of ``path`` left by a writer that was killed mid-save.
+
+    Only files older than ``older_than`` seconds go, so a save in progress elsewhere is left alone.
+    """
+    import glob
+    import time
+
+    pattern = os.path.join(os.path.dirname(path), "." + glob.escape(os.path.basename(path)) + ".*.tmp")
+    limit = time.time() - older_than
+    for tmp in glob.glob(pattern):
+        try:
+            if os.path.getmtime(tmp) < limit:
+                os.unlink(tmp)
+                logger.info("removed %s, left by an interrupted save", tmp)
+        except OSError:
+            pass
 
 
 def _fsync_dir(directory: str) -> None:

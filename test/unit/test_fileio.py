@@ -81,3 +81,24 @@ def test_directory_that_cannot_be_created(tmp_path):
     with pytest.raises(ConfigError) as info:
         fileio.atomic_write_text(str(path), "data")
     assert str(path) in str(info.value) and "cannot create" in str(info.value), str(info.value)
+
+
+def test_temporaries_of_an_interrupted_save_are_removed_by_the_next_save(tmp_path):
+    import time
+
+    from aruco_ring_localization.fileio import atomic_write_text
+
+    target = tmp_path / "map.yaml"
+    old = tmp_path / ".map.yaml.abc123.tmp"      # what a SIGKILLed save leaves behind
+    fresh = tmp_path / ".map.yaml.def456.tmp"    # a save in progress right now elsewhere
+    other = tmp_path / ".other.yaml.abc123.tmp"  # another file's temporary
+    for f in (old, fresh, other):
+        f.write_text("partial")
+    past = time.time() - 3600
+    os.utime(old, (past, past))
+    os.utime(other, (past, past))
+    atomic_write_text(str(target), "new\n")
+    assert target.read_text() == "new\n"
+    assert not old.exists(), "stale temporary of map.yaml left behind"
+    assert fresh.exists(), "a recent temporary (a save in progress) was removed"
+    assert other.exists(), "another file's temporary was removed"
