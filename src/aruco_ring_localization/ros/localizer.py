@@ -301,6 +301,10 @@ class LocalizerNode:
         mode = self.p.tf_mode
         if mode in ("auto", "map_to_odom"):
             try:
+                # Wait for odom -> base at this stamp only when that transform exists at all: without
+                # odometry the 50 ms wait would be paid on every frame for nothing.
+                if not self.tf_buffer.can_transform(self.p.odom_frame, self.base_frame, rospy.Time(0)):
+                    raise tf2_ros.LookupException(f"no tf {self.p.odom_frame} -> {self.base_frame}")
                 tf = self.tf_buffer.lookup_transform(self.p.odom_frame, self.base_frame, stamp, rospy.Duration(0.05))
             except tf2_ros.ExtrapolationException:
                 try:
