@@ -641,7 +641,8 @@ def run(args: argparse.Namespace) -> int:
         ros.stop(mapping)
         est_map = MarkerMap.load(str(map_file))
         # --- localization --------------------------------------------------------------------------
-        loc = ros.launch("localization", ["phase:=localization", f"fusion:={args.fusion}"] + common)
+        loc = ros.launch("localization", ["phase:=localization", f"fusion:={args.fusion}",
+                                          f"comparison_dir:={out / 'comparison'}"] + common)
         if not player.wait_for("data", timeout=60):
             raise RuntimeError(f"the localizer did not subscribe (log: {out / 'logs'})")
         rospy.wait_for_service("/localizer/reset", timeout=60)
@@ -692,6 +693,13 @@ def run(args: argparse.Namespace) -> int:
         time.sleep(0.5)
         with player.lock:
             traj_est.extend((t, p) for t, p in sorted(player.poses.items()))
+        try:  # the comparison node's own tables (live, fitted alignment): a cross-check
+            from std_srvs.srv import Trigger as _Trigger
+
+            rospy.wait_for_service("/comparison/write_tables", timeout=5)
+            rospy.ServiceProxy("/comparison/write_tables", _Trigger)()
+        except (rospy.ROSException, rospy.ServiceException) as exc:
+            progress(f"note: no tables from the comparison node ({exc})")
         ros.stop(loc)
         if missed:
             progress(f"note: {missed} frames had no pose before the next frame (late or dropped by the localizer)")
