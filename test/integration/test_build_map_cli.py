@@ -1,0 +1,79 @@
+"""``aruco_ring build-map`` on a bag of simulated detections from several stations (needs rosbag)."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import pytest
+
+rosbag = pytest.importorskip("rosbag")
+fiducial_msgs = pytest.importorskip("fiducial_msgs.msg")
+rospy = pytest.importorskip("rospy")
+
+from aruco_ring_localization.cli import build_map  # noqa: E402
+from aruco_ring_localization.evaluation import map_error  # noqa: E402
+from aruco_ring_localization.marker_map import MarkerMap  # noqa: E402
+from aruco_ring_localization.rig import CameraRing  # noqa: E402
+from aruco_ring_localization.ros.conversions import model_to_camera_info, observations_to_fiducials  # noqa: E402
+from aruco_ring_localization.simulation.ring_sim import RingSimulator, perturb_ring  # noqa: E402
+from aruco_ring_localization.simulation.scene import Scene  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[2]
+RING = str(REPO / "config" / "ring.yaml")
+
+
+def _args(bag: Path, out: Path, method: str) -> argparse.Namespace:
+    return argparse.Namespace(bag=str(bag), ring=RING, out=str(out), method=method, reference_marker=None,
+                              fiducial_len=0.2, fiducial_len_override="", ignore_fiducials="", slop=0.03,
+                              map_frame="map")
+
+
+@pytest.fixture(scope="module")
+def bag_path(tmp_path_factory) -> Path:
+    """4 frames at each of the scene's mapping stations, as the ring's topics would record them."""
+    scene = Scene.default()
+    ring = CameraRing.load(RING)
+    sim = RingSimulator(scene, perturb_ring(ring, seed=1), pixel_noise=0.3, seed=5)
+    path = tmp_path_factory.mktemp("bag") / "mapping.bag"
+    t = 100.0
+    with rosbag.Bag(str(path), "w") as bag:
+        for station in scene.mapping_stations:
+            for _ in range(4):
+                frame = sim.observe(Scene.T_world_base(station), t)
+                stamp = rospy.Time.from_sec(t)
+                for cam in ring.cameras:
+                    info = model_to_camera_info(cam.model, cam.frame_id)
+                    info.header.stamp = stamp
+                    bag.write(f"/{cam.namespace}/camera_info", info, stamp)
+                    msg = fiducial_msgs.FiducialArray()
+                    msg.header.stamp = stamp
+                    msg.header.frame_id = cam.frame_id
+                    msg.fiducials = observations_to_fiducials(frame.cameras[cam.name].observations)
+                    bag.write(f"/{cam.namespace}/fiducial_vertices", msg, rospy.Time.from_sec(t + 0.01))
+                t += 0.1
+            t += 5.0  # the robot drives to the next station
+    return path
+
+
+@pytest.mark.parametrize("method, max_rms_mm", [("paper", 40.0), ("refined", 6.0)])
+def test_build_map_from_bag(bag_path, tmp_path, method, max_rms_mm):
+    out = tmp_path / "map.yaml"
+    assert build_map.run(_args(bag_path, out, method)) == 0
+    m = MarkerMap.load(str(out))
+    truth = Scene.default().truth_map()
+    assert sorted(m.ids) == sorted(truth.ids), f"mapped {m.ids}, expected {truth.ids}"
+    err = map_error(m, truth, best_fit=True)
+    assert err["position_rms_mm"] < max_rms_mm, f"{method}: best-fit RMS {err['position_rms_mm']:.2f} mm"
+    assert m.method == method
+
+
+def test_build_map_without_ring_topics_is_an_error(tmp_path, capsys):
+    from aruco_ring_localization.cli import main
+
+    empty = tmp_path / "empty.bag"
+    with rosbag.Bag(str(empty), "w"):
+        pass
+    assert main(["build-map", str(empty), "--ring", RING, "--out", str(tmp_path / "map.yaml")]) == 1
+    err = capsys.readouterr().err
+    assert "empty.bag" in err and "fiducial_vertices" in err, err
+    assert not (tmp_path / "map.yaml").exists()
