@@ -69,30 +69,28 @@ class LocalizerNodeParams:
     timeout: float = 0.25
     max_frame_age: float = 2.0
     ignore_fiducials: str = ""
-    # localization
-    max_reprojection_error: float = 3.0
-    th_distance: float = 5.0
-    th_orientation_deg: float = 60.0
-    fusion_gap: float = 0.10
-    pixel_noise: float = 0.5
-    robust_scale: float = 8.0
-    joint_outlier_threshold: float = 10.0
-    # gate
-    gate_enabled: bool = True
-    gate_base_distance: float = 0.15
-    gate_base_angle_deg: float = 10.0
-    gate_speed_margin: float = 1.5
-    gate_max_acceleration: float = 1.0
-    gate_max_angular_acceleration: float = 2.0
-    gate_recovery_count: int = 5
-    gate_sigma_factor: float = 3.0
-    # filter
-    jerk_noise_xy: float = 0.1
-    jerk_noise_yaw: float = 0.1
-    measurement_std_xy: float = 0.02
-    measurement_std_yaw: float = 0.01
-    min_measurement_std_xy: float = 0.003
-    min_measurement_std_yaw: float = 0.002
+    # localization, gate and filter: defaults are the core's (one place to change them)
+    max_reprojection_error: float = LocalizationParams.max_reprojection_error
+    th_distance: float = LocalizationParams.th_distance
+    th_orientation_deg: float = float(np.degrees(LocalizationParams.th_orientation))
+    fusion_gap: float = LocalizationParams.fusion_gap
+    pixel_noise: float = LocalizationParams.pixel_noise
+    robust_scale: float = LocalizationParams.robust_scale
+    joint_outlier_threshold: float = LocalizationParams.joint_outlier_threshold
+    gate_enabled: bool = GateParams.enabled
+    gate_base_distance: float = GateParams.base_distance
+    gate_base_angle_deg: float = float(np.degrees(GateParams.base_angle))
+    gate_speed_margin: float = GateParams.speed_margin
+    gate_max_acceleration: float = GateParams.max_acceleration
+    gate_max_angular_acceleration: float = GateParams.max_angular_acceleration
+    gate_recovery_count: int = GateParams.recovery_count
+    gate_sigma_factor: float = GateParams.sigma_factor
+    jerk_noise_xy: float = FilterParams.jerk_noise_xy
+    jerk_noise_yaw: float = FilterParams.jerk_noise_yaw
+    measurement_std_xy: float = FilterParams.measurement_std_xy
+    measurement_std_yaw: float = FilterParams.measurement_std_yaw
+    min_measurement_std_xy: float = FilterParams.min_measurement_std_xy
+    min_measurement_std_yaw: float = FilterParams.min_measurement_std_yaw
     # output
     markers_period: float = 1.0
     diagnostics_period: float = 1.0
