@@ -28,7 +28,7 @@ if os.path.join(ROOT, "src") not in sys.path:
 
 from aruco_ring_localization import geometry as geo  # noqa: E402
 from aruco_ring_localization.detection import Detector, DetectorParams  # noqa: E402
-from aruco_ring_localization.rig import CameraRing  # noqa: E402
+from aruco_ring_localization.ring import CameraRing  # noqa: E402
 from aruco_ring_localization.simulation.ring_sim import RingSimulator, perturb_ring  # noqa: E402
 from aruco_ring_localization.simulation.scene import Scene, SceneMarker, marker_pose  # noqa: E402
 

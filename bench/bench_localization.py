@@ -31,12 +31,12 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(os.path.dirname(HERE), "src"))
 
 from aruco_ring_localization import geometry as geo  # noqa: E402
-from aruco_ring_localization.frames import CameraFrame, RingFrame  # noqa: E402
+from aruco_ring_localization.detections import CameraFrame, RingFrame  # noqa: E402
 from aruco_ring_localization.localization import (LocalizationParams, RingLocalizer, crlb_covariance,  # noqa: E402
                                                   se2_covariance)
 from aruco_ring_localization.marker_map import MarkerEntry, MarkerMap  # noqa: E402
 from aruco_ring_localization.markers import MarkerSizes  # noqa: E402
-from aruco_ring_localization.rig import CameraRing, apply_refined_extrinsics  # noqa: E402
+from aruco_ring_localization.ring import CameraRing, apply_refined_extrinsics  # noqa: E402
 from aruco_ring_localization.simulation.ring_sim import RingSimulator, perturb_ring  # noqa: E402
 from aruco_ring_localization.simulation.scene import Scene  # noqa: E402
 

@@ -33,10 +33,10 @@ sys.path.insert(0, os.path.join(os.path.dirname(HERE), "src"))
 
 from aruco_ring_localization.detection import Detector, DetectorParams  # noqa: E402
 from aruco_ring_localization.evaluation import map_error, map_frame_error  # noqa: E402
-from aruco_ring_localization.frames import CameraFrame, RingFrame  # noqa: E402
+from aruco_ring_localization.detections import CameraFrame, RingFrame  # noqa: E402
 from aruco_ring_localization.mapping import MapBuilder  # noqa: E402
 from aruco_ring_localization.markers import MarkerSizes  # noqa: E402
-from aruco_ring_localization.rig import CameraRing  # noqa: E402
+from aruco_ring_localization.ring import CameraRing  # noqa: E402
 from aruco_ring_localization.simulation.ring_sim import RingSimulator, perturb_ring  # noqa: E402
 from aruco_ring_localization.simulation.scene import Plate, Room, Scene, SceneMarker, marker_pose  # noqa: E402
 

@@ -3,7 +3,7 @@
 * :class:`DetectorParams` — the detector's settings (dictionary, corner refinement, size limits),
   a frozen dataclass with the defaults that reproduce aruco_detect's published test corners.
 * :class:`Detector` — wraps OpenCV's ``cv2.aruco.ArucoDetector``: ``detect(gray)`` returns
-  :class:`~aruco_ring_localization.frames.MarkerObservation` with corners in aruco_detect order
+  :class:`~aruco_ring_localization.detections.MarkerObservation` with corners in aruco_detect order
   (0 top-left, 1 top-right, 2 bottom-right, 3 bottom-left of the printed marker; this is OpenCV's
   order), in raw (distorted) pixels of the image.
 * :func:`marker_poses` — per-marker pose ``T_cam_marker`` (single-marker IPPE from
@@ -28,7 +28,7 @@ import numpy as np
 from . import geometry as geo
 from .camera import CameraModel
 from .errors import ArucoRingError, ConfigError, MeasurementError
-from .frames import MarkerObservation
+from .detections import MarkerObservation
 from .markers import MarkerSizes
 from .pnp import solve_marker_ippe
 

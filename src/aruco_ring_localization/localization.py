@@ -50,10 +50,10 @@ from scipy.linalg import lapack as _lapack
 from . import geometry as geo
 from .camera import CameraModel
 from .errors import ConfigError, MeasurementError
-from .frames import RingFrame
+from .detections import RingFrame
 from .marker_map import MarkerMap
 from .pnp import solve_marker_ippe, solve_points
-from .rig import CameraRing
+from .ring import CameraRing
 
 logger = logging.getLogger(__name__)
 

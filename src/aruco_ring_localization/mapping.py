@@ -50,12 +50,12 @@ import numpy as np
 from . import geometry as geo
 from .bundle_adjustment import BAOptions, BAProblem, BAResult, bundle_adjust, marker_std_in_frame
 from .errors import ArucoRingError, GeometryError, MeasurementError
-from .frames import RingFrame, sanitize_observations
+from .detections import RingFrame, sanitize_observations
 from .marker_map import MarkerEntry, MarkerMap, map_frame_from_reference
 from .markers import MarkerSizes
 from .camera import CameraModel
 from .markers import marker_corners
-from .rig import CameraRing
+from .ring import CameraRing
 
 logger = logging.getLogger(__name__)
 

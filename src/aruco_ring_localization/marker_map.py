@@ -301,7 +301,7 @@ def _entry_from_dict(m: Any, source: str, key: str) -> MarkerEntry:
     size = m.get("size")
     if isinstance(size, bool) or not isinstance(size, (int, float)) or not math.isfinite(size) or size <= 0:
         raise ConfigError(f"expected a positive side length in metres, got {size!r}", path=source, key=f"{key}.size")
-    from .rig import read_transform  # local import: rig imports camera, not marker_map
+    from .ring import read_transform  # local import: rig imports camera, not marker_map
 
     T = read_transform({"translation": m.get("translation"), "rotation": m.get("rotation")}, source, key)
     pos_std = _read_std(m, "position_std", source, key)
@@ -319,7 +319,7 @@ def _read_ring_calibration(node: Any, source: str):
     base = node.get("base_frame", "base_link")
     if not isinstance(base, str) or not base:
         raise ConfigError("expected a non-empty frame name", path=source, key=f"{key}.base_frame")
-    from .rig import read_transform
+    from .ring import read_transform
 
     cams = {str(name): read_transform(T, source, f"{key}.cameras.{name}") for name, T in node["cameras"].items()}
     return base, cams

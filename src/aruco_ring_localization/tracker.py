@@ -20,12 +20,12 @@ from typing import Dict, Optional
 import numpy as np
 
 from . import geometry as geo
-from .frames import RingFrame
+from .detections import RingFrame
 from .gating import GateDecision, GateParams, MotionGate
 from .kalman import FilterParams, PoseFilter
 from .localization import LocalizationParams, LocalizationResult, RingLocalizer
 from .marker_map import MarkerMap
-from .rig import CameraRing
+from .ring import CameraRing
 
 logger = logging.getLogger(__name__)
 

@@ -27,7 +27,7 @@ from sensor_msgs.msg import CameraInfo
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from aruco_ring_localization import geometry as geo  # noqa: E402
-from aruco_ring_localization.rig import CameraRing  # noqa: E402
+from aruco_ring_localization.ring import CameraRing  # noqa: E402
 from aruco_ring_localization.ros.conversions import model_to_camera_info, observations_to_fiducials  # noqa: E402
 from aruco_ring_localization.simulation.ring_sim import RingSimulator, perturb_ring  # noqa: E402
 from aruco_ring_localization.simulation.scene import Scene  # noqa: E402

@@ -30,8 +30,8 @@ from sensor_msgs.msg import CameraInfo
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from aruco_ring_localization.frames import CameraFrame, RingFrame  # noqa: E402
-from aruco_ring_localization.rig import CameraRing  # noqa: E402
+from aruco_ring_localization.detections import CameraFrame, RingFrame  # noqa: E402
+from aruco_ring_localization.ring import CameraRing  # noqa: E402
 from aruco_ring_localization.ros.conversions import (camera_info_to_model,  # noqa: E402
                                                      fiducial_array_to_observations, observations_to_fiducials)
 

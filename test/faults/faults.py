@@ -20,10 +20,10 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from aruco_ring_localization import geometry as geo
-from aruco_ring_localization.frames import CameraFrame, MarkerObservation, RingFrame
+from aruco_ring_localization.detections import CameraFrame, MarkerObservation, RingFrame
 from aruco_ring_localization.markers import marker_corners
 from aruco_ring_localization.pnp import solve_marker_ippe
-from aruco_ring_localization.rig import CameraRing
+from aruco_ring_localization.ring import CameraRing
 
 CORRUPTIONS = ("swap_id", "flip_ippe", "random_quad")
 

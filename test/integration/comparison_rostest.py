@@ -27,7 +27,7 @@ from visualization_msgs.msg import Marker
 
 from aruco_ring_localization import geometry as geo
 from aruco_ring_localization import trajectory as tr
-from aruco_ring_localization.rig import CameraRing
+from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.ros.conversions import (make_transform_stamped, model_to_camera_info, msg_to_transform,
                                                      observations_to_fiducials)
 from aruco_ring_localization.simulation.ring_sim import RingSimulator, perturb_ring

@@ -99,7 +99,7 @@ class DetectorNodesTest(unittest.TestCase):
         rospy.init_node("detector_rostest")
         cls.model0 = CameraModel.from_yaml(os.path.join(DATA, "camera_info.yaml"))
         cls.cam0 = Camera("ring/cam0", cls.model0, "cam0_optical_frame")
-        from aruco_ring_localization.rig import CameraRing
+        from aruco_ring_localization.ring import CameraRing
         cls.ring = CameraRing.load(os.path.join(REPO, "config", "ring.yaml"))
         cls.cam1 = Camera("ring/cam1", cls.ring["cam1"].model, "cam1_optical_frame")
         img = cv2.imread(os.path.join(DATA, "aruco_detect_test_images", "tag_245-246_d7_14cm.png"), cv2.IMREAD_COLOR)

@@ -19,7 +19,7 @@ import rostest
 import tf2_ros
 
 from aruco_ring_localization.geometry import transform_from_translation_quaternion
-from aruco_ring_localization.rig import CameraRing
+from aruco_ring_localization.ring import CameraRing
 
 PKG = "aruco_ring_localization"
 TOL = 1e-6

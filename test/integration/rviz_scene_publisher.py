@@ -26,7 +26,7 @@ from sensor_msgs.msg import LaserScan
 from visualization_msgs.msg import Marker
 
 from aruco_ring_localization import geometry as geo
-from aruco_ring_localization.rig import CameraRing
+from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.ros.conversions import make_transform_stamped, pose_to_msg, se2_covariance_to_pose_covariance
 from aruco_ring_localization.ros.mapper import map_to_marker_array
 from aruco_ring_localization.ros.ring_tf import default_ring_file, ring_transforms

@@ -22,7 +22,7 @@ from nav_msgs.msg import Odometry
 from sensor_msgs.msg import CameraInfo, LaserScan
 from std_msgs.msg import Int32
 
-from aruco_ring_localization.rig import CameraRing
+from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.ros.conversions import fiducial_array_to_observations, pose_msg_to_transform
 from aruco_ring_localization.simulation.ring_sim import RingSimulator, perturb_ring
 from aruco_ring_localization.simulation.scene import Scene

@@ -28,7 +28,7 @@ from std_msgs.msg import Int32
 
 from aruco_ring_localization import geometry as geo
 from aruco_ring_localization.detection import Detector
-from aruco_ring_localization.rig import CameraRing
+from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.ros.conversions import (fiducial_array_to_observations, msg_to_transform,
                                                       pose_msg_to_transform, stamp_to_sec)
 from aruco_ring_localization.simulation.laser import LaserScanner

@@ -13,7 +13,7 @@ rospy = pytest.importorskip("rospy")
 from aruco_ring_localization.cli import build_map  # noqa: E402
 from aruco_ring_localization.evaluation import map_error  # noqa: E402
 from aruco_ring_localization.marker_map import MarkerMap  # noqa: E402
-from aruco_ring_localization.rig import CameraRing  # noqa: E402
+from aruco_ring_localization.ring import CameraRing  # noqa: E402
 from aruco_ring_localization.ros.conversions import model_to_camera_info, observations_to_fiducials  # noqa: E402
 from aruco_ring_localization.simulation.ring_sim import RingSimulator, perturb_ring  # noqa: E402
 from aruco_ring_localization.simulation.scene import Scene  # noqa: E402

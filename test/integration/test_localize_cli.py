@@ -14,7 +14,7 @@ rospy = pytest.importorskip("rospy")
 from aruco_ring_localization import geometry as geo  # noqa: E402
 from aruco_ring_localization.cli import localize  # noqa: E402
 from aruco_ring_localization.evaluation import read_tum  # noqa: E402
-from aruco_ring_localization.rig import CameraRing  # noqa: E402
+from aruco_ring_localization.ring import CameraRing  # noqa: E402
 from aruco_ring_localization.ros.conversions import observations_to_fiducials  # noqa: E402
 from aruco_ring_localization.simulation.ring_sim import RingSimulator, perturb_ring  # noqa: E402
 from aruco_ring_localization.simulation.scene import Scene  # noqa: E402

@@ -15,7 +15,7 @@ import yaml
 from aruco_ring_localization.camera import CameraModel
 from aruco_ring_localization.errors import ConfigError
 from aruco_ring_localization.marker_map import MarkerMap
-from aruco_ring_localization.rig import CameraRing
+from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.simulation.scene import Scene
 
 from helpers import CAM0_YAML, CONFIG, RING_YAML

@@ -6,7 +6,7 @@ import pytest
 
 from aruco_ring_localization import geometry as geo
 from aruco_ring_localization.localization import LocalizationParams, RingLocalizer, crlb_covariance, se2_covariance
-from aruco_ring_localization.rig import CameraRing
+from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.simulation.ring_sim import RingSimulator
 from aruco_ring_localization.simulation.scene import Scene
 

@@ -18,7 +18,7 @@ import yaml
 
 from aruco_ring_localization.errors import ConfigError
 from aruco_ring_localization.marker_map import MAP_FORMAT_VERSION, MarkerEntry, MarkerMap
-from aruco_ring_localization.rig import CameraRing
+from aruco_ring_localization.ring import CameraRing
 
 from helpers import CONFIG, RING_YAML
 

@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from aruco_ring_localization import demo
+from aruco_ring_localization.ros import demo
 from aruco_ring_localization import geometry as geo
 from aruco_ring_localization.marker_map import MarkerEntry, MarkerMap, map_frame_from_reference
 from aruco_ring_localization.simulation.scene import Scene

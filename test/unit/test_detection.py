@@ -13,7 +13,7 @@ from aruco_ring_localization.camera import CameraModel
 from aruco_ring_localization.detection import (Detector, DetectorParams, annotate, dictionary_name, fiducial_area,
                                                image_to_gray, marker_poses, refine_corners_lines)
 from aruco_ring_localization.errors import ConfigError, MeasurementError
-from aruco_ring_localization.frames import MarkerObservation
+from aruco_ring_localization.detections import MarkerObservation
 from aruco_ring_localization.markers import MarkerSizes
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", ".."))
@@ -192,7 +192,7 @@ def _render_or_skip(sim, T):
 def test_detector_finds_every_rendered_marker():
     """Every marker the simulator says is visible is detected, with the right id, and the median
     corner error against the true projection is below 0.3 px; no id outside the scene appears."""
-    from aruco_ring_localization.rig import CameraRing
+    from aruco_ring_localization.ring import CameraRing
     from aruco_ring_localization.simulation.ring_sim import RingSimulator, perturb_ring
     from aruco_ring_localization.simulation.scene import Scene
 

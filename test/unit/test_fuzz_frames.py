@@ -14,7 +14,7 @@ import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
-from aruco_ring_localization.frames import (CameraFrame, MarkerObservation, RingFrameAssembler,
+from aruco_ring_localization.detections import (CameraFrame, MarkerObservation, RingFrameAssembler,
                                             sanitize_observations)
 from aruco_ring_localization.markers import quad_is_degenerate
 

@@ -23,7 +23,7 @@ from aruco_ring_localization.camera import CameraModel
 from aruco_ring_localization.errors import ArucoRingError, ConfigError, MeasurementError
 from aruco_ring_localization.marker_map import MarkerMap
 from aruco_ring_localization.markers import MAX_MARKER_ID, parse_id_list, parse_size_overrides
-from aruco_ring_localization.rig import CameraRing
+from aruco_ring_localization.ring import CameraRing
 
 from fuzz_support import FUZZ, junk, mutate
 from helpers import CAM0_YAML, CONFIG, RING_YAML

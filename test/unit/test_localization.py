@@ -6,11 +6,11 @@ import pytest
 
 from aruco_ring_localization import geometry as geo
 from aruco_ring_localization.errors import ConfigError
-from aruco_ring_localization.frames import CameraFrame, MarkerObservation, RingFrame
+from aruco_ring_localization.detections import CameraFrame, MarkerObservation, RingFrame
 from aruco_ring_localization.localization import (CameraEstimate, JointProblem, LocalizationParams, RingLocalizer,
                                                   accuracy_weight, fuse_paper)
 from aruco_ring_localization.marker_map import MarkerEntry, MarkerMap
-from aruco_ring_localization.rig import CameraRing
+from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.simulation.ring_sim import RingSimulator, perturb_ring
 from aruco_ring_localization.simulation.scene import Scene
 

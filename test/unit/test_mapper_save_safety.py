@@ -16,7 +16,7 @@ import pytest
 from aruco_ring_localization.mapping import MapBuilder
 from aruco_ring_localization.marker_map import MarkerMap
 from aruco_ring_localization.markers import MarkerSizes
-from aruco_ring_localization.rig import CameraRing
+from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.simulation.ring_sim import RingSimulator, perturb_ring
 from aruco_ring_localization.simulation.scene import Scene
 

@@ -9,10 +9,10 @@ import pytest
 
 from aruco_ring_localization import geometry as geo
 from aruco_ring_localization.evaluation import map_error
-from aruco_ring_localization.frames import CameraFrame, MarkerObservation, RingFrame
+from aruco_ring_localization.detections import CameraFrame, MarkerObservation, RingFrame
 from aruco_ring_localization.mapping import MapBuilder, marker_pose_candidates
 from aruco_ring_localization.markers import MarkerSizes, marker_corners
-from aruco_ring_localization.rig import CameraRing
+from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.simulation.ring_sim import RingSimulator
 from aruco_ring_localization.simulation.scene import Scene, SceneMarker, marker_pose
 

@@ -29,7 +29,7 @@ from hypothesis import given  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 from aruco_ring_localization.marker_map import MarkerMap  # noqa: E402
-from aruco_ring_localization.rig import CameraRing  # noqa: E402
+from aruco_ring_localization.ring import CameraRing  # noqa: E402
 from aruco_ring_localization.ros.conversions import (make_transform_stamped, model_to_camera_info,  # noqa: E402
                                                      observations_to_fiducials)
 from aruco_ring_localization.simulation.ring_sim import RingSimulator  # noqa: E402

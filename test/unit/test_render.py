@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from aruco_ring_localization import geometry as geo
-from aruco_ring_localization.rig import CameraRing
+from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.simulation.render import RingRenderer, background_panorama, ray_grid
 from aruco_ring_localization.simulation.ring_sim import RingSimulator
 from aruco_ring_localization.simulation.scene import Plate, Room, Scene, SceneMarker, marker_pose

@@ -9,7 +9,7 @@ import pytest
 from aruco_ring_localization import geometry as geo
 from aruco_ring_localization.errors import ConfigError
 from aruco_ring_localization.marker_map import MarkerEntry, MarkerMap
-from aruco_ring_localization.rig import CameraRing, apply_refined_extrinsics
+from aruco_ring_localization.ring import CameraRing, apply_refined_extrinsics
 
 RING = os.path.join(os.path.dirname(__file__), "..", "..", "config", "ring.yaml")
 

@@ -8,7 +8,7 @@ import pytest
 
 from aruco_ring_localization import geometry as geo
 from aruco_ring_localization.markers import marker_corners
-from aruco_ring_localization.rig import CameraRing
+from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.simulation.ring_sim import RingSimulator, perturb_ring
 from aruco_ring_localization.simulation.scene import Plate, Room, Scene, SceneMarker, marker_pose
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from aruco_ring_localization.errors import ConfigError
-from aruco_ring_localization.rig import CameraRing
+from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.ros.simulator import SimulatorCore, SimulatorParams, waypoint_list
 from aruco_ring_localization.simulation.scene import Scene
 

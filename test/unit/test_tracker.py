@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from aruco_ring_localization import geometry as geo
-from aruco_ring_localization.rig import CameraRing
+from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.simulation.ring_sim import RingSimulator, perturb_ring
 from aruco_ring_localization.simulation.scene import Scene
 from aruco_ring_localization.tracker import RingTracker

@@ -16,11 +16,11 @@ import numpy as np
 
 from .. import geometry as geo
 from ..errors import ArucoRingError, ConfigError
-from ..frames import RingFrameAssembler
+from ..detections import RingFrameAssembler
 from ..mapping import MapBuilder
 from ..markers import MarkerSizes, parse_id_list
-from ..rig import CameraRing
-from ..ring_input_core import RingInputCore
+from ..ring import CameraRing
+from ..detections import RingInputCore
 
 COMMAND = "build-map"
 HELP = "build a marker map from a bag of fiducial_vertices + camera_info (+ /tf_static)"

@@ -8,7 +8,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..marker_map import MarkerMap
-from ..rig import CameraRing, ring_summary
+from ..ring import CameraRing, ring_summary
 
 COMMAND = "check-config"
 HELP = "validate ring/camera_info/map files and print a summary"

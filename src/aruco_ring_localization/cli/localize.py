@@ -20,8 +20,8 @@ from ..errors import ArucoRingError, ConfigError
 from ..evaluation import write_tum
 from ..localization import LocalizationParams
 from ..marker_map import MarkerMap
-from ..rig import CameraRing
-from ..ring_input_core import RingInputCore
+from ..ring import CameraRing
+from ..detections import RingInputCore
 from ..tracker import RingTracker
 
 COMMAND = "localize"

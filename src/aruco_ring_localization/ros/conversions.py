@@ -17,7 +17,7 @@ from sensor_msgs.msg import CameraInfo
 from .. import geometry as geo
 from ..camera import CameraModel
 from ..errors import GeometryError, MeasurementError
-from ..frames import CameraFrame, MarkerObservation
+from ..detections import CameraFrame, MarkerObservation
 
 
 def stamp_to_sec(stamp) -> float:

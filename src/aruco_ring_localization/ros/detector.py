@@ -42,7 +42,7 @@ import numpy as np
 from ..camera import CameraModel
 from ..detection import Detector, DetectorParams, MarkerPose, annotate, image_to_gray, marker_poses
 from ..errors import ArucoRingError, ConfigError, MeasurementError
-from ..frames import MarkerObservation
+from ..detections import MarkerObservation
 from ..markers import MarkerSizes, parse_id_list
 
 logger = logging.getLogger(__name__)

@@ -33,13 +33,13 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from .. import geometry as geo
 from ..errors import ArucoRingError, ConfigError
-from ..frames import RingFrame
+from ..detections import RingFrame
 from ..gating import GateParams
 from ..kalman import FilterParams
 from ..localization import LocalizationParams
 from ..marker_map import MarkerMap
 from ..markers import parse_id_list
-from ..rig import CameraRing, apply_refined_extrinsics
+from ..ring import CameraRing, apply_refined_extrinsics
 from ..tracker import RingTracker, TrackResult
 from .conversions import (make_transform_stamped, msg_to_transform, pose_msg_to_transform, pose_to_msg,
                           se2_covariance_to_pose_covariance, stamp_to_sec)

@@ -38,11 +38,11 @@ from visualization_msgs.msg import Marker, MarkerArray
 from .. import geometry as geo
 from ..bundle_adjustment import BAOptions
 from ..errors import ArucoRingError, ConfigError
-from ..frames import RingFrame
+from ..detections import RingFrame
 from ..mapping import MapBuilder, MappingOptions
 from ..marker_map import MarkerMap
 from ..markers import MarkerSizes, parse_id_list
-from ..rig import CameraRing
+from ..ring import CameraRing
 from .conversions import make_transform_stamped, pose_to_msg
 from .params import read_params
 from .ring_input import RingInput

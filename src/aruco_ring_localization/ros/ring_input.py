@@ -43,9 +43,9 @@ from fiducial_msgs.msg import FiducialArray
 from sensor_msgs.msg import CameraInfo
 
 from ..errors import ArucoRingError
-from ..frames import RingFrame
-from ..rig import CameraRing
-from ..ring_input_core import SKIP_NO_CAMERA_INFO, SKIP_NO_EXTRINSICS, RingInputCore
+from ..detections import RingFrame
+from ..ring import CameraRing
+from ..detections import SKIP_NO_CAMERA_INFO, SKIP_NO_EXTRINSICS, RingInputCore
 from .conversions import camera_info_to_model, fiducial_array_to_observations, msg_to_transform, stamp_to_sec
 
 WARN_PERIOD = 5.0  # s between repeats of one throttled warning

@@ -1,6 +1,6 @@
 """``ring_tf`` node: publishes the ring's extrinsics as static transforms.
 
-Reads the ring file (``config/ring.yaml`` format, see :mod:`aruco_ring_localization.rig`) and
+Reads the ring file (``config/ring.yaml`` format, see :mod:`aruco_ring_localization.ring`) and
 publishes one static transform ``<base_frame> -> <camera frame_id>`` per camera
 (``base_link -> cam0_optical_frame`` ... ``cam7_optical_frame``).
 
@@ -30,7 +30,7 @@ from geometry_msgs.msg import TransformStamped
 
 from ..errors import ConfigError
 from ..marker_map import MarkerMap
-from ..rig import CameraRing, apply_refined_extrinsics
+from ..ring import CameraRing, apply_refined_extrinsics
 from .conversions import make_transform_stamped
 
 PACKAGE = "aruco_ring_localization"

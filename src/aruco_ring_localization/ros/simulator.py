@@ -40,7 +40,7 @@ import numpy as np
 
 from .. import geometry as geo
 from ..errors import ArucoRingError, ConfigError
-from ..rig import CameraRing
+from ..ring import CameraRing
 from ..simulation.laser import LaserScanner
 from ..simulation.lockstep import FrameGate
 from ..simulation.motion import MotionLimits, RobotState, SimRobot

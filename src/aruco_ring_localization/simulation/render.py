@@ -30,7 +30,7 @@ import numpy as np
 
 from .. import geometry as geo
 from ..camera import CameraModel
-from ..rig import CameraRing
+from ..ring import CameraRing
 from .scene import Scene
 
 logger = logging.getLogger(__name__)

@@ -4,7 +4,7 @@ Two output modes share one visibility model:
 
 * *corners mode* (:meth:`RingSimulator.observe`): the true projections of the visible markers'
   corners through each camera's real lens model, plus Gaussian pixel noise, as a
-  :class:`~aruco_ring_localization.frames.RingFrame` (what 8 detectors would publish);
+  :class:`~aruco_ring_localization.detections.RingFrame` (what 8 detectors would publish);
 * *image mode* (:meth:`RingSimulator.render`): a rendered mono8 image per camera (see
   :mod:`.render`) that goes through the real detector.
 
@@ -27,9 +27,9 @@ import cv2
 import numpy as np
 
 from .. import geometry as geo
-from ..frames import CameraFrame, MarkerObservation, RingFrame
+from ..detections import CameraFrame, MarkerObservation, RingFrame
 from ..markers import marker_corners
-from ..rig import CameraRing, RingCamera
+from ..ring import CameraRing, RingCamera
 from .scene import Scene
 
 logger = logging.getLogger(__name__)

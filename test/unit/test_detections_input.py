@@ -9,9 +9,9 @@ import pytest
 
 from aruco_ring_localization import geometry as geo
 from aruco_ring_localization.errors import ConfigError
-from aruco_ring_localization.frames import MarkerObservation
-from aruco_ring_localization.rig import CameraRing
-from aruco_ring_localization.ring_input_core import SKIP_NO_CAMERA_INFO, SKIP_NO_EXTRINSICS, RingInputCore
+from aruco_ring_localization.detections import MarkerObservation
+from aruco_ring_localization.ring import CameraRing
+from aruco_ring_localization.detections import SKIP_NO_CAMERA_INFO, SKIP_NO_EXTRINSICS, RingInputCore
 
 RING_FILE = Path(__file__).resolve().parents[2] / "config" / "ring.yaml"
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from aruco_ring_localization.frames import (CameraFrame, MarkerObservation, RingFrame, RingFrameAssembler,
+from aruco_ring_localization.detections import (CameraFrame, MarkerObservation, RingFrame, RingFrameAssembler,
                                             sanitize_observations)
 
 CAMS = [f"cam{k}" for k in range(8)]

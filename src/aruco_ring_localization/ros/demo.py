@@ -1,6 +1,6 @@
 """``make demo``: the paper's experiment (§III) end to end on the simulated lab, with the real ROS nodes.
 
-``python -m aruco_ring_localization.demo [--fusion joint|paper] [--method refined|paper]
+``python -m aruco_ring_localization.ros.demo [--fusion joint|paper] [--method refined|paper]
 [--mode corners|images] [--gui] [--out results/demo]``
 
 1. starts its own roscore (a free port, so it never disturbs a running ROS);
@@ -45,14 +45,14 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from . import geometry as geo
-from . import trajectory as tr
-from .errors import ArucoRingError
-from .marker_map import MarkerMap
+from .. import geometry as geo
+from .. import trajectory as tr
+from ..errors import ArucoRingError
+from ..marker_map import MarkerMap
 
 logger = logging.getLogger(__name__)
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 PACKAGE = "aruco_ring_localization"
 
 
@@ -238,8 +238,8 @@ def write_report(out_dir: Path, records: Sequence[StopRecord], est_map: MarkerMa
     The truth (world frame) goes into the map frame through ``T_map_world`` from the map's own
     frame definition applied to the true reference marker (no fitted alignment).
     """
-    from . import evaluation, plots
-    from .fileio import atomic_write_text
+    from .. import evaluation, plots
+    from ..fileio import atomic_write_text
 
     out_dir.mkdir(parents=True, exist_ok=True)
     T_world_map = evaluation.truth_in_map_frame(est_map, truth_map)
@@ -417,7 +417,7 @@ class LabPlayer:
         from rosgraph_msgs.msg import Clock
         from sensor_msgs.msg import CameraInfo, Image
 
-        from .ros.conversions import model_to_camera_info
+        from .conversions import model_to_camera_info
 
         self.rospy = rospy
         self.scene, self.ring, self.sim, self.mode = scene, ring, sim, mode
@@ -485,7 +485,7 @@ class LabPlayer:
 
     def step(self, pose_world: np.ndarray, cmd: Optional[np.ndarray] = None) -> float:
         """Advance the clock by one frame and publish everything for the robot at ``pose_world``."""
-        from .ros.conversions import make_transform_stamped, observations_to_fiducials
+        from .conversions import make_transform_stamped, observations_to_fiducials
 
         rospy = self.rospy
         self.t = round(self.t + self.dt, 6)
@@ -559,7 +559,7 @@ class LabPlayer:
 # The run
 # --------------------------------------------------------------------------------------------
 def _parse(argv: Optional[Sequence[str]]) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m aruco_ring_localization.demo",
+    p = argparse.ArgumentParser(prog="python -m aruco_ring_localization.ros.demo",
                                 description="The paper's experiment on the simulated lab with the real ROS nodes.")
     p.add_argument("--fusion", choices=("joint", "paper"), default="joint", help="localizer fusion (default joint)")
     p.add_argument("--method", choices=("refined", "paper"), default="refined", help="map method (default refined)")
@@ -585,9 +585,9 @@ def _parse(argv: Optional[Sequence[str]]) -> argparse.Namespace:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .rig import CameraRing
-    from .simulation.ring_sim import RingSimulator, perturb_ring
-    from .simulation.scene import Scene
+    from ..ring import CameraRing
+    from ..simulation.ring_sim import RingSimulator, perturb_ring
+    from ..simulation.scene import Scene
 
     progress = Progress()
     out = Path(args.out)

@@ -10,7 +10,7 @@ import yaml
 from aruco_ring_localization import geometry as geo
 from aruco_ring_localization.camera import CameraModel
 from aruco_ring_localization.errors import ConfigError
-from aruco_ring_localization.rig import CameraRing, RingCamera, read_transform, ring_summary
+from aruco_ring_localization.ring import CameraRing, RingCamera, read_transform, ring_summary
 
 from helpers import CONFIG, RING_YAML, assert_close, assert_config_error_names, write_text
 
