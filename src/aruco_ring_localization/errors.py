@@ -28,6 +28,7 @@ class ConfigError(ArucoRingError, ValueError):
     def __init__(self, message: str, path: Optional[str] = None, key: Optional[str] = None):
         self.path = path
         self.key = key
+        self.detail = message
         where = []
         if path:
             where.append(str(path))

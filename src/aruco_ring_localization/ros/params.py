@@ -99,3 +99,24 @@ def read_params(cls: Type[P], namespace: str = "~", overrides: Optional[Mapping[
             values[f.name] = rospy.get_param(key)
     values.update(overrides or {})
     return params_from_dict(cls, values, source=f"parameters of {rospy.get_name()}")
+
+
+def read_config(cls: Type[P], namespace: str = "~", overrides: Optional[Mapping[str, Any]] = None) -> P:
+    """Read a node's nested schema (:mod:`aruco_ring_localization.config`) from the parameter server.
+
+    The whole private namespace is read at once (``rospy.get_param('~')``: the nested dict that
+    ``<rosparam command="load" file="config/NODE.yaml"/>`` and the launch file's overrides made);
+    unknown keys are warned about once each, by name (``rospy.logwarn``). ``overrides`` (dotted
+    keys, tests) win. Needs ``rospy.init_node`` first.
+    """
+    import rospy
+
+    from ..config import load_config, to_dict, with_overrides
+
+    values = rospy.get_param(namespace, {}) if rospy.has_param(namespace) else {}
+    source = f"parameters of {rospy.get_name()}"
+    config = load_config(cls, values, source=source, warn=rospy.logwarn)
+    if overrides:
+        config = with_overrides(config, overrides, source="overrides")
+    rospy.logdebug("%s: %s", source, to_dict(config))
+    return config
