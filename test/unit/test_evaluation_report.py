@@ -1,4 +1,4 @@
-"""The demo's pure parts: route, motion interpolation, report (tables, summary.json, figures) on synthetic data."""
+"""evaluation.report (the demo's pure parts): route, motion, report files, summary table, on synthetic runs."""
 from __future__ import annotations
 
 import json
@@ -6,8 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from aruco_ring_localization.ros import demo
 from aruco_ring_localization import geometry as geo
+from aruco_ring_localization.evaluation import report as demo
 from aruco_ring_localization.marker_map import MarkerEntry, MarkerMap, map_frame_from_reference
 from aruco_ring_localization.simulation.scene import Scene
 
@@ -51,20 +51,14 @@ def _map_in_reference_frame(truth: MarkerMap, ref_id: int) -> MarkerMap:
     return m
 
 
-def test_report_on_synthetic_run(tmp_path):
-    rng = np.random.default_rng(4)
-    scene = Scene.default()
-    truth = scene.truth_map()
-    ref_id = truth.ids[0]
-    est_map = _map_in_reference_frame(truth, ref_id)
-    T_map_world = geo.inverse(map_frame_from_reference(truth.T_map_marker(ref_id)))
+def _synthetic_run(scene, est_map, T_map_world, bias, rng, hold=6):
+    """Records of a run whose estimates are the truth (map frame) plus ``bias`` and seeded noise."""
     records, traj_est, traj_truth = [], [], []
     t = 100.0
-    bias = np.array([0.004, -0.003, np.radians(0.1)])  # estimate - truth, map frame
     for stop in demo.plan_stops(scene.test_positions, scene.test_orientations):
         rec = demo.StopRecord(stop, np.asarray(stop.pose, dtype=float))
         truth_map_frame = demo.se2_in_frame(T_map_world, stop.pose)
-        for _ in range(6):
+        for _ in range(hold):
             est = truth_map_frame + bias + rng.normal(scale=[0.0005, 0.0005, 0.0002])
             rec.estimates.append((t, est))
             traj_est.append((t, est))
@@ -72,14 +66,33 @@ def test_report_on_synthetic_run(tmp_path):
             t += 0.2
         rec.camera_estimates = [truth_map_frame + rng.normal(scale=[0.02, 0.02, 0.01]) for _ in range(4)]
         records.append(rec)
+    return records, traj_est, traj_truth
+
+
+def test_report_on_synthetic_run(tmp_path):
+    rng = np.random.default_rng(4)
+    scene = Scene.default()
+    truth = scene.truth_map()
+    ref_id = truth.ids[0]
+    est_map = _map_in_reference_frame(truth, ref_id)
+    T_world_map = map_frame_from_reference(truth.T_map_marker(ref_id))
+    T_map_world = geo.inverse(T_world_map)
+    bias = np.array([0.004, -0.003, np.radians(0.1)])  # estimate - truth, map frame
+    records, traj_est, traj_truth = _synthetic_run(scene, est_map, T_map_world, bias, rng)
     summary = demo.write_report(tmp_path, records, est_map, truth, scene, traj_est, traj_truth, "joint", "refined",
                                 "corners", 12.0)
     want = 100 * np.hypot(bias[0], bias[1])
     med = summary["position_error_cm"]["median"]
+    # 0.5 mm noise, medians of 5 poses: 0.1 cm is several sigma
     assert abs(med - want) < 0.1, f"median {med} cm, want {want:.3f} cm"
     assert len(summary["position_error_cm"]["per_position"]) == 15
+    # per-position x, y are in the lab frame (as the figures): the map-frame bias turned into it
+    lab_bias = 100 * T_world_map[:2, :2] @ bias[:2]
+    p1 = summary["position_error_cm"]["per_position"]["1"]
+    assert summary["frame"] == "lab" and abs(p1["x"] - lab_bias[0]) < 0.1 and abs(p1["y"] - lab_bias[1]) < 0.1, \
+        (p1, lab_bias)
     assert abs(summary["yaw_error_deg"]["mean_abs"] - 0.1) < 0.02, summary["yaw_error_deg"]
-    assert summary["map_error_mm"]["rms"] < 1e-6, summary["map_error_mm"]
+    assert summary["map_error_mm"]["rms"] < 1e-6 and summary["map_error_mm"]["best_fit_rms"] < 1e-6
     for key in ("fusion", "runtime_s"):
         assert key in summary
     on_disk = json.loads((tmp_path / "summary.json").read_text())
@@ -88,7 +101,38 @@ def test_report_on_synthetic_run(tmp_path):
                  "trajectory_truth.tum", "map.png", "fig8_positions.png", "fig9_camera_estimates.png",
                  "fig10_orientations.png"):
         assert (tmp_path / name).is_file(), f"{name} missing"
-    assert "SUMMARY" not in demo.summary_line(summary) and "cm" in demo.summary_line(summary)
+    table1 = (tmp_path / "table1.md").read_text()
+    assert "lab frame" in table1.splitlines()[0], table1.splitlines()[0]
+    sign = "+" if lab_bias[1] > 0 else "-"
+    row1 = next(line for line in table1.splitlines() if line.startswith("| 1 |"))
+    assert row1.split("|")[3].strip().startswith(sign), f"the y error keeps its sign ({lab_bias[1]:+.3f} cm): {row1}"
+    # This run meets every target: the line says so, with what each side was measured against.
+    line = demo.summary_line(summary)
+    assert "ours vs ground truth: position error median" in line and "Paper vs gmapping" in line, line
+    assert summary["targets_missed"] == [] and "Meets every target" in line, line
+    table = demo.summary_table(summary)
+    cells = [c.strip() for c in table.splitlines()[0].split(" | ")]
+    assert cells == ["figure", "ours (vs ground truth)", "target", "pass/miss", "paper (measured against)"], table
+    assert "MISS" not in table and table.count("| pass ") == 5 and "3.10 (vs gmapping)" in table, table
+    text = demo.console_text(summary, tmp_path)
+    assert text.index("Table I") < text.index("SUMMARY") < text.index("pass/miss"), text
+
+
+def test_summary_says_when_the_run_misses_its_targets(tmp_path):
+    rng = np.random.default_rng(5)
+    scene = Scene.default()
+    truth = scene.truth_map()
+    ref_id = truth.ids[0]
+    est_map = _map_in_reference_frame(truth, ref_id)
+    T_map_world = geo.inverse(map_frame_from_reference(truth.T_map_marker(ref_id)))
+    bias = np.array([0.012, 0.0, np.radians(0.4)])  # 1.2 cm and 0.4 deg: median and yaw mean miss
+    records, _, _ = _synthetic_run(scene, est_map, T_map_world, bias, rng)
+    summary = demo.write_report(tmp_path, records, est_map, truth, scene, [], [], "joint", "refined", "corners", 1.0)
+    assert summary["targets_missed"] == ["position_error_cm.median", "yaw_error_deg.mean_abs"], summary["targets_missed"]
+    assert "MISSES its targets: position_error_cm.median, yaw_error_deg.mean_abs" in demo.summary_line(summary)
+    rows = {line.split(" | ")[0].strip(): line for line in demo.summary_table(summary).splitlines()}
+    assert "MISS" in rows["position error, median (cm)"] and "pass" in rows["position error, max (cm)"], rows
+    assert rows["map: marker position RMS, own frame (mm)"].split(" | ")[2].strip() == "-", rows
 
 
 def test_report_fails_visibly_on_a_rotated_map_frame(tmp_path):
