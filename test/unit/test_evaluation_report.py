@@ -69,13 +69,17 @@ def _synthetic_run(scene, est_map, T_map_world, bias, rng, hold=6):
     return records, traj_est, traj_truth
 
 
-def test_report_on_synthetic_run(tmp_path):
-    rng = np.random.default_rng(4)
+def _lab():
+    """The simulated lab, its truth, a perfect map fixed to the first marker and ``T_world_map``."""
     scene = Scene.default()
     truth = scene.truth_map()
     ref_id = truth.ids[0]
-    est_map = _map_in_reference_frame(truth, ref_id)
-    T_world_map = map_frame_from_reference(truth.T_map_marker(ref_id))
+    return scene, truth, _map_in_reference_frame(truth, ref_id), map_frame_from_reference(truth.T_map_marker(ref_id))
+
+
+def test_report_on_synthetic_run(tmp_path):
+    rng = np.random.default_rng(4)
+    scene, truth, est_map, T_world_map = _lab()
     T_map_world = geo.inverse(T_world_map)
     bias = np.array([0.004, -0.003, np.radians(0.1)])  # estimate - truth, map frame
     records, traj_est, traj_truth = _synthetic_run(scene, est_map, T_map_world, bias, rng)
@@ -120,11 +124,8 @@ def test_report_on_synthetic_run(tmp_path):
 
 def test_summary_says_when_the_run_misses_its_targets(tmp_path):
     rng = np.random.default_rng(5)
-    scene = Scene.default()
-    truth = scene.truth_map()
-    ref_id = truth.ids[0]
-    est_map = _map_in_reference_frame(truth, ref_id)
-    T_map_world = geo.inverse(map_frame_from_reference(truth.T_map_marker(ref_id)))
+    scene, truth, est_map, T_world_map = _lab()
+    T_map_world = geo.inverse(T_world_map)
     bias = np.array([0.012, 0.0, np.radians(0.4)])  # 1.2 cm and 0.4 deg: median and yaw mean miss
     records, _, _ = _synthetic_run(scene, est_map, T_map_world, bias, rng)
     summary = demo.write_report(tmp_path, records, est_map, truth, scene, [], [], "joint", "refined", "corners", 1.0)
@@ -137,11 +138,8 @@ def test_summary_says_when_the_run_misses_its_targets(tmp_path):
 
 def test_report_fails_visibly_on_a_rotated_map_frame(tmp_path):
     """A map frame rotated by 1 deg about the reference marker must show up as position errors."""
-    scene = Scene.default()
-    truth = scene.truth_map()
-    ref_id = truth.ids[0]
-    est_map = _map_in_reference_frame(truth, ref_id)
-    T_map_world = geo.inverse(map_frame_from_reference(truth.T_map_marker(ref_id)))
+    scene, truth, est_map, T_world_map = _lab()
+    T_map_world = geo.inverse(T_world_map)
     R = geo.transform_from_se2(0, 0, np.radians(1.0))
     records = []
     for stop in demo.plan_stops(scene.test_positions, scene.test_orientations)[:15]:

@@ -48,6 +48,16 @@ def _polygon(ax, poly: Optional[np.ndarray], **kwargs) -> None:
     ax.plot(closed[:, 0], closed[:, 1], **kwargs)
 
 
+def _top_view(ax, title: str) -> None:
+    """Equal axes in metres, a grid, the title and the legend of a top view."""
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(title)
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
+
+
 def _robot_outline(ax, pose: Sequence[float], footprint: Tuple[float, float], **kwargs) -> None:
     x, y, yaw = pose
     L, W = footprint
@@ -109,12 +119,7 @@ def plot_map(path: str, markers_est: Mapping[int, np.ndarray], markers_true: Opt
                             arrowprops=dict(arrowstyle="->", color=colour, lw=1))
                 ax.text(centre[0] - 0.25 * n2[0], centre[1] - 0.25 * n2[1], str(mid), fontsize=9,
                         ha="center", va="center")
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_title(title)
-    ax.grid(True, alpha=0.3)
-    ax.legend(loc="best", fontsize=8)
+    _top_view(ax, title)
     return _save(fig, path)
 
 
@@ -136,12 +141,7 @@ def plot_positions(path: str, true_xy: np.ndarray, est_xy: np.ndarray, plate: Op
         name = labels[k] if labels is not None else str(k + 1)
         extra = f" ({errors_cm[k]:.2f} cm)" if errors_cm is not None else ""
         ax.annotate(name + extra, t[k], textcoords="offset points", xytext=(6, 6), fontsize=8)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_title(title)
-    ax.grid(True, alpha=0.3)
-    ax.legend(loc="best", fontsize=8)
+    _top_view(ax, title)
     # the errors are mm-sized: show the error vectors magnified on the right
     d = 100.0 * (e - t)
     axz.axhline(0, color="0.7", lw=0.8)
@@ -287,12 +287,7 @@ def plot_trajectory(path: str, stamps: np.ndarray, ref: np.ndarray, est: np.ndar
     _polygon(ax, plate, color="k", lw=2.0, label="plate")
     ax.plot(r[:, 0], r[:, 1], color=TRUE_COLOUR, lw=2, label="reference")
     ax.plot(e[:, 0], e[:, 1], color=EST_COLOUR, lw=1, label="estimate")
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.grid(True, alpha=0.3)
-    ax.legend(loc="best", fontsize=8)
-    ax.set_title(title)
+    _top_view(ax, title)
     if len(s):
         t0 = s[0]
         d = 100.0 * np.hypot(e[:, 0] - r[:, 0], e[:, 1] - r[:, 1])

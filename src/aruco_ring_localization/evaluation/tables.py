@@ -37,40 +37,39 @@ def paper_statistics() -> Dict[str, float]:
             "yaw_deg_mean_abs": float(y.mean()), "yaw_deg_max_abs": float(y.max())}
 
 
+def _markdown(heading: str, columns: Sequence[str], body: Sequence[str], footer: str) -> str:
+    lines = [heading, "", "| " + " | ".join(columns) + " |", "|" + "---:|" * len(columns)] + list(body)
+    return "\n".join(lines + (["", footer] if footer else [])) + "\n"
+
+
 def position_table_markdown(rows: Sequence[StopError], title: str = "Table I. Errors in position",
                             reference_name: str = "reference", frame: str = "the reference's frame") -> str:
     """The paper's Table I: signed x, y and the Euclidean error per position (cm), plus statistics.
 
     ``frame`` names the coordinates of x and y (e.g. "lab frame: x, y as in the figures").
     """
-    lines = [f"**{title}** (estimate - {reference_name}, cm; x, y in the {frame})", "",
-             "| Position | X error (cm) | Y error (cm) | Euclidean error (cm) | Reference x, y (m) |",
-             "|---:|---:|---:|---:|---:|"]
+    body = []
     for r in rows:
         dx, dy, d, _ = r.errors
-        lines.append(f"| {r.label} | {100 * dx:+.3f} | {100 * dy:+.3f} | {100 * d:.3f} | "
-                     f"{r.ref[0]:.3f}, {r.ref[1]:.3f} |")
+        body.append(f"| {r.label} | {100 * dx:+.3f} | {100 * dy:+.3f} | {100 * d:.3f} | {r.ref[0]:.3f}, {r.ref[1]:.3f} |")
     s = summarize(rows)
-    if s.get("n"):
-        lines += ["", f"Median Euclidean error {s['position_cm_median']:.3f} cm, mean {s['position_cm_mean']:.3f} cm, "
-                      f"max {s['position_cm_max']:.3f} cm over {s['n']} positions."]
-    return "\n".join(lines) + "\n"
+    footer = (f"Median Euclidean error {s['position_cm_median']:.3f} cm, mean {s['position_cm_mean']:.3f} cm, "
+              f"max {s['position_cm_max']:.3f} cm over {s['n']} positions.") if s.get("n") else ""
+    return _markdown(f"**{title}** (estimate - {reference_name}, cm; x, y in the {frame})",
+                     ("Position", "X error (cm)", "Y error (cm)", "Euclidean error (cm)", "Reference x, y (m)"),
+                     body, footer)
 
 
 def orientation_table_markdown(rows: Sequence[StopError], title: str = "Table II. Errors in orientation",
                                reference_name: str = "reference", frame: str = "the reference's frame") -> str:
     """The paper's Table II: signed yaw error per orientation (deg), plus statistics."""
-    lines = [f"**{title}** (estimate - {reference_name}, degrees; yaw in the {frame})", "",
-             "| Orientation | Reference yaw (deg) | Estimated yaw (deg) | Error (deg) |",
-             "|---:|---:|---:|---:|"]
-    for r in rows:
-        lines.append(f"| {r.label} | {np.degrees(r.ref[2]):.2f} | {np.degrees(r.est[2]):.2f} | "
-                     f"{np.degrees(r.errors[3]):+.3f} |")
+    body = [f"| {r.label} | {np.degrees(r.ref[2]):.2f} | {np.degrees(r.est[2]):.2f} | {np.degrees(r.errors[3]):+.3f} |"
+            for r in rows]
     s = summarize(rows)
-    if s.get("n"):
-        lines += ["", f"Mean |error| {s['yaw_deg_mean_abs']:.3f} deg, max |error| {s['yaw_deg_max_abs']:.3f} deg "
-                      f"over {s['n']} orientations."]
-    return "\n".join(lines) + "\n"
+    footer = (f"Mean |error| {s['yaw_deg_mean_abs']:.3f} deg, max |error| {s['yaw_deg_max_abs']:.3f} deg "
+              f"over {s['n']} orientations.") if s.get("n") else ""
+    return _markdown(f"**{title}** (estimate - {reference_name}, degrees; yaw in the {frame})",
+                     ("Orientation", "Reference yaw (deg)", "Estimated yaw (deg)", "Error (deg)"), body, footer)
 
 
 CSV_COLUMNS = ("label", "start_s", "end_s", "n", "ref_x_m", "ref_y_m", "ref_yaw_deg", "est_x_m", "est_y_m",
