@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 
 from aruco_ring_localization import geometry as geo
-from aruco_ring_localization.evaluation import report as demo
+from aruco_ring_localization.evaluation import report
 from aruco_ring_localization.marker_map import MarkerEntry, MarkerMap, map_frame_from_reference
 from aruco_ring_localization.simulation.scene import Scene
 
 
 def test_plan_has_paper_stops():
     scene = Scene.default()
-    stops = demo.plan_stops(scene.test_positions, scene.test_orientations)
+    stops = report.plan_stops(scene.test_positions, scene.test_orientations)
     assert [s.kind for s in stops].count("position") == 15
     assert [s.kind for s in stops].count("orientation") == 8
     assert stops[0].label == "1" and stops[-1].label == "8"
@@ -26,7 +26,7 @@ def test_plan_has_paper_stops():
 
 def test_interpolate_motion_reaches_goal_within_limits():
     a, b, dt = (0.0, 0.0, 3.0), (1.0, 0.5, -3.0), 0.2
-    seq = demo.interpolate_motion(a, b, dt, max_speed=0.5, max_yaw_rate=1.0)
+    seq = report.interpolate_motion(a, b, dt, max_speed=0.5, max_yaw_rate=1.0)
     assert np.allclose(seq[-1][0], b), seq[-1][0]
     poses = np.array([a] + [p for p, _ in seq])
     step = np.hypot(*np.diff(poses[:, :2], axis=0).T)
@@ -38,7 +38,7 @@ def test_interpolate_motion_reaches_goal_within_limits():
     c, s = np.cos(p[2]), np.sin(p[2])
     v_world = np.array([c * cmd[0] - s * cmd[1], s * cmd[0] + c * cmd[1]])
     assert np.allclose(v_world * dt, np.array(seq[1][0][:2]) - np.array(seq[0][0][:2]), atol=1e-9)
-    assert demo.interpolate_motion(b, b, dt) == []
+    assert report.interpolate_motion(b, b, dt) == []
 
 
 def _map_in_reference_frame(truth: MarkerMap, ref_id: int) -> MarkerMap:
@@ -55,9 +55,9 @@ def _synthetic_run(scene, est_map, T_map_world, bias, rng, hold=6):
     """Records of a run whose estimates are the truth (map frame) plus ``bias`` and seeded noise."""
     records, traj_est, traj_truth = [], [], []
     t = 100.0
-    for stop in demo.plan_stops(scene.test_positions, scene.test_orientations):
-        rec = demo.StopRecord(stop, np.asarray(stop.pose, dtype=float))
-        truth_map_frame = demo.se2_in_frame(T_map_world, stop.pose)
+    for stop in report.plan_stops(scene.test_positions, scene.test_orientations):
+        rec = report.StopRecord(stop, np.asarray(stop.pose, dtype=float))
+        truth_map_frame = report.se2_in_frame(T_map_world, stop.pose)
         for _ in range(hold):
             est = truth_map_frame + bias + rng.normal(scale=[0.0005, 0.0005, 0.0002])
             rec.estimates.append((t, est))
@@ -83,7 +83,7 @@ def test_report_on_synthetic_run(tmp_path):
     T_map_world = geo.inverse(T_world_map)
     bias = np.array([0.004, -0.003, np.radians(0.1)])  # estimate - truth, map frame
     records, traj_est, traj_truth = _synthetic_run(scene, est_map, T_map_world, bias, rng)
-    summary = demo.write_report(tmp_path, records, est_map, truth, scene, traj_est, traj_truth, "joint", "refined",
+    summary = report.write_report(tmp_path, records, est_map, truth, scene, traj_est, traj_truth, "joint", "refined",
                                 "corners", 12.0)
     want = 100 * np.hypot(bias[0], bias[1])
     med = summary["position_error_cm"]["median"]
@@ -111,14 +111,14 @@ def test_report_on_synthetic_run(tmp_path):
     row1 = next(line for line in table1.splitlines() if line.startswith("| 1 |"))
     assert row1.split("|")[3].strip().startswith(sign), f"the y error keeps its sign ({lab_bias[1]:+.3f} cm): {row1}"
     # This run meets every target: the line says so, with what each side was measured against.
-    line = demo.summary_line(summary)
+    line = report.summary_line(summary)
     assert "ours vs ground truth: position error median" in line and "Paper vs gmapping" in line, line
     assert summary["targets_missed"] == [] and "Meets every target" in line, line
-    table = demo.summary_table(summary)
+    table = report.summary_table(summary)
     cells = [c.strip() for c in table.splitlines()[0].split(" | ")]
     assert cells == ["figure", "ours (vs ground truth)", "target", "pass/miss", "paper (measured against)"], table
     assert "MISS" not in table and table.count("| pass ") == 5 and "3.10 (vs gmapping)" in table, table
-    text = demo.console_text(summary, tmp_path)
+    text = report.console_text(summary, tmp_path)
     assert text.index("Table I") < text.index("SUMMARY") < text.index("pass/miss"), text
 
 
@@ -128,10 +128,10 @@ def test_summary_says_when_the_run_misses_its_targets(tmp_path):
     T_map_world = geo.inverse(T_world_map)
     bias = np.array([0.012, 0.0, np.radians(0.4)])  # 1.2 cm and 0.4 deg: median and yaw mean miss
     records, _, _ = _synthetic_run(scene, est_map, T_map_world, bias, rng)
-    summary = demo.write_report(tmp_path, records, est_map, truth, scene, [], [], "joint", "refined", "corners", 1.0)
+    summary = report.write_report(tmp_path, records, est_map, truth, scene, [], [], "joint", "refined", "corners", 1.0)
     assert summary["targets_missed"] == ["position_error_cm.median", "yaw_error_deg.mean_abs"], summary["targets_missed"]
-    assert "MISSES its targets: position_error_cm.median, yaw_error_deg.mean_abs" in demo.summary_line(summary)
-    rows = {line.split(" | ")[0].strip(): line for line in demo.summary_table(summary).splitlines()}
+    assert "MISSES its targets: position_error_cm.median, yaw_error_deg.mean_abs" in report.summary_line(summary)
+    rows = {line.split(" | ")[0].strip(): line for line in report.summary_table(summary).splitlines()}
     assert "MISS" in rows["position error, median (cm)"] and "pass" in rows["position error, max (cm)"], rows
     assert rows["map: marker position RMS, own frame (mm)"].split(" | ")[2].strip() == "-", rows
 
@@ -142,11 +142,11 @@ def test_report_fails_visibly_on_a_rotated_map_frame(tmp_path):
     T_map_world = geo.inverse(T_world_map)
     R = geo.transform_from_se2(0, 0, np.radians(1.0))
     records = []
-    for stop in demo.plan_stops(scene.test_positions, scene.test_orientations)[:15]:
-        rec = demo.StopRecord(stop, np.asarray(stop.pose, dtype=float))
-        rec.estimates.append((0.0, demo.se2_in_frame(R @ T_map_world, stop.pose)))
+    for stop in report.plan_stops(scene.test_positions, scene.test_orientations)[:15]:
+        rec = report.StopRecord(stop, np.asarray(stop.pose, dtype=float))
+        rec.estimates.append((0.0, report.se2_in_frame(R @ T_map_world, stop.pose)))
         records.append(rec)
-    summary = demo.write_report(tmp_path, records, est_map, truth, scene, [], [], "joint", "refined", "corners", 1.0)
+    summary = report.write_report(tmp_path, records, est_map, truth, scene, [], [], "joint", "refined", "corners", 1.0)
     assert summary["position_error_cm"]["median"] > 3.0, summary["position_error_cm"]
     c = summary["after_best_fit_se2"]
     assert c["position_error_cm"]["max"] < 0.01 and abs(c["alignment"]["yaw_deg"] + 1.0) < 1e-6, c
