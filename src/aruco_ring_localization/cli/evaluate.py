@@ -82,8 +82,8 @@ def run(args: argparse.Namespace) -> int:
     summary = {"estimate": est_path, "reference": ref_path, "pairs": ref.num_poses, "max_dt_s": args.max_dt,
                "alignment": alignment.as_dict(), "ape": stats}
     rows = []
+    pairs = tj.MatchedPairs.of(ref, aligned)
     if args.stops:
-        pairs = tj.MatchedPairs.of(ref, aligned)
         stops = detect_stops(pairs.stamps, pairs.ref, min_duration=args.stop_time, pos_tol=args.stop_tolerance,
                              settle=args.settle)
         rows = stop_errors(pairs, stops)
@@ -93,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
             out.write(position_table_markdown(rows, frame=frame) + "\n" + orientation_table_markdown(rows, frame=frame))
             summary["stops"] = summarize(rows)
     if args.out:
-        _write_outputs(args.out, errors, rows, aligned, alignment, summary, args.plot, tj.MatchedPairs.of(ref, aligned))
+        _write_outputs(args.out, errors, rows, aligned, alignment, summary, args.plot, pairs)
         out.write(f"\nwrote {args.out}/\n")
     return 0
 

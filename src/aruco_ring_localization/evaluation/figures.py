@@ -22,6 +22,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (the backend must be chosen first)
+from matplotlib.transforms import ScaledTranslation  # noqa: E402
 
 logger = logging.getLogger(__name__)
 
@@ -49,13 +50,15 @@ def _polygon(ax, poly: Optional[np.ndarray], **kwargs) -> None:
 
 
 def _top_view(ax, title: str) -> None:
-    """Equal axes in metres, a grid, the title and the legend of a top view."""
+    """Equal axes in metres, a grid, the title, and the legend below the axes (never over labels)."""
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_title(title)
     ax.grid(True, alpha=0.3)
-    ax.legend(loc="best", fontsize=8)
+    # 0.5 inch below the axes, whatever their height: under the tick labels and the x label
+    below = ax.transAxes + ScaledTranslation(0.0, -0.5, ax.figure.dpi_scale_trans)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, 0.0), bbox_transform=below, ncol=4, fontsize=8)
 
 
 def _robot_outline(ax, pose: Sequence[float], footprint: Tuple[float, float], **kwargs) -> None:
@@ -66,7 +69,7 @@ def _robot_outline(ax, pose: Sequence[float], footprint: Tuple[float, float], **
     _polygon(ax, c @ R.T + (x, y), **kwargs)
 
 
-def label_apart(fig, ax, points: np.ndarray, names: Sequence[str], min_px: float = 16.0) -> int:
+def label_apart(fig, ax, points: np.ndarray, names: Sequence[str], min_px: float = 22.0) -> int:
     """Label points, skipping any whose label would sit within ``min_px`` pixels of one placed.
 
     Call after the axes' limits and aspect are final. Returns the number of labels placed.
@@ -137,11 +140,10 @@ def plot_positions(path: str, true_xy: np.ndarray, est_xy: np.ndarray, plate: Op
     _polygon(ax, plate, color="k", lw=2.0, label="plate")
     ax.scatter(t[:, 0], t[:, 1], marker="o", s=60, facecolors="none", edgecolors=TRUE_COLOUR, label="true")
     ax.scatter(e[:, 0], e[:, 1], marker="x", s=40, color=EST_COLOUR, label="estimated")
-    for k in range(len(t)):
-        name = labels[k] if labels is not None else str(k + 1)
-        extra = f" ({errors_cm[k]:.2f} cm)" if errors_cm is not None else ""
-        ax.annotate(name + extra, t[k], textcoords="offset points", xytext=(6, 6), fontsize=8)
+    names = [labels[k] if labels is not None else str(k + 1) for k in range(len(t))]
     _top_view(ax, title)
+    label_apart(fig, ax, t, [name + (f" ({errors_cm[k]:.2f} cm)" if errors_cm is not None else "")
+                             for k, name in enumerate(names)], min_px=22.0)
     # the errors are mm-sized: show the error vectors magnified on the right
     d = 100.0 * (e - t)
     axz.axhline(0, color="0.7", lw=0.8)
@@ -151,8 +153,7 @@ def plot_positions(path: str, true_xy: np.ndarray, est_xy: np.ndarray, plate: Op
     axz.set_xlim(-lim, lim)
     axz.set_ylim(-lim, lim)
     axz.set_aspect("equal")
-    names = [labels[k] if labels is not None else str(k + 1) for k in range(len(d))]
-    if label_apart(fig, axz, d, names) < len(d):
+    if label_apart(fig, axz, d, names, min_px=22.0) < len(d):
         axz.set_title("estimate - true (labels of clustered points left out)")
     axz.set_xlabel("x error (cm)")
     axz.set_ylabel("y error (cm)")
