@@ -94,7 +94,9 @@ def test_refined_reduces_map_error_on_noisy_multi_station(ring, scene):
     assert refined["n"] == len(scene.markers)
     assert refined["position_rms_mm"] < 0.5 * paper["position_rms_mm"], \
         f"refined RMS {refined['position_rms_mm']:.2f} mm vs paper {paper['position_rms_mm']:.2f} mm"
-    assert refined["position_rms_mm"] < 6.0, f"refined RMS {refined['position_rms_mm']:.2f} mm"
+    # The target for a refined map on the lab is 3 mm RMS (docs/mapping.md); this configuration
+    # measured 1.55, 1.82 and 2.37 mm for rig/noise seeds 1, 2, 3.
+    assert refined["position_rms_mm"] < 3.0, f"refined RMS {refined['position_rms_mm']:.2f} mm (target 3 mm)"
     stds = np.array([np.max(e.position_std) for e in refined_map if e.marker_id != refined_map.reference_marker])
     assert np.all(stds > 0) and np.all(stds < 0.05), f"position std (m) {stds}"
     # The map carries the refined ring calibration, and it is closer to the true rig than the file's.
