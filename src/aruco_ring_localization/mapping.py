@@ -6,11 +6,10 @@ Feed it ring frames (:meth:`MapBuilder.add_frame`), then :meth:`MapBuilder.build
 **Paper mode** (paper §II-D). Every detected marker gets its single-marker pose ``T_cam_marker``
 from IPPE on the mean corners of each (station, camera, marker), refined from the IPPE poses and
 their mirrors (:func:`pnp.solve_marker_ippe_undistorted`, both solutions and the ambiguity ratio
-kept). The
-reference marker is the one *closest to its camera with its z axis most parallel to the camera's
-axis*: we take the smallest ``distance / cos(angle)`` (angle between the marker's z and the
-ray back to the camera's optical axis), among the unambiguous detections of the first robot
-placement, unless the user names a ``reference_marker``. Every other marker is chained through
+kept). The reference marker is the one *closest to its camera with its z axis most parallel to
+the camera's axis*: we take the smallest ``distance / cos(angle)`` (angle between the marker's z
+and the ray back to the camera's optical axis), among the unambiguous detections of the first
+robot placement, unless the user names a ``reference_marker``. Every other marker is chained through
 the ring extrinsics, ``T_M0_Mk = T_M0_Ci · T_Ci_Cj · T_Cj_Mk`` (with ``T_Ci_Cj = T_Ci_base ·
 T_base_Cj``), averaged over all frames of the placement (translations arithmetically, rotations
 by :func:`geometry.average_rotations`). The map frame is then fixed to the reference marker
