@@ -179,7 +179,7 @@ def run(quick: bool = False) -> dict:
     # Truth expressed in the map's frame: best-fit alignment of the map to the true layout.
     truth = scene.truth_map()
     if marker_map.reference_marker is not None:
-        from aruco_ring_localization.evaluation import align_map_to_truth
+        from aruco_ring_localization.evaluation.maps import align_map_to_truth
         T_map_world = geo.inverse(align_map_to_truth(marker_map, truth))
     else:
         T_map_world = np.eye(4)

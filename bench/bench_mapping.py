@@ -32,7 +32,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(os.path.dirname(HERE), "src"))
 
 from aruco_ring_localization.detection import Detector, DetectorParams  # noqa: E402
-from aruco_ring_localization.evaluation import map_error, map_frame_error  # noqa: E402
+from aruco_ring_localization.evaluation.maps import map_error, map_frame_error  # noqa: E402
 from aruco_ring_localization.detections import CameraFrame, RingFrame  # noqa: E402
 from aruco_ring_localization.mapping import MapBuilder  # noqa: E402
 from aruco_ring_localization.markers import MarkerSizes  # noqa: E402

@@ -28,7 +28,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "faults"))
 
 from aruco_ring_localization import geometry as geo  # noqa: E402
-from aruco_ring_localization.evaluation import format_map_error, map_error  # noqa: E402
+from aruco_ring_localization.evaluation.maps import format_map_error, map_error  # noqa: E402
 from aruco_ring_localization.marker_map import MarkerMap  # noqa: E402
 from aruco_ring_localization.ros.conversions import msg_to_transform, pose_msg_to_transform  # noqa: E402
 from aruco_ring_localization.simulation.scene import Scene  # noqa: E402

@@ -11,7 +11,7 @@ fiducial_msgs = pytest.importorskip("fiducial_msgs.msg")
 rospy = pytest.importorskip("rospy")
 
 from aruco_ring_localization.cli import build_map  # noqa: E402
-from aruco_ring_localization.evaluation import map_error  # noqa: E402
+from aruco_ring_localization.evaluation.maps import map_error  # noqa: E402
 from aruco_ring_localization.marker_map import MarkerMap  # noqa: E402
 from aruco_ring_localization.ring import CameraRing  # noqa: E402
 from aruco_ring_localization.ros.conversions import model_to_camera_info, observations_to_fiducials  # noqa: E402

@@ -13,7 +13,7 @@ rospy = pytest.importorskip("rospy")
 
 from aruco_ring_localization import geometry as geo  # noqa: E402
 from aruco_ring_localization.cli import localize  # noqa: E402
-from aruco_ring_localization.evaluation import read_tum  # noqa: E402
+from aruco_ring_localization.evaluation.trajectories import read_tum  # noqa: E402
 from aruco_ring_localization.ring import CameraRing  # noqa: E402
 from aruco_ring_localization.ros.conversions import observations_to_fiducials  # noqa: E402
 from aruco_ring_localization.simulation.ring_sim import RingSimulator, perturb_ring  # noqa: E402
@@ -48,11 +48,11 @@ def test_localize_bag_writes_tum(tmp_path):
                               fusion="joint", csv=str(csv_path), slop=0.03)
     assert localize.run(args) == 0
     traj = read_tum(str(out))
-    assert traj.shape == (30, 8), f"expected 30 poses, got {traj.shape}"
-    for row in traj:
-        truth = _truth(row[0] - 50.0)
-        err = np.hypot(row[1] - truth[0], row[2] - truth[1])
-        assert err < 0.03, f"t={row[0]:.2f}: position error {err * 100:.2f} cm"
+    assert traj.num_poses == 30, f"expected 30 poses, got {traj.num_poses}"
+    for t, xyz in zip(traj.timestamps, traj.positions_xyz):
+        truth = _truth(t - 50.0)
+        err = np.hypot(xyz[0] - truth[0], xyz[1] - truth[1])
+        assert err < 0.03, f"t={t:.2f}: position error {err * 100:.2f} cm"
     assert csv_path.read_text().count("\n") == 31
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from aruco_ring_localization import geometry as geo
-from aruco_ring_localization.evaluation import map_error
+from aruco_ring_localization.evaluation.maps import map_error
 from aruco_ring_localization.detections import CameraFrame, MarkerObservation, RingFrame
 from aruco_ring_localization.mapping import MapBuilder
 from aruco_ring_localization.pnp import solve_marker_ippe_undistorted

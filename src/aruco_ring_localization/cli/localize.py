@@ -17,7 +17,7 @@ from typing import Dict, List
 import numpy as np
 
 from ..errors import ArucoRingError, ConfigError
-from ..evaluation import write_tum
+from ..evaluation.trajectories import trajectory, write_tum
 from ..localization import LocalizationParams
 from ..marker_map import MarkerMap
 from ..ring import CameraRing
@@ -124,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
                 sys.stderr.write(f"localize: {topic} at {now:.3f}: {exc}\n")
             handle(core.poll(now))
         handle(core.poll(float("inf")))
-    write_tum(args.out, stamps, poses)
+    write_tum(args.out, trajectory(stamps, poses))
     if args.csv:
         with open(args.csv, "w", newline="", encoding="utf-8") as fh:
             w = csv.DictWriter(fh, fieldnames=CSV_FIELDS)

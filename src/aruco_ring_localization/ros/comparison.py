@@ -4,7 +4,7 @@ Reads both robot poses from tf, pairs them in time (our pose's stamp; the refere
 at that stamp), estimates the fixed SE(2) transform between the two map frames (or takes it from
 ``~alignment``) and publishes it as tf ``<reference_frame> -> <estimate_frame>`` (gmapping's
 ``map -> aruco_map``), so rviz shows both robots in gmapping's map. Logic:
-:class:`aruco_ring_localization.comparison.ComparisonCore`.
+:class:`aruco_ring_localization.evaluation.comparison.ComparisonCore`.
 
 Publications:
     ``~errors`` (std_msgs/Float64MultiArray): ``[dx m, dy m, euclidean m, dyaw rad, stamp s]``,
@@ -33,7 +33,7 @@ from std_srvs.srv import Trigger, TriggerResponse
 from visualization_msgs.msg import Marker
 
 from .. import geometry as geo
-from ..comparison import ComparisonConfig, ComparisonCore
+from ..evaluation.comparison import ComparisonConfig, ComparisonCore
 from ..errors import ArucoRingError, ConfigError
 from .conversions import make_transform_stamped, msg_to_transform, stamp_to_sec
 from .params import read_params

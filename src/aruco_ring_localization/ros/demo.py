@@ -21,7 +21,8 @@
 
 The comparison is fair: the truth is expressed in the map frame through the TRUE pose of the
 map's reference marker and the map's own frame definition
-(:func:`evaluation.truth_in_map_frame`); nothing is fitted that could hide an error.
+(:func:`evaluation.maps.truth_in_map_frame`); nothing is fitted that could hide an error. The
+report itself (tables, summary.json, figures, the console summary) is :mod:`evaluation.report`.
 
 The simulator runs in lockstep with the localizer (each frame waits for the pose it produces, up
 to a timeout), so the result does not depend on the machine's speed, only the run time does.
@@ -29,25 +30,22 @@ to a timeout), so the result does not depend on the machine's speed, only the ru
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
-import platform
 import signal
 import socket
 import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
 from .. import geometry as geo
-from .. import trajectory as tr
 from ..errors import ArucoRingError
+from ..evaluation.report import Progress, StopRecord, console_text, interpolate_motion, plan_stops, write_report
 from ..marker_map import MarkerMap
 
 logger = logging.getLogger(__name__)
@@ -57,288 +55,8 @@ PACKAGE = "aruco_ring_localization"
 
 
 # --------------------------------------------------------------------------------------------
-# Plan and report (pure: no ROS; unit-tested)
-# --------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class StopPlan:
-    """One stop of the drive: ``kind`` "position" (Table I) or "orientation" (Table II)."""
-
-    kind: str
-    label: str
-    pose: Tuple[float, float, float]  # world frame, x m, y m, yaw rad
-
-
-def plan_stops(test_positions: Sequence[Sequence[float]], test_orientations: Sequence[Sequence[float]]) -> List[StopPlan]:
-    """The paper's stops: the positions (labels 1..N) in a serpentine order, then the orientations.
-
-    Positions are visited row by row (rows = equal y within 5 cm), alternating the direction
-    along x, so the robot never crosses the plate empty-handed; labels keep the scene's order.
-    """
-    pos = [StopPlan("position", str(k + 1), tuple(float(v) for v in p)) for k, p in enumerate(test_positions)]
-    rows: List[List[StopPlan]] = []
-    for stop in sorted(pos, key=lambda s: (s.pose[1], s.pose[0])):
-        if rows and abs(rows[-1][0].pose[1] - stop.pose[1]) <= 0.05:
-            rows[-1].append(stop)
-        else:
-            rows.append([stop])
-    ordered = [s for k, row in enumerate(rows) for s in (row if k % 2 == 0 else row[::-1])]
-    return ordered + [StopPlan("orientation", str(k + 1), tuple(float(v) for v in p))
-                      for k, p in enumerate(test_orientations)]
-
-
-def interpolate_motion(start: Sequence[float], goal: Sequence[float], dt: float, max_speed: float = 0.5,
-                       max_yaw_rate: float = 0.6) -> List[Tuple[np.ndarray, np.ndarray]]:
-    """Poses (and body-frame velocity commands) from ``start`` to ``goal``, one per ``dt`` s.
-
-    Straight line and shortest rotation together, at constant speed limited by ``max_speed``
-    (m/s) and ``max_yaw_rate`` (rad/s). Returns [(pose (x, y, yaw), cmd (vx, vy, wz) in the
-    robot frame)], the last pose being ``goal``; empty when start == goal.
-    """
-    a = np.asarray(start, dtype=float)
-    b = np.asarray(goal, dtype=float)
-    dist = float(np.hypot(*(b[:2] - a[:2])))
-    dyaw = float(geo.angle_diff(b[2], a[2]))
-    duration = max(dist / max_speed, abs(dyaw) / max_yaw_rate)
-    n = int(np.ceil(duration / dt - 1e-9))
-    if n <= 0:
-        return []
-    v_world = (b[:2] - a[:2]) / (n * dt)
-    w = dyaw / (n * dt)
-    out = []
-    for k in range(1, n + 1):
-        f = k / n
-        pose = np.array([a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]), geo.wrap_angle(a[2] + f * dyaw)])
-        c, s = np.cos(pose[2]), np.sin(pose[2])
-        cmd = np.array([c * v_world[0] + s * v_world[1], -s * v_world[0] + c * v_world[1], w])
-        out.append((pose, cmd))
-    return out
-
-
-@dataclass
-class StopRecord:
-    """What the demo saw at one stop: the truth and our estimates (map frame)."""
-
-    plan: StopPlan
-    truth_world: np.ndarray                      # (3,) world frame
-    estimates: List[Tuple[float, np.ndarray]] = field(default_factory=list)   # (stamp, (x, y, yaw) map)
-    camera_estimates: List[np.ndarray] = field(default_factory=list)           # (K, 3) map, last frame
-
-
-def se2_in_frame(T_frame_world: np.ndarray, pose_world: Sequence[float]) -> np.ndarray:
-    """(x, y, yaw) of a world-frame planar pose expressed in another frame (4x4 ``T_frame_world``)."""
-    return geo.se2_from_transform(T_frame_world @ geo.transform_from_se2(*pose_world))
-
-
-def stop_rows(records: Sequence[StopRecord], T_map_world: np.ndarray, kind: str, use_last: int = 5) -> List[tr.StopError]:
-    """Table rows of the stops of ``kind``: truth in the map frame vs the median of the last estimates."""
-    rows = []
-    for rec in sorted(records, key=lambda r: (int(r.plan.label) if r.plan.label.isdigit() else 0, r.plan.label)):
-        if rec.plan.kind != kind:
-            continue
-        truth = se2_in_frame(T_map_world, rec.truth_world)
-        if not rec.estimates:
-            logger.warning("stop %s %s: no estimate recorded", kind, rec.plan.label)
-            rows.append(tr.StopError(rec.plan.label, truth, np.full(3, np.nan), 0))
-            continue
-        est = np.array([e for _, e in rec.estimates[-use_last:]])
-        fused = np.array([float(np.median(est[:, 0])), float(np.median(est[:, 1])), geo.circular_mean(est[:, 2])])
-        stamps = [s for s, _ in rec.estimates[-use_last:]]
-        rows.append(tr.StopError(rec.plan.label, truth, fused, len(est), float(stamps[0]), float(stamps[-1])))
-    return rows
-
-
-def summary_dict(pos_rows: Sequence[tr.StopError], yaw_rows: Sequence[tr.StopError], map_err: Optional[Dict[str, Any]],
-                 fusion: str, method: str, mode: str, runtime_s: float) -> Dict[str, Any]:
-    """The keys of ``summary.json`` (issue 6): position_error_cm, yaw_error_deg, map_error_mm, ..."""
-    def cm(r):
-        return float(100 * r.errors[2]) if np.all(np.isfinite(r.est)) else None
-
-    def deg(r):
-        return float(np.degrees(r.errors[3])) if np.all(np.isfinite(r.est)) else None
-
-    pos = [cm(r) for r in pos_rows]
-    yaw = [deg(r) for r in yaw_rows]
-    pos_ok = np.array([p for p in pos if p is not None])
-    yaw_ok = np.abs(np.array([y for y in yaw if y is not None]))
-    out: Dict[str, Any] = {
-        "position_error_cm": {
-            "median": float(np.median(pos_ok)) if pos_ok.size else None,
-            "max": float(np.max(pos_ok)) if pos_ok.size else None,
-            "mean": float(np.mean(pos_ok)) if pos_ok.size else None,
-            "per_position": {r.label: {"x": float(100 * r.errors[0]), "y": float(100 * r.errors[1]), "euclidean": p}
-                             if p is not None else None for r, p in zip(pos_rows, pos)},
-            "missing": len(pos) - int(pos_ok.size),
-        },
-        "yaw_error_deg": {
-            "mean_abs": float(np.mean(yaw_ok)) if yaw_ok.size else None,
-            "max_abs": float(np.max(yaw_ok)) if yaw_ok.size else None,
-            "per_orientation": {r.label: y for r, y in zip(yaw_rows, yaw)},
-            "missing": len(yaw) - int(yaw_ok.size),
-        },
-        "map_error_mm": None if map_err is None else {
-            "rms": map_err["position_rms_mm"], "max": map_err["position_max_mm"],
-            "rotation_mean_deg": map_err["rotation_mean_deg"], "rotation_max_deg": map_err["rotation_max_deg"],
-            "markers": map_err["n"], "missing": map_err["missing"]},
-        "fusion": fusion,
-        "map_method": method,
-        "mode": mode,
-        "runtime_s": float(runtime_s),
-        "paper": {"position_error_cm": {"median": 3.10, "max": 17.27}, "yaw_error_deg": {"mean_abs": 1.901, "max_abs": 4.501},
-                  "reference": "gmapping"},
-        "targets": {"position_error_cm": {"median": 1.0, "max": 3.0}, "yaw_error_deg": {"mean_abs": 0.3, "max_abs": 1.0}},
-        "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
-                    "cpus": os.cpu_count(), "python": platform.python_version()},
-        "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-    }
-    return out
-
-
-def consistency(rows: Sequence[tr.StopError]) -> Optional[Dict[str, Any]]:
-    """Errors after the best-fit SE(2) alignment of all stop estimates onto the truth.
-
-    NOT the headline: a fitted alignment absorbs how well the map frame is fixed (the reference
-    marker's pose). It shows the localization's internal consistency, and with the headline
-    numbers how much of the error is the map frame's.
-    """
-    if len(rows) < 3:
-        return None
-    est = np.array([r.est for r in rows])
-    ref = np.array([r.ref for r in rows])
-    T = tr.align_se2(est, ref)
-    e = tr.pose_errors(ref, tr.apply_se2(T, est))
-    d, y = 100 * e[:, 2], np.degrees(np.abs(e[:, 3]))
-    return {"alignment": {"x_m": float(T[0]), "y_m": float(T[1]), "yaw_deg": float(np.degrees(T[2]))},
-            "position_error_cm": {"median": float(np.median(d)), "max": float(np.max(d))},
-            "yaw_error_deg": {"mean_abs": float(np.mean(y)), "max_abs": float(np.max(y))},
-            "note": "after a fitted SE(2) alignment of all stops: internal consistency, not the accuracy"}
-
-
-def summary_line(summary: Dict[str, Any]) -> str:
-    """One line: the demo's numbers beside the paper's."""
-    p, y, m = summary["position_error_cm"], summary["yaw_error_deg"], summary["map_error_mm"]
-
-    def f(v, fmt):
-        return "n/a" if v is None else format(v, fmt)
-
-    line = (f"position error median {f(p['median'], '.2f')} cm, max {f(p['max'], '.2f')} cm; "
-            f"|yaw| mean {f(y['mean_abs'], '.3f')} deg, max {f(y['max_abs'], '.3f')} deg")
-    if m is not None:
-        line += f"; map RMS {m['rms']:.1f} mm"
-    line += (f" ({summary['fusion']} fusion, {summary['map_method']} map, {summary['mode']} mode, "
-             f"{summary['runtime_s']:.0f} s)  [paper vs gmapping: 3.10 / 17.27 cm, 1.90 / 4.50 deg]")
-    return line
-
-
-def write_report(out_dir: Path, records: Sequence[StopRecord], est_map: MarkerMap, truth_map: MarkerMap, scene,
-                 trajectory_est: Sequence[Tuple[float, np.ndarray]], trajectory_truth: Sequence[Tuple[float, np.ndarray]],
-                 fusion: str, method: str, mode: str, runtime_s: float,
-                 fig9_labels: Sequence[str] = ("1", "8", "15")) -> Dict[str, Any]:
-    """Tables, summary.json, TUM trajectories and figures; returns the summary dict.
-
-    The truth (world frame) goes into the map frame through ``T_map_world`` from the map's own
-    frame definition applied to the true reference marker (no fitted alignment).
-    """
-    from .. import evaluation, plots
-    from ..fileio import atomic_write_text
-
-    out_dir.mkdir(parents=True, exist_ok=True)
-    T_world_map = evaluation.truth_in_map_frame(est_map, truth_map)
-    T_map_world = geo.inverse(T_world_map)
-    pos_rows = stop_rows(records, T_map_world, "position")
-    yaw_rows = stop_rows(records, T_map_world, "orientation")
-    try:
-        map_err = evaluation.map_error(est_map, truth_map)
-    except ArucoRingError as exc:
-        logger.warning("map error not computed: %s", exc)
-        map_err = None
-    ok_pos = [r for r in pos_rows if np.all(np.isfinite(r.est))]
-    ok_yaw = [r for r in yaw_rows if np.all(np.isfinite(r.est))]
-    t1 = tr.position_table_markdown(ok_pos, title="Table I. Errors in position (simulated lab)",
-                                    reference_name="ground truth")
-    t2 = tr.orientation_table_markdown(ok_yaw, title="Table II. Errors in orientation (simulated lab)",
-                                       reference_name="ground truth")
-    atomic_write_text(str(out_dir / "table1.md"), t1, keep_backup=False)
-    atomic_write_text(str(out_dir / "table2.md"), t2, keep_backup=False)
-    atomic_write_text(str(out_dir / "table1.csv"), tr.stops_csv(ok_pos), keep_backup=False)
-    atomic_write_text(str(out_dir / "table2.csv"), tr.stops_csv(ok_yaw), keep_backup=False)
-    summary = summary_dict(pos_rows, yaw_rows, map_err, fusion, method, mode, runtime_s)
-    summary["after_best_fit_se2"] = consistency(ok_pos + ok_yaw)
-    atomic_write_text(str(out_dir / "summary.json"), json.dumps(summary, indent=2) + "\n", keep_backup=False)
-    if trajectory_est:
-        tr.write_tum(str(out_dir / "trajectory_estimate.tum"),
-                     tr.Trajectory.from_se2([s for s, _ in trajectory_est], np.array([p for _, p in trajectory_est])),
-                     header=f"aruco_ring_localization demo: localizer ~pose in the marker map frame ({fusion} fusion)")
-    if trajectory_truth:
-        tr.write_tum(str(out_dir / "trajectory_truth.tum"),
-                     tr.Trajectory.from_se2([s for s, _ in trajectory_truth],
-                                            np.array([se2_in_frame(T_map_world, p) for _, p in trajectory_truth])),
-                     header="aruco_ring_localization demo: ground truth in the marker map frame")
-    # Figures in the scene's world frame (the room is axis-aligned there): the estimates go there
-    # through the same T_world_map (no fit), so every error is the one of the tables.
-    def world(p):
-        return se2_in_frame(T_world_map, p)
-
-    plate = plots.plate_polygon(scene.plate.centre, scene.plate.size)
-    room = plots.room_polygon(scene.room.origin, scene.room.size)
-    est_world = {e.marker_id: geo.transform_points(T_world_map, est_map.corners(e.marker_id)) for e in est_map}
-    truth_corners = {e.marker_id: truth_map.corners(e.marker_id) for e in truth_map}
-    plots.plot_map(str(out_dir / "map.png"), est_world, truth_corners, plate=plate, room=room,
-                   robot_pose=tuple(scene.mapping_pose), footprint=tuple(scene.robot.footprint),
-                   title=f"Marker map ({method}, reference marker {est_map.reference_marker}) in the lab, "
-                         f"RMS {map_err['position_rms_mm']:.1f} mm" if map_err else f"Marker map ({method})")
-    if ok_pos:
-        plots.plot_positions(str(out_dir / "fig8_positions.png"), np.array([world(r.ref)[:2] for r in ok_pos]),
-                             np.array([world(r.est)[:2] for r in ok_pos]), plate=plate, labels=[r.label for r in ok_pos],
-                             errors_cm=[100 * r.errors[2] for r in ok_pos],
-                             title="15 positions: ground truth and estimated (Fig. 8)")
-    cases = []
-    for rec in records:
-        if rec.plan.kind == "position" and rec.plan.label in fig9_labels and rec.estimates:
-            row = next((r for r in pos_rows if r.label == rec.plan.label), None)
-            if row is None or not np.all(np.isfinite(row.est)):
-                continue
-            cams = {f"c{k}": world(p) for k, p in enumerate(rec.camera_estimates)}
-            cases.append({"label": f"position {rec.plan.label}", "true": world(row.ref), "fused": world(row.est),
-                          "cameras": cams})
-    if cases:
-        plots.plot_camera_estimates(str(out_dir / "fig9_camera_estimates.png"), cases)
-    if ok_yaw:
-        plots.plot_orientations(str(out_dir / "fig10_orientations.png"), [world(r.ref)[2] for r in ok_yaw],
-                                [world(r.est)[2] for r in ok_yaw], labels=[r.label for r in ok_yaw])
-    return summary
-
-
-# --------------------------------------------------------------------------------------------
 # Processes (roscore, roslaunch) owned by the demo
 # --------------------------------------------------------------------------------------------
-class Progress:
-    """Progress lines on stdout with the elapsed time."""
-
-    def __init__(self) -> None:
-        self.t0 = time.monotonic()
-        self._last_inline = False
-
-    def elapsed(self) -> float:
-        return time.monotonic() - self.t0
-
-    def __call__(self, text: str, inline: bool = False) -> None:
-        line = f"[demo {self.elapsed():6.1f} s] {text}"
-        if inline and sys.stdout.isatty():
-            sys.stdout.write("\r" + line.ljust(100))
-            self._last_inline = True
-        else:
-            if self._last_inline:
-                sys.stdout.write("\n")
-                self._last_inline = False
-            if inline:  # not a terminal: fewer lines
-                return
-            sys.stdout.write(line + "\n")
-        sys.stdout.flush()
-
-    def always(self, text: str) -> None:
-        self(text)
-
-
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("localhost", 0))
@@ -707,19 +425,7 @@ def run(args: argparse.Namespace) -> int:
     runtime = progress.elapsed()
     summary = write_report(out, records, est_map, scene.truth_map(), scene, traj_est, traj_truth, args.fusion,
                            args.method, args.mode, runtime)
-    sys.stdout.write("\n" + (out / "table1.md").read_text() + "\n" + (out / "table2.md").read_text() + "\n")
-    m = summary["map_error_mm"]
-    if m is not None:
-        sys.stdout.write(f"Map error ({len(est_map)} markers, {args.method}): position RMS {m['rms']:.2f} mm, max "
-                         f"{m['max']:.2f} mm; rotation mean {m['rotation_mean_deg']:.3f} deg\n\n")
-    c = summary.get("after_best_fit_se2")
-    if c:
-        sys.stdout.write(f"After a best-fit SE(2) alignment (internal consistency only, the map frame's error removed: "
-                         f"{c['alignment']['x_m'] * 100:+.1f} cm, {c['alignment']['y_m'] * 100:+.1f} cm, "
-                         f"{c['alignment']['yaw_deg']:+.2f} deg): position median {c['position_error_cm']['median']:.2f} cm, "
-                         f"max {c['position_error_cm']['max']:.2f} cm; |yaw| mean {c['yaw_error_deg']['mean_abs']:.3f} deg\n\n")
-    sys.stdout.write("SUMMARY: " + summary_line(summary) + "\n")
-    sys.stdout.write(f"outputs in {out}/ (summary.json, table1.md, table2.md, *.tum, *.png)\n")
+    sys.stdout.write("\n" + console_text(summary, out))
     return 0
 
 
