@@ -194,3 +194,13 @@ def test_header_stamp_reads_any_stamped_message():
     raw = struct.pack("<III", 7, 1234, 500_000_000) + struct.pack("<I", len(frame)) + frame + b"\x00" * 56
     assert header_stamp(raw) == pytest.approx(1234.5, abs=1e-9)
     assert header_stamp(b"\x00" * 8) is None
+
+
+def test_lockstep_topics_must_start_with_a_header():
+    from aruco_ring_localization.ros.simulator import _starts_with_header
+
+    pose_with_cov = "# This expresses an estimated pose\n\nHeader header\nPoseWithCovariance pose\n"
+    assert _starts_with_header(pose_with_cov)
+    assert _starts_with_header("std_msgs/Header header  # stamped\nfloat64 x")
+    assert not _starts_with_header("# just a number\nfloat64 data\n")
+    assert not _starts_with_header("")

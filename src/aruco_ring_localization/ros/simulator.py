@@ -14,7 +14,7 @@ Every ``1/rate`` seconds it moves the robot (waypoint driver or ``cmd_vel``), th
 * ``scan`` (sensor_msgs/LaserScan of the walls and posts, frame ``laser.frame``);
 * ``sim/at_waypoint`` (std_msgs/Int32: index of the waypoint being held, -1 while moving or once
   finished) and ``sim/waypoints`` (geometry_msgs/PoseArray, latched: the waypoint list in the
-  world frame; also the parameter ``~waypoint_poses``, [[x, y, yaw_rad], ...]);
+  world frame; also the parameter ``sim/waypoint_poses``, [[x, y, yaw_rad], ...]);
 * ``cmd_vel`` (geometry_msgs/Twist) while its waypoint driver drives; otherwise it follows
   ``cmd_vel`` from others (holonomic: linear.x, linear.y, angular.z; stops 0.5 s after the last);
 * ``/clock`` when ``clock.publish`` (run everything with ``use_sim_time``). With ``lockstep.enabled``
@@ -52,8 +52,8 @@ from ..simulation.simulator import SimulatorCore
 
 __all__ = ["SimulatorConfig", "SimulatorCore", "main", "header_stamp"]
 
-#: Longest wait, in lockstep timeouts, for the image consumers (detectors) before the first frame.
-STARTUP_TIMEOUTS = 10.0
+#: Wall seconds between "every output has a subscriber" and the first frame (the subscribers' tf).
+STARTUP_SETTLE = 1.0
 
 
 def header_stamp(buff: bytes) -> Optional[float]:
@@ -66,6 +66,15 @@ def header_stamp(buff: bytes) -> Optional[float]:
         return None
     secs, nsecs = struct.unpack_from("<II", buff, 4)
     return secs + 1e-9 * nsecs
+
+
+def _starts_with_header(definition: str) -> bool:
+    """True when a message definition's first field is a std_msgs/Header (comments skipped)."""
+    for line in definition.splitlines():
+        line = line.split("#", 1)[0].strip()
+        if line:
+            return line.split()[0] in ("Header", "std_msgs/Header")
+    return False
 
 
 def _package_file(*parts: str) -> str:
@@ -118,7 +127,7 @@ class SimulatorNode:
         rospy.Subscriber("sim/teleport", Pose2D, self._on_teleport, queue_size=2)
         rospy.Subscriber("sim/time_jump", Float64, self._on_time_jump, queue_size=2)
         waypoints = core.waypoints()
-        rospy.set_param("~waypoint_poses", [list(w) for w in waypoints])
+        rospy.set_param("sim/waypoint_poses", [list(w) for w in waypoints])
         wp_list = PoseArray()
         wp_list.header.frame_id = core.scene.world_frame
         wp_list.poses = [pose_to_msg(Scene.T_world_base(w)) for w in waypoints]
@@ -190,7 +199,7 @@ class SimulatorNode:
     def _on_consumer(self, msg, topic: str) -> None:
         import rospy
         definition = (getattr(msg, "_connection_header", None) or {}).get("message_definition", "")
-        if definition and not definition.lstrip().startswith(("Header header", "std_msgs/Header header")):
+        if definition and not _starts_with_header(definition):
             rospy.logwarn_once(f"simulator: lockstep topic {topic} has no std_msgs/Header first; not waited for")
             self.gate.sources = [s for s in self.gate.sources if s != topic]
             return
@@ -202,19 +211,26 @@ class SimulatorNode:
         return [name for name, sub in self._sources.items() if sub.get_num_connections() > 0]
 
     def _wait_for_consumers(self) -> None:
-        """Before the first frame: let the image consumers (detectors) and the lockstep topics'
-        publishers connect, or the first frames would only time out."""
+        """Before the first frame (the clock does not run meanwhile): let every camera's outputs get
+        a subscriber and every lockstep topic a publisher, then 1 s more for the subscribers' other
+        connections (tf), so a node started beside the simulator sees every frame."""
         import rospy
 
-        want = len(self._sources)
-        deadline = time.monotonic() + STARTUP_TIMEOUTS * self.config.lockstep.timeout
+        c = self.config
+        outputs = [p for pubs in (self.info_pubs, self.det_pubs, self.img_pubs) for p in pubs.values()]
+        topics = [name for name in c.lockstep.topics if name in self._sources]
+        deadline = time.monotonic() + c.lockstep.startup_timeout
         while not rospy.is_shutdown() and time.monotonic() < deadline:
-            images_ok = all(p.get_num_connections() > 0 for p in self.img_pubs.values())
-            if images_ok and len(self._connected()) == want:
+            if all(p.get_num_connections() > 0 for p in outputs) and all(
+                    self._sources[name].get_num_connections() > 0 for name in topics):
+                time.sleep(STARTUP_SETTLE)
                 return
             time.sleep(0.05)
-        rospy.logwarn("simulator: lockstep: starting without %s (not connected)",
-                      sorted(set(self._sources) - set(self._connected())) or "image subscribers")
+        unconnected = [p.name for p in outputs if p.get_num_connections() == 0] + \
+            [name for name in topics if self._sources[name].get_num_connections() == 0]
+        if unconnected and c.lockstep.startup_timeout > 0:
+            rospy.logwarn("simulator: starting after %.0f s without a consumer of %s", c.lockstep.startup_timeout,
+                          " ".join(unconnected))
 
     def _creep(self, waited: float) -> None:
         from rosgraph_msgs.msg import Clock
@@ -230,7 +246,7 @@ class SimulatorNode:
         c = self.config
         if self.clock_pub is not None:
             self.clock_pub.publish(Clock(clock=rospy.Time.from_sec(c.clock.start_time)))
-        if self.gate is not None:
+        if self.clock_pub is not None and c.lockstep.enabled:
             self._wait_for_consumers()
         last_t: Optional[float] = None
         wall_next = time.monotonic()

@@ -193,7 +193,8 @@ class LockstepParams:
     and, in both modes, each topic of ``topics`` (any message type whose first field is a
     std_msgs/Header, e.g. ``localizer/pose``). Only consumers that are connected are waited for,
     so lockstep is harmless when nobody listens. No frame is then lost on a slow CPU; the
-    simulated clock runs slower instead.
+    simulated clock runs slower instead. Before the first frame the simulator also waits for its
+    subscribers to connect (``startup_timeout``), so a node started beside it sees every frame.
     """
 
     enabled: bool = param(True, "wait for the consumers of each frame (only when clock.publish)")
@@ -201,9 +202,14 @@ class LockstepParams:
                               "processed, e.g. [localizer/pose]")
     timeout: float = param(2.0, "longest wait for one frame; then the frame goes on without the late ones "
                                 "(warned)", unit="s (wall)")
+    startup_timeout: float = param(20.0, "before the first frame, wait at most this long until every simulated "
+                                         "camera's outputs have a subscriber and every topic of `topics` a "
+                                         "publisher (then 1 s more, for the subscribers' tf); 0 = start at once",
+                                   unit="s (wall)")
 
     def __post_init__(self) -> None:
         _positive("timeout", self.timeout)
+        _non_negative("startup_timeout", self.startup_timeout)
 
 
 @dataclass(frozen=True)
