@@ -54,6 +54,7 @@ from ..errors import ArucoRingError
 from ..fileio import atomic_write_text
 from ..marker_map import MarkerMap
 from ..simulation.params import SimulatorConfig
+from ..simulation.scene import Scene
 
 logger = logging.getLogger(__name__)
 
@@ -449,10 +450,9 @@ def stop_frames(stamps: Sequence[float], truth: np.ndarray, route: Sequence[Sequ
 
     The robot is at rest where the ground truth stays put (``tr.detect_stops`` within 1 um /
     1 urad: a simulated robot at rest does not move at all) for most of ``hold_time``; each rest
-    is matched to the next route pose within ``tolerance``
-    (m, rad: the driver stops within 5 mm / 0.5 deg of a waypoint). A route pose with no rest
-    gets an empty list. The frames of a rest are at most ``hold_time`` long (the robot stays at
-    the last pose after the route ends).
+    is matched to the next route pose within ``tolerance`` (m, rad: the driver stops within
+    5 mm / 0.5 deg of a waypoint). A route pose with no rest gets an empty list. The frames of a
+    rest are at most ``hold_time`` long (the robot stays at the last pose after the route ends).
     """
     s = np.asarray(stamps, dtype=float)
     r = np.asarray(truth, dtype=float).reshape(-1, 3)
@@ -463,7 +463,8 @@ def stop_frames(stamps: Sequence[float], truth: np.ndarray, route: Sequence[Sequ
         rest = r[inside[-1]]
         for k in range(j, len(route)):
             goal = np.asarray(route[k], dtype=float)
-            if np.hypot(*(rest[:2] - goal[:2])) <= tolerance[0] and abs(geo.angle_diff(rest[2], goal[2])) <= tolerance[1]:
+            close = np.hypot(*(rest[:2] - goal[:2])) <= tolerance[0]
+            if close and abs(geo.angle_diff(rest[2], goal[2])) <= tolerance[1]:
                 keep = inside[s[inside] <= s[inside[0]] + hold_time + 1e-9]
                 out[k] = [float(v) for v in s[keep]]
                 j = k + 1
@@ -581,103 +582,126 @@ def _parse(argv: Optional[Sequence[str]]) -> argparse.Namespace:
     return args
 
 
-def run(args: argparse.Namespace) -> int:
-    from ..simulation.scene import Scene
+def _map(ros: RosSession, rec: Recorder, args: argparse.Namespace, config: SimulatorConfig, scene: Scene,
+         common: List[str], progress: Progress) -> MarkerMap:
+    """Mapping phase: the simulator holds the robot at the plate centre; save the map after the frames."""
+    import rospy
+    from std_srvs.srv import Trigger
 
-    progress = Progress()
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    map_file = out / "map.yaml"
-    scene = Scene.default()
-    mapping_cfg, loc_cfg = simulator_configs(args, scene)
-    route = [(x, y, float(np.radians(yaw))) for x, y, yaw in loc_cfg.robot.plan]
-    stops = plan_stops(scene.test_positions, scene.test_orientations)
-    progress(f"simulated lab '{scene.name}': {len(scene.markers)} markers, plate {scene.plate.size[0]:.2f} x "
-             f"{scene.plate.size[1]:.2f} m; true rig = ring.yaml + {1000 * loc_cfg.ring.calibration_trans_std:.0f} mm / "
-             f"{loc_cfg.ring.calibration_rot_std_deg:.1f} deg calibration error; mode {args.mode}")
-    common = [f"map_file:={map_file}", f"mode:={args.mode}", f"gui:={'true' if args.gui else 'false'}"]
-    with RosSession(out / "logs", progress) as ros:
-        progress(f"roscore on port {ros.port} (logs: {out / 'logs'})")
-        import rospy
-        from std_srvs.srv import Trigger
+    sim_yaml = write_simulator_config(out / "simulator_mapping.yaml", config)
+    mapping = ros.launch("mapping", ["phase:=mapping", f"method:={args.method}", f"sim_config:={sim_yaml}"] + common)
+    rospy.wait_for_service("/mapper/save_map", timeout=120)
+    with rec.lock:
+        first = rec.frames
+    pose = scene.mapping_pose
+    progress(f"mapping from the plate centre ({pose[0]:.2f}, {pose[1]:.2f}) m: {args.mapping_frames} frames")
+    # A few frames more than needed, so that the last ones are through the mapper too (it keeps
+    # the first max_frames_per_station frames of a station, so extra ones change nothing).
+    if not rec.wait(lambda: rec.frames >= first + args.mapping_frames + MAPPING_EXTRA_FRAMES, 600,
+                    alive=lambda: mapping.poll() is None):
+        raise RuntimeError(f"the simulator gave {rec.frames - first} of {args.mapping_frames} mapping frames "
+                           f"(logs: {out / 'logs'}/mapping.log)")
+    progress("mapping: /mapper/save_map" + (" (bundle adjustment)" if args.method == "refined" else ""))
+    res = rospy.ServiceProxy("/mapper/save_map", Trigger)()
+    if not res.success:
+        raise RuntimeError(f"save_map failed: {res.message}")
+    progress(f"mapping: {res.message}")
+    ros.stop(mapping)
+    return MarkerMap.load(str(out / "map.yaml"))
 
-        rospy.init_node("aruco_ring_demo", disable_signals=True)
-        rec = Recorder()
-        # --- mapping: the simulator holds the robot at the plate centre ------------------------------
-        mapping = ros.launch("mapping", ["phase:=mapping", f"method:={args.method}", "sim_config:="
-                                         + str(write_simulator_config(out / "simulator_mapping.yaml", mapping_cfg))]
-                             + common)
-        rospy.wait_for_service("/mapper/save_map", timeout=120)
+
+def _localize(ros: RosSession, rec: Recorder, args: argparse.Namespace, config: SimulatorConfig,
+              stops: Sequence[StopPlan], common: List[str], progress: Progress) -> None:
+    """Localization phase: the simulator drives the route in lockstep with the localizer; ``rec``
+    keeps the route's frames (ground truth, poses) until it is done."""
+    import rospy
+    from std_srvs.srv import Trigger
+
+    out = Path(args.out)
+    sim_yaml = write_simulator_config(out / "simulator_localization.yaml", config)
+    rec.clear()
+    loc = ros.launch("localization", ["phase:=localization", f"fusion:={args.fusion}",
+                                      f"comparison_dir:={out / 'comparison'}", f"sim_config:={sim_yaml}"] + common)
+    progress(f"localization ({args.fusion} fusion): driving through {sum(s.kind == 'position' for s in stops)} "
+             f"positions and {sum(s.kind == 'orientation' for s in stops)} orientations")
+    finished = [len(stops), -1]   # sim/at_waypoint: the last stop held (route index 0 is the start), then done
+    shown = 0
+    while True:
+        if not rec.wait(lambda: len(rec.held) > shown or rec.held[-2:] == finished, 1800,
+                        alive=lambda: loc.poll() is None):
+            raise RuntimeError(f"the localization phase stopped (logs: {out / 'logs'}/localization.log)")
         with rec.lock:
-            first = rec.frames
-        pose = scene.mapping_pose
-        progress(f"mapping from the plate centre ({pose[0]:.2f}, {pose[1]:.2f}) m: {args.mapping_frames} frames")
-        # A few frames more than needed, so that the last ones are through the mapper too (it keeps
-        # the first max_frames_per_station frames of a station, so extra ones change nothing).
-        if not rec.wait(lambda: rec.frames >= first + args.mapping_frames + MAPPING_EXTRA_FRAMES, 600,
-                        alive=lambda: mapping.poll() is None):
-            raise RuntimeError(f"the simulator gave {rec.frames - first} of {args.mapping_frames} mapping frames "
-                               f"(logs: {out / 'logs'}/mapping.log)")
-        progress("mapping: /mapper/save_map (bundle adjustment)" if args.method == "refined" else "mapping: /mapper/save_map")
-        res = rospy.ServiceProxy("/mapper/save_map", Trigger)()
-        if not res.success:
-            raise RuntimeError(f"save_map failed: {res.message}")
-        progress(f"mapping: {res.message}")
-        ros.stop(mapping)
-        est_map = MarkerMap.load(str(map_file))
-        # --- localization: the simulator drives the route in lockstep with the localizer -------------
-        rec.clear()
-        loc = ros.launch("localization", ["phase:=localization", f"fusion:={args.fusion}",
-                                          f"comparison_dir:={out / 'comparison'}", "sim_config:="
-                                          + str(write_simulator_config(out / "simulator_localization.yaml", loc_cfg))]
-                         + common)
-        progress(f"localization ({args.fusion} fusion): driving through {sum(s.kind == 'position' for s in stops)} "
-                 f"positions and {sum(s.kind == 'orientation' for s in stops)} orientations")
-        shown = 0
-        while True:  # follow the route: sim/at_waypoint gives the index held (0 = the start)
-            done = rec.wait(lambda: len(rec.held) > shown or rec.held[-2:] == [len(route) - 1, -1], 1800,
-                            alive=lambda: loc.poll() is None)
-            if not done:
-                raise RuntimeError(f"the localization phase stopped (logs: {out / 'logs'}/localization.log)")
-            with rec.lock:
-                held, frames, poses = list(rec.held), rec.frames, len(rec.poses)
-            for k in held[shown:]:
-                if k > 0:
-                    stop = stops[k - 1]
-                    progress(f"{stop.kind} {stop.label:>2}: holding ({stop.pose[0]:.2f}, {stop.pose[1]:.2f}, "
-                             f"{np.degrees(stop.pose[2]):6.1f} deg) [{k}/{len(stops)}]; {frames} frames, {poses} poses")
-            shown = len(held)
-            if held[-2:] == [len(route) - 1, -1]:
-                break
-        with rec.lock:  # the route is done: keep its frames, and wait for their last poses
-            rec.recording = False
-        rec.wait(lambda: all(s in rec.poses for s in rec.truth), LOCKSTEP_TIMEOUT[args.mode])
-        try:  # the comparison node's own tables (live, fitted alignment): a cross-check
-            rospy.wait_for_service("/comparison/write_tables", timeout=5)
-            rospy.ServiceProxy("/comparison/write_tables", Trigger)()
-        except (rospy.ROSException, rospy.ServiceException) as exc:
-            progress(f"note: no tables from the comparison node ({exc})")
-        ros.stop(loc)
-        rospy.signal_shutdown("demo done")
+            held, frames, poses = list(rec.held), rec.frames, len(rec.poses)
+        for k in held[shown:]:
+            if k > 0:
+                stop = stops[k - 1]
+                progress(f"{stop.kind} {stop.label:>2}: holding ({stop.pose[0]:.2f}, {stop.pose[1]:.2f}, "
+                         f"{np.degrees(stop.pose[2]):6.1f} deg) [{k}/{len(stops)}]; {frames} frames, {poses} poses")
+        shown = len(held)
+        if held[-2:] == finished:
+            break
+    with rec.lock:  # the route is done: keep its frames, and wait for their last poses
+        rec.recording = False
+    rec.wait(lambda: all(s in rec.poses for s in rec.truth), config.lockstep.timeout)
+    try:  # the comparison node's own tables (live, fitted alignment): a cross-check
+        rospy.wait_for_service("/comparison/write_tables", timeout=5)
+        rospy.ServiceProxy("/comparison/write_tables", Trigger)()
+    except (rospy.ROSException, rospy.ServiceException) as exc:
+        progress(f"note: no tables from the comparison node ({exc})")
+    ros.stop(loc)
+
+
+def _records(rec: Recorder, stops: Sequence[StopPlan], route: Sequence[Sequence[float]], hold_time: float,
+             use_last: int, progress: Progress) -> List[StopRecord]:
+    """One :class:`StopRecord` per stop: the truth where the robot rested, the last poses there."""
     with rec.lock:
         truth, poses, cams = dict(rec.truth), dict(rec.poses), dict(rec.cam_estimates)
     stamps = sorted(truth)
-    frames = stop_frames(stamps, np.array([truth[s] for s in stamps]), route, loc_cfg.robot.hold_time)
-    records: List[StopRecord] = []
+    frames = stop_frames(stamps, np.array([truth[s] for s in stamps]), route, hold_time)
+    records = []
     for stop, stamps_k in zip(stops, frames[1:]):
-        rec_k = StopRecord(stop, truth[stamps_k[-1]] if stamps_k else np.asarray(stop.pose, dtype=float))
-        rec_k.estimates = [(s, poses[s]) for s in stamps_k if s in poses][-args.use_last:]
-        rec_k.camera_estimates = next((list(cams[s]) for s in reversed(stamps_k) if len(cams.get(s, ()))), [])
-        records.append(rec_k)
+        record = StopRecord(stop, truth[stamps_k[-1]] if stamps_k else np.asarray(stop.pose, dtype=float))
+        record.estimates = [(s, poses[s]) for s in stamps_k if s in poses][-use_last:]
+        record.camera_estimates = next((list(cams[s]) for s in reversed(stamps_k) if len(cams.get(s, ()))), [])
+        records.append(record)
         if not stamps_k:
             progress(f"note: no rest found at {stop.kind} {stop.label}")
     missed = sum(1 for s in stamps if s not in poses)
     if missed:
         progress(f"note: {missed} of {len(stamps)} frames have no pose (the localizer did not answer them within "
                  f"the lockstep timeout, or before its first fix); each stop uses the frames that have one")
+    return records
+
+
+def run(args: argparse.Namespace) -> int:
+    progress = Progress()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    scene = Scene.default()
+    mapping_cfg, loc_cfg = simulator_configs(args, scene)
+    route = [(x, y, float(np.radians(yaw))) for x, y, yaw in loc_cfg.robot.plan]
+    stops = plan_stops(scene.test_positions, scene.test_orientations)
+    progress(f"simulated lab '{scene.name}': {len(scene.markers)} markers, plate {scene.plate.size[0]:.2f} x "
+             f"{scene.plate.size[1]:.2f} m; true rig = ring.yaml + "
+             f"{1000 * loc_cfg.ring.calibration_trans_std:.0f} mm / {loc_cfg.ring.calibration_rot_std_deg:.1f} deg "
+             f"calibration error; mode {args.mode}")
+    common = [f"map_file:={out / 'map.yaml'}", f"mode:={args.mode}", f"gui:={'true' if args.gui else 'false'}"]
+    with RosSession(out / "logs", progress) as ros:
+        progress(f"roscore on port {ros.port} (logs: {out / 'logs'})")
+        import rospy
+
+        rospy.init_node("aruco_ring_demo", disable_signals=True)
+        rec = Recorder()
+        est_map = _map(ros, rec, args, mapping_cfg, scene, common, progress)
+        _localize(ros, rec, args, loc_cfg, stops, common, progress)
+        rospy.signal_shutdown("demo done")
+    records = _records(rec, stops, route, loc_cfg.robot.hold_time, args.use_last, progress)
+    with rec.lock:
+        truth, poses = dict(rec.truth), dict(rec.poses)
     runtime = progress.elapsed()
     summary = write_report(out, records, est_map, scene.truth_map(), scene, sorted(poses.items()),
-                           [(s, truth[s]) for s in stamps], args.fusion, args.method, args.mode, runtime)
+                           sorted(truth.items()), args.fusion, args.method, args.mode, runtime)
     sys.stdout.write("\n" + (out / "table1.md").read_text() + "\n" + (out / "table2.md").read_text() + "\n")
     m = summary["map_error_mm"]
     if m is not None:
@@ -687,8 +711,9 @@ def run(args: argparse.Namespace) -> int:
     if c:
         sys.stdout.write(f"After a best-fit SE(2) alignment (internal consistency only, the map frame's error removed: "
                          f"{c['alignment']['x_m'] * 100:+.1f} cm, {c['alignment']['y_m'] * 100:+.1f} cm, "
-                         f"{c['alignment']['yaw_deg']:+.2f} deg): position median {c['position_error_cm']['median']:.2f} cm, "
-                         f"max {c['position_error_cm']['max']:.2f} cm; |yaw| mean {c['yaw_error_deg']['mean_abs']:.3f} deg\n\n")
+                         f"{c['alignment']['yaw_deg']:+.2f} deg): position median "
+                         f"{c['position_error_cm']['median']:.2f} cm, max {c['position_error_cm']['max']:.2f} cm; "
+                         f"|yaw| mean {c['yaw_error_deg']['mean_abs']:.3f} deg\n\n")
     sys.stdout.write("SUMMARY: " + summary_line(summary) + "\n")
     sys.stdout.write(f"outputs in {out}/ (summary.json, table1.md, table2.md, *.tum, *.png)\n")
     return 0

@@ -199,7 +199,8 @@ class SimRobot:
     """
 
     def __init__(self, start: Sequence[float], waypoints: Sequence[Sequence[float]] = (),
-                 hold_time: float = RobotParams.hold_time, direct: bool = False, limits: MotionLimits = MotionLimits(), seed: int = 0, loop: bool = False):
+                 hold_time: float = RobotParams.hold_time, direct: bool = False,
+                 limits: MotionLimits = MotionLimits(), seed: int = 0, loop: bool = False):
         self.base = HolonomicBase(start, limits)
         self.odometry = WheelOdometry(seed=seed)
         self.driver = WaypointDriver(waypoints, hold_time=hold_time, loop=loop) if len(waypoints) else None
