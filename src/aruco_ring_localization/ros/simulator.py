@@ -181,17 +181,18 @@ class SimulatorNode:
             if c.mode == "images" or c.lockstep.topics:
                 rospy.logwarn_once("simulator: lockstep needs clock.publish (use_sim_time); off")
             return None, {}
-        subs = {}
-        if c.mode == "images":
-            for cam in self.cams:
-                subs[cam.name] = rospy.Subscriber(f"{cam.namespace}/fiducial_vertices", FiducialArray,
-                                                  self._on_detections, callback_args=cam.name, queue_size=5)
+        cameras = [cam for cam in self.cams if c.mode == "images"]
+        if not cameras and not c.lockstep.topics:
+            return None, {}
+        # The gate exists before any subscriber whose callback reports to it.
+        self.gate = FrameGate([cam.name for cam in cameras] + list(c.lockstep.topics))
+        subs = {cam.name: rospy.Subscriber(f"{cam.namespace}/fiducial_vertices", FiducialArray,
+                                           self._on_detections, callback_args=cam.name, queue_size=5)
+                for cam in cameras}
         for topic in c.lockstep.topics:
             subs[topic] = rospy.Subscriber(topic, rospy.AnyMsg, self._on_consumer, callback_args=topic,
                                            queue_size=10)
-        if not subs:
-            return None, {}
-        return FrameGate(subs), subs
+        return self.gate, subs
 
     def _on_detections(self, msg, camera: str) -> None:
         self.gate.report(camera, msg.header.stamp.to_sec())
