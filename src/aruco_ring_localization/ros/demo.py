@@ -4,15 +4,15 @@
 [--mode corners|images] [--gui] [--out results/demo]``
 
 1. starts its own roscore (a free port, so it never disturbs a running ROS);
-2. mapping: ``launch/demo.launch phase:=mapping`` (ring_tf + mapper); this process plays the
-   simulated lab: the robot stands at the plate centre (the paper's single placement) and every
-   camera's detections (``ring/camK/fiducial_vertices`` + ``camera_info``; in ``--mode images``
-   rendered images on ``ring/camK/image_raw`` for the detector nodes) go out with the simulated
-   clock; then ``/mapper/save_map`` writes the map;
-3. localization: ``demo.launch phase:=localization`` (ring_tf + localizer on the saved map); the
-   robot drives through the paper's 15 positions and 8 orientations (``cmd_vel`` published as it
-   moves) and holds each stop for a few frames; the localizer's pose at each stop is recorded
-   against the simulator's ground truth;
+2. mapping: ``launch/demo.launch phase:=mapping``: the ``simulator`` node (simulation.launch, its
+   parameters in ``--out``/simulator_mapping.yaml; in ``--mode images`` with the 8 detector nodes)
+   holds the robot at the plate centre (the paper's single placement) while mapping.launch's
+   mapper collects ``--mapping-frames`` frames; then ``/mapper/save_map`` writes the map;
+3. localization: ``demo.launch phase:=localization``: the simulator (simulator_localization.yaml)
+   drives the route - the mapping pose, then the paper's 15 positions and 8 orientations, each
+   held ``--hold-frames`` frames - in lockstep with localization.launch's localizer on the saved
+   map, and the comparison node runs beside it; this process records ``sim/ground_truth`` and
+   ``localizer/pose`` by stamp; the frames where the true robot rests at a stop are that stop's;
 4. report: Table I (x, y, Euclidean error per position, cm), Table II (yaw error per
    orientation, deg), the map error, a one-line summary; under ``--out``: ``summary.json``,
    ``table1.md``/``.csv``, ``table2.md``/``.csv``, ``trajectory_estimate.tum``,
@@ -24,8 +24,10 @@ map's reference marker and the map's own frame definition
 (:func:`evaluation.maps.truth_in_map_frame`); nothing is fitted that could hide an error. The
 report itself (tables, summary.json, figures, the console summary) is :mod:`evaluation.report`.
 
-The simulator runs in lockstep with the localizer (each frame waits for the pose it produces, up
-to a timeout), so the result does not depend on the machine's speed, only the run time does.
+The simulator runs in lockstep with the localizer (``lockstep.topics: [localizer/pose]``: each
+frame waits for the pose it produces, up to a timeout), so the result does not depend on the
+machine's speed, only the run time does. This process only orchestrates (processes, the save
+service, recording); the lab is the simulator node's and the report is pure.
 """
 from __future__ import annotations
 
@@ -44,9 +46,14 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from .. import geometry as geo
+from ..config import to_dict, with_overrides
 from ..errors import ArucoRingError
-from ..evaluation.report import Progress, StopRecord, console_text, interpolate_motion, plan_stops, write_report
+from ..evaluation.stops import detect_stops
+from ..evaluation.report import Progress, StopPlan, StopRecord, console_text, plan_stops, write_report
+from ..fileio import atomic_write_text
 from ..marker_map import MarkerMap
+from ..simulation.params import SimulatorConfig
+from ..simulation.scene import Scene
 
 logger = logging.getLogger(__name__)
 
@@ -122,160 +129,152 @@ class RosSession:
 
 
 # --------------------------------------------------------------------------------------------
-# The simulated lab, played by this process (ROS side)
+# The simulated lab: the simulator node's configuration for each phase, and what the demo records
 # --------------------------------------------------------------------------------------------
-class LabPlayer:
-    """Publishes the simulated ring (corners or images), the truth, /clock and cmd_vel; records our pose."""
+def simulator_configs(args: argparse.Namespace, scene) -> Tuple[SimulatorConfig, SimulatorConfig]:
+    """The simulator node's parameters for the mapping phase and for the localization phase.
 
-    def __init__(self, scene, ring, sim, mode: str, rate_hz: float, seed: int) -> None:
+    Mapping: the robot stands at the scene's mapping pose (the paper's single placement), no
+    waypoints. Localization: the route is the mapping pose (the localizer starts where mapping
+    left the robot), then the paper's stops in :func:`plan_stops` order, each held
+    ``hold_frames`` frames, driven at up to 0.5 m/s; the clock runs as fast as the localizer
+    answers (lockstep on ``localizer/pose``, and on the detectors in images mode).
+    """
+    base = with_overrides(SimulatorConfig(), {"mode": args.mode, "rate": args.rate, "seed": args.seed,
+                                              "clock.publish": True})
+    mapping = with_overrides(base, {"robot.waypoints": "none", "clock.speed": MAPPING_SPEED})
+    route = [tuple(scene.mapping_pose)] + [s.pose for s in plan_stops(scene.test_positions, scene.test_orientations)]
+    localization = with_overrides(base, {
+        "robot.plan": [[float(x), float(y), float(np.degrees(yaw))] for x, y, yaw in route],
+        "robot.hold_time": args.hold_frames / args.rate,
+        "robot.limits.max_speed": DRIVE_SPEED,
+        "clock.speed": LOCALIZATION_SPEED, "clock.start_time": LOCALIZATION_START,
+        "lockstep.topics": ["localizer/pose"],
+        "lockstep.timeout": LOCKSTEP_TIMEOUT[args.mode]})
+    return mapping, localization
+
+
+def write_simulator_config(path: Path, config: SimulatorConfig) -> Path:
+    """The YAML the demo hands to ``simulation.launch config:=`` (kept beside the results)."""
+    import yaml
+
+    atomic_write_text(str(path), "# simulator parameters of one phase of make demo (config/simulator.yaml format)\n"
+                      + yaml.safe_dump(to_dict(config), sort_keys=False), keep_backup=False)
+    return path
+
+
+def stop_frames(stamps: Sequence[float], truth: np.ndarray, route: Sequence[Sequence[float]], hold_time: float,
+                tolerance: Tuple[float, float] = (0.01, np.radians(1.0))) -> List[List[float]]:
+    """For each pose of the route, in order, the stamps of the frames at which the robot rested there.
+
+    The robot is at rest where the ground truth stays put (``detect_stops`` within 1 um /
+    1 urad: a simulated robot at rest does not move at all) for most of ``hold_time``; each rest
+    is matched to the next route pose within ``tolerance`` (m, rad: the driver stops within
+    5 mm / 0.5 deg of a waypoint). A route pose with no rest gets an empty list. The frames of a
+    rest are at most ``hold_time`` long (the robot stays at the last pose after the route ends).
+    """
+    s = np.asarray(stamps, dtype=float)
+    r = np.asarray(truth, dtype=float).reshape(-1, 3)
+    out: List[List[float]] = [[] for _ in route]
+    j = 0
+    for stop in detect_stops(s, r, min_duration=0.6 * hold_time, pos_tol=1e-6, yaw_tol=1e-6):
+        inside = np.flatnonzero((s >= stop.start - 1e-9) & (s <= stop.end + 1e-9))
+        rest = r[inside[-1]]
+        for k in range(j, len(route)):
+            goal = np.asarray(route[k], dtype=float)
+            close = np.hypot(*(rest[:2] - goal[:2])) <= tolerance[0]
+            if close and abs(geo.angle_diff(rest[2], goal[2])) <= tolerance[1]:
+                keep = inside[s[inside] <= s[inside[0]] + hold_time + 1e-9]
+                out[k] = [float(v) for v in s[keep]]
+                j = k + 1
+                break
+    return out
+
+
+class Recorder:
+    """What the demo collects, by stamp: the simulator's ground truth and the localizer's poses.
+
+    Also counts the simulator's frames (``sim/ground_truth``) and follows its progress through the
+    route (``sim/at_waypoint``: the index held, -1 while driving and once finished).
+    """
+
+    def __init__(self) -> None:
         import rospy
-        import tf2_ros
-        from fiducial_msgs.msg import FiducialArray
-        from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped, Twist
-        from rosgraph_msgs.msg import Clock
-        from sensor_msgs.msg import CameraInfo, Image
+        from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
+        from std_msgs.msg import Int32
 
-        from .conversions import model_to_camera_info
-
-        self.rospy = rospy
-        self.scene, self.ring, self.sim, self.mode = scene, ring, sim, mode
-        self.dt = 1.0 / rate_hz
-        self.t = 1000.0  # simulated clock, s
-        self.rng = np.random.default_rng(seed)
-        self.clock = rospy.Publisher("/clock", Clock, queue_size=10)
-        self.cmd = rospy.Publisher("/cmd_vel", Twist, queue_size=10)
-        self.tf = tf2_ros.TransformBroadcaster()
-        self.pubs: Dict[str, Tuple[Any, Any]] = {}
-        self.infos = {}
-        for cam in ring.cameras:
-            data = (rospy.Publisher(f"{cam.namespace}/image_raw", Image, queue_size=2) if mode == "images"
-                    else rospy.Publisher(f"{cam.namespace}/fiducial_vertices", FiducialArray, queue_size=10))
-            info = rospy.Publisher(f"{cam.namespace}/camera_info", CameraInfo, queue_size=10)
-            self.pubs[cam.name] = (data, info)
-            self.infos[cam.name] = model_to_camera_info(cam.model, cam.frame_id)
-        self._FiducialArray, self._Image, self._Clock, self._Twist = FiducialArray, Image, Clock, Twist
         self.lock = threading.Condition()
+        self.truth: Dict[float, np.ndarray] = {}
         self.poses: Dict[float, np.ndarray] = {}
         self.cam_estimates: Dict[float, np.ndarray] = {}
-        self.detections: Dict[str, float] = {}
+        self.held: List[int] = []          # sim/at_waypoint values, consecutive repeats removed
+        self.frames = 0
+        self.recording = True              # False: frames that still arrive are not kept
+        rospy.Subscriber("/sim/ground_truth", PoseStamped, self._on_truth, queue_size=100)
+        rospy.Subscriber("/sim/at_waypoint", Int32, self._on_waypoint, queue_size=100)
         rospy.Subscriber("/localizer/pose", PoseWithCovarianceStamped, self._on_pose, queue_size=100)
         rospy.Subscriber("/localizer/camera_estimates", PoseArray, self._on_cams, queue_size=100)
-        if mode == "images":
-            for cam in ring.cameras:
-                rospy.Subscriber(f"{cam.namespace}/fiducial_vertices", FiducialArray, self._on_det,
-                                 callback_args=cam.name, queue_size=10)
-        self.publish_clock()
 
-    # --- inputs from the nodes ------------------------------------------------------------------
     @staticmethod
-    def _yaw(q) -> float:
-        return float(np.arctan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z)))
+    def _se2(pose) -> np.ndarray:
+        from .conversions import pose_msg_to_transform
+        return geo.se2_from_transform(pose_msg_to_transform(pose))
+
+    def _on_truth(self, msg) -> None:
+        with self.lock:
+            if self.recording:
+                self.truth[round(msg.header.stamp.to_sec(), 6)] = self._se2(msg.pose)
+                self.frames += 1
+                self.lock.notify_all()
+
+    def _on_waypoint(self, msg) -> None:
+        with self.lock:
+            if not self.held or self.held[-1] != msg.data:
+                self.held.append(int(msg.data))
+                self.lock.notify_all()
 
     def _on_pose(self, msg) -> None:
-        p = msg.pose.pose
         with self.lock:
-            self.poses[round(msg.header.stamp.to_sec(), 6)] = np.array([p.position.x, p.position.y, self._yaw(p.orientation)])
+            self.poses[round(msg.header.stamp.to_sec(), 6)] = self._se2(msg.pose.pose)
             self.lock.notify_all()
 
     def _on_cams(self, msg) -> None:
-        arr = np.array([[p.position.x, p.position.y, self._yaw(p.orientation)] for p in msg.poses]).reshape(-1, 3)
+        arr = np.array([self._se2(p) for p in msg.poses]).reshape(-1, 3)
         with self.lock:
             self.cam_estimates[round(msg.header.stamp.to_sec(), 6)] = arr
 
-    def _on_det(self, msg, name) -> None:
+    def clear(self) -> None:
         with self.lock:
-            self.detections[name] = msg.header.stamp.to_sec()
-            self.lock.notify_all()
+            self.truth.clear()
+            self.poses.clear()
+            self.cam_estimates.clear()
+            self.held.clear()
+            self.frames = 0
+            self.recording = True
 
-    # --- outputs --------------------------------------------------------------------------------
-    def publish_clock(self) -> None:
-        self.clock.publish(self._Clock(clock=self.rospy.Time.from_sec(self.t)))
-
-    def wait_for(self, topic_suffix_subscribers: str, timeout: float = 30.0) -> bool:
-        """Wait until every camera's data topic has a subscriber (the nodes are up)."""
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if all(p[0].get_num_connections() > 0 for p in self.pubs.values()):
-                return True
-            self.publish_clock()
-            time.sleep(0.1)
-        return False
-
-    def step(self, pose_world: np.ndarray, cmd: Optional[np.ndarray] = None) -> float:
-        """Advance the clock by one frame and publish everything for the robot at ``pose_world``."""
-        from .conversions import make_transform_stamped, observations_to_fiducials
-
-        rospy = self.rospy
-        self.t = round(self.t + self.dt, 6)
-        stamp = rospy.Time.from_sec(self.t)
-        self.clock.publish(self._Clock(clock=stamp))
-        T = geo.transform_from_se2(*pose_world)
-        self.tf.sendTransform(make_transform_stamped(T, self.scene.world_frame, "sim_ground_truth", stamp))
-        tw = self._Twist()
-        if cmd is not None:
-            tw.linear.x, tw.linear.y, tw.angular.z = (float(v) for v in cmd)
-        self.cmd.publish(tw)
-        if self.mode == "images":
-            images = self.sim.render(T, rng=self.rng)
-            for name, (pub, info_pub) in self.pubs.items():
-                info = self.infos[name]
-                info.header.stamp = stamp
-                info_pub.publish(info)
-                img = images[name]
-                msg = self._Image()
-                msg.header.stamp, msg.header.frame_id = stamp, info.header.frame_id
-                msg.height, msg.width = int(img.shape[0]), int(img.shape[1])
-                msg.encoding, msg.step = "mono8", int(img.shape[1])
-                msg.data = np.ascontiguousarray(img, dtype=np.uint8).tobytes()
-                pub.publish(msg)
-        else:
-            frame = self.sim.observe(T, self.t, rng=self.rng)
-            for name, (pub, info_pub) in self.pubs.items():
-                info = self.infos[name]
-                info.header.stamp = stamp
-                info_pub.publish(info)
-                msg = self._FiducialArray()
-                msg.header.stamp, msg.header.frame_id = stamp, info.header.frame_id
-                msg.fiducials = observations_to_fiducials(frame.cameras[name].observations)
-                pub.publish(msg)
-        return self.t
-
-    def wait_pose(self, stamp: float, timeout: float) -> Optional[np.ndarray]:
-        """Our pose at ``stamp`` (waits up to ``timeout`` s wall time), or None."""
-        key = round(stamp, 6)
-        deadline = time.monotonic() + timeout
-        tick = 0.0
-        while True:
-            with self.lock:
-                if key in self.poses:
-                    return self.poses[key]
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return None
-                self.lock.wait(min(left, 0.05))
-                if key in self.poses:
-                    return self.poses[key]
-            # Let the simulated clock creep forward (never reaching the next frame's stamp): the
-            # nodes' ROS-time timers (e.g. the ring assembler's flush of incomplete frames) only
-            # run while the clock moves, as they would on a robot.
-            tick = min(tick + 0.002, 0.4 * self.dt)
-            self.clock.publish(self._Clock(clock=self.rospy.Time.from_sec(self.t + tick)))
-
-    def wait_detections(self, stamp: float, timeout: float) -> bool:
-        """Image mode: wait until every detector has answered the frame at ``stamp``."""
+    def wait(self, condition, timeout: float, alive=lambda: True) -> bool:
+        """Wait (wall time) until ``condition()`` holds under the lock, while ``alive()``."""
         deadline = time.monotonic() + timeout
         with self.lock:
-            while not all(self.detections.get(c.name, -1.0) >= stamp - 1e-6 for c in self.ring.cameras):
+            while not condition():
                 left = deadline - time.monotonic()
-                if left <= 0:
+                if left <= 0 or not alive():
                     return False
-                self.lock.wait(left)
+                self.lock.wait(min(left, 0.5))
         return True
 
 
 # --------------------------------------------------------------------------------------------
 # The run
 # --------------------------------------------------------------------------------------------
+MAPPING_SPEED = 2.0            # simulated s per wall s while mapping (no per-frame answer to wait for)
+MAPPING_EXTRA_FRAMES = 3
+LOCALIZATION_SPEED = 50.0      # as fast as the lockstep lets it
+LOCALIZATION_START = 1000.0    # simulated clock of the localization phase, s
+DRIVE_SPEED = 0.5              # m/s between stops
+LOCKSTEP_TIMEOUT = {"images": 10.0, "corners": 3.0}   # wall s for one frame's answers
+
+
 def _parse(argv: Optional[Sequence[str]]) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="python -m aruco_ring_localization.ros.demo",
                                 description="The paper's experiment on the simulated lab with the real ROS nodes.")
@@ -290,8 +289,8 @@ def _parse(argv: Optional[Sequence[str]]) -> argparse.Namespace:
     p.add_argument("--rate", type=float, default=5.0, help="simulated frames per simulated second")
     p.add_argument("--mapping-frames", type=int, default=30, help="frames at the mapping pose")
     p.add_argument("--hold-frames", type=int, default=10, help="frames held at each stop")
-    p.add_argument("--use-last", type=int, default=4, help="last frames of each stop averaged (median)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--use-last", type=int, default=5, help="last frames of each stop averaged (median)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the rig error, noise and rendering")
     args = p.parse_args(argv)
     if args.mode == "auto":
         args.mode = "images" if (REPO / "scripts" / "detector").exists() and \
@@ -302,136 +301,128 @@ def _parse(argv: Optional[Sequence[str]]) -> argparse.Namespace:
     return args
 
 
-def run(args: argparse.Namespace) -> int:
-    from ..ring import CameraRing
-    from ..simulation.ring_sim import RingSimulator, perturb_ring
-    from ..simulation.scene import Scene
+def _map(ros: RosSession, rec: Recorder, args: argparse.Namespace, config: SimulatorConfig, scene: Scene,
+         common: List[str], progress: Progress) -> MarkerMap:
+    """Mapping phase: the simulator holds the robot at the plate centre; save the map after the frames."""
+    import rospy
+    from std_srvs.srv import Trigger
 
+    out = Path(args.out)
+    sim_yaml = write_simulator_config(out / "simulator_mapping.yaml", config)
+    mapping = ros.launch("mapping", ["phase:=mapping", f"method:={args.method}", f"sim_config:={sim_yaml}"] + common)
+    rospy.wait_for_service("/mapper/save_map", timeout=120)
+    with rec.lock:
+        first = rec.frames
+    pose = scene.mapping_pose
+    progress(f"mapping from the plate centre ({pose[0]:.2f}, {pose[1]:.2f}) m: {args.mapping_frames} frames")
+    # A few frames more than needed, so that the last ones are through the mapper too (it keeps
+    # the first max_frames_per_station frames of a station, so extra ones change nothing).
+    if not rec.wait(lambda: rec.frames >= first + args.mapping_frames + MAPPING_EXTRA_FRAMES, 600,
+                    alive=lambda: mapping.poll() is None):
+        raise RuntimeError(f"the simulator gave {rec.frames - first} of {args.mapping_frames} mapping frames "
+                           f"(logs: {out / 'logs'}/mapping.log)")
+    progress("mapping: /mapper/save_map" + (" (bundle adjustment)" if args.method == "refined" else ""))
+    res = rospy.ServiceProxy("/mapper/save_map", Trigger)()
+    if not res.success:
+        raise RuntimeError(f"save_map failed: {res.message}")
+    progress(f"mapping: {res.message}")
+    ros.stop(mapping)
+    return MarkerMap.load(str(out / "map.yaml"))
+
+
+def _localize(ros: RosSession, rec: Recorder, args: argparse.Namespace, config: SimulatorConfig,
+              stops: Sequence[StopPlan], common: List[str], progress: Progress) -> None:
+    """Localization phase: the simulator drives the route in lockstep with the localizer; ``rec``
+    keeps the route's frames (ground truth, poses) until it is done."""
+    import rospy
+    from std_srvs.srv import Trigger
+
+    out = Path(args.out)
+    sim_yaml = write_simulator_config(out / "simulator_localization.yaml", config)
+    rec.clear()
+    loc = ros.launch("localization", ["phase:=localization", f"fusion:={args.fusion}",
+                                      f"comparison_dir:={out / 'comparison'}", f"sim_config:={sim_yaml}"] + common)
+    progress(f"localization ({args.fusion} fusion): driving through {sum(s.kind == 'position' for s in stops)} "
+             f"positions and {sum(s.kind == 'orientation' for s in stops)} orientations")
+    finished = [len(stops), -1]   # sim/at_waypoint: the last stop held (route index 0 is the start), then done
+    shown = 0
+    while True:
+        if not rec.wait(lambda: len(rec.held) > shown or rec.held[-2:] == finished, 1800,
+                        alive=lambda: loc.poll() is None):
+            raise RuntimeError(f"the localization phase stopped (logs: {out / 'logs'}/localization.log)")
+        with rec.lock:
+            held, frames, poses = list(rec.held), rec.frames, len(rec.poses)
+        for k in held[shown:]:
+            if k > 0:
+                stop = stops[k - 1]
+                progress(f"{stop.kind} {stop.label:>2}: holding ({stop.pose[0]:.2f}, {stop.pose[1]:.2f}, "
+                         f"{np.degrees(stop.pose[2]):6.1f} deg) [{k}/{len(stops)}]; {frames} frames, {poses} poses")
+        shown = len(held)
+        if held[-2:] == finished:
+            break
+    with rec.lock:  # the route is done: keep its frames, and wait for their last poses
+        rec.recording = False
+    rec.wait(lambda: all(s in rec.poses for s in rec.truth), config.lockstep.timeout)
+    try:  # the comparison node's own tables (live, fitted alignment): a cross-check
+        rospy.wait_for_service("/comparison/write_tables", timeout=5)
+        rospy.ServiceProxy("/comparison/write_tables", Trigger)()
+    except (rospy.ROSException, rospy.ServiceException) as exc:
+        progress(f"note: no tables from the comparison node ({exc})")
+    ros.stop(loc)
+
+
+def _records(rec: Recorder, stops: Sequence[StopPlan], route: Sequence[Sequence[float]], hold_time: float,
+             use_last: int, progress: Progress) -> List[StopRecord]:
+    """One :class:`StopRecord` per stop: the truth where the robot rested, the last poses there."""
+    with rec.lock:
+        truth, poses, cams = dict(rec.truth), dict(rec.poses), dict(rec.cam_estimates)
+    stamps = sorted(truth)
+    frames = stop_frames(stamps, np.array([truth[s] for s in stamps]), route, hold_time)
+    records = []
+    for stop, stamps_k in zip(stops, frames[1:]):
+        record = StopRecord(stop, truth[stamps_k[-1]] if stamps_k else np.asarray(stop.pose, dtype=float))
+        record.estimates = [(s, poses[s]) for s in stamps_k if s in poses][-use_last:]
+        record.camera_estimates = next((list(cams[s]) for s in reversed(stamps_k) if len(cams.get(s, ()))), [])
+        records.append(record)
+        if not stamps_k:
+            progress(f"note: no rest found at {stop.kind} {stop.label}")
+    missed = sum(1 for s in stamps if s not in poses)
+    if missed:
+        progress(f"note: {missed} of {len(stamps)} frames have no pose (the localizer did not answer them within "
+                 f"the lockstep timeout, or before its first fix); each stop uses the frames that have one")
+    return records
+
+
+def run(args: argparse.Namespace) -> int:
     progress = Progress()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    map_file = out / "map.yaml"
     scene = Scene.default()
-    ring = CameraRing.load(str(REPO / "config" / "ring.yaml"))
-    true_ring = perturb_ring(ring, seed=args.seed)
-    sim = RingSimulator(scene, true_ring, pixel_noise=0.3, seed=args.seed + 1)
+    mapping_cfg, loc_cfg = simulator_configs(args, scene)
+    route = [(x, y, float(np.radians(yaw))) for x, y, yaw in loc_cfg.robot.plan]
+    stops = plan_stops(scene.test_positions, scene.test_orientations)
     progress(f"simulated lab '{scene.name}': {len(scene.markers)} markers, plate {scene.plate.size[0]:.2f} x "
-             f"{scene.plate.size[1]:.2f} m; true rig = ring.yaml + 2 mm / 0.2 deg calibration error; mode {args.mode}")
-    if args.mode == "images":
-        progress("warming up the renderer")
-        sim.render(scene.T_world_base(scene.mapping_pose))
-    records: List[StopRecord] = []
-    traj_est: List[Tuple[float, np.ndarray]] = []
-    traj_truth: List[Tuple[float, np.ndarray]] = []
+             f"{scene.plate.size[1]:.2f} m; true rig = ring.yaml + "
+             f"{1000 * loc_cfg.ring.calibration_trans_std:.0f} mm / {loc_cfg.ring.calibration_rot_std_deg:.1f} deg "
+             f"calibration error; mode {args.mode}")
+    common = [f"map_file:={out / 'map.yaml'}", f"mode:={args.mode}", f"gui:={'true' if args.gui else 'false'}"]
     with RosSession(out / "logs", progress) as ros:
         progress(f"roscore on port {ros.port} (logs: {out / 'logs'})")
         import rospy
 
         rospy.init_node("aruco_ring_demo", disable_signals=True)
-        player = LabPlayer(scene, ring, sim, args.mode, args.rate, args.seed + 2)
-        common = [f"map_file:={map_file}", f"gui:={'true' if args.gui else 'false'}"]
-        # --- mapping -----------------------------------------------------------------------------
-        if args.mode == "images":
-            _start_detectors(ros)
-        mapping = ros.launch("mapping", ["phase:=mapping", f"method:={args.method}"] + common)
-        if not player.wait_for("data", timeout=90):
-            raise RuntimeError(f"the {'detectors' if args.mode == 'images' else 'mapper'} did not subscribe "
-                               f"(logs: {out / 'logs'})")
-        rospy.wait_for_service("/mapper/save_map", timeout=60)
-        pose = np.asarray(scene.mapping_pose, dtype=float)
-        progress(f"mapping from the plate centre ({pose[0]:.2f}, {pose[1]:.2f}) m: {args.mapping_frames} frames")
-        time.sleep(1.0)
-        for k in range(args.mapping_frames):
-            t = player.step(pose)
-            if args.mode == "images":
-                player.wait_detections(t, timeout=5.0)
-            time.sleep(0.1)
-            progress(f"mapping: frame {k + 1}/{args.mapping_frames}", inline=True)
-        time.sleep(1.0)
-        progress("mapping: /mapper/save_map (bundle adjustment)" if args.method == "refined" else "mapping: /mapper/save_map")
-        from std_srvs.srv import Trigger
-
-        rospy.wait_for_service("/mapper/save_map", timeout=30)
-        res = rospy.ServiceProxy("/mapper/save_map", Trigger)()
-        if not res.success:
-            raise RuntimeError(f"save_map failed: {res.message}")
-        progress(f"mapping: {res.message}")
-        ros.stop(mapping)
-        est_map = MarkerMap.load(str(map_file))
-        # --- localization --------------------------------------------------------------------------
-        loc = ros.launch("localization", ["phase:=localization", f"fusion:={args.fusion}",
-                                          f"comparison_dir:={out / 'comparison'}"] + common)
-        if not player.wait_for("data", timeout=60):
-            raise RuntimeError(f"the localizer did not subscribe (log: {out / 'logs'})")
-        rospy.wait_for_service("/localizer/reset", timeout=60)
-        time.sleep(1.0)
-        stops = plan_stops(scene.test_positions, scene.test_orientations)
-        progress(f"localization ({args.fusion} fusion): driving through {sum(s.kind == 'position' for s in stops)} "
-                 f"positions and {sum(s.kind == 'orientation' for s in stops)} orientations")
-        current = np.asarray(scene.mapping_pose, dtype=float)
-        max_wait = 10.0 if args.mode == "images" else 3.0
-        latencies: List[float] = []
-        missed = 0
-
-        def frame(p, cmd=None) -> float:
-            # Lockstep with the localizer: wait for the pose of this frame, but not forever (a
-            # dropped frame must not stall the drive); the wait adapts to the observed latency.
-            nonlocal missed
-            t = player.step(p, cmd)
-            traj_truth.append((t, p.copy()))
-            wait = min(max_wait, max(0.3, 3.0 * float(np.median(latencies[-20:])))) if latencies else max_wait
-            t0 = time.monotonic()
-            if player.wait_pose(t, wait) is None:
-                missed += 1
-            else:
-                latencies.append(time.monotonic() - t0)
-            return t
-
-        for _ in range(5):  # initialise the filter where mapping left the robot
-            frame(current)
-        for k, stop in enumerate(stops):
-            goal = np.asarray(stop.pose, dtype=float)
-            for p, cmd in interpolate_motion(current, goal, player.dt):
-                frame(p, cmd)
-            rec = StopRecord(stop, goal.copy())
-            hold = [frame(goal, np.zeros(3)) for _ in range(args.hold_frames)]
-            player.wait_pose(hold[-1], max_wait)  # the stop's last pose, if it is late
-            with player.lock:
-                rec.estimates = [(t, player.poses[round(t, 6)]) for t in hold if round(t, 6) in player.poses]
-                # the per-camera estimates (Fig. 9) of the latest hold frame that has them
-                for t in reversed(hold):
-                    cams = player.cam_estimates.get(round(t, 6))
-                    if cams is not None and len(cams):
-                        rec.camera_estimates = list(cams)
-                        break
-            records.append(rec)
-            current = goal
-            progress(f"{stop.kind} {stop.label:>2}: truth ({goal[0]:.2f}, {goal[1]:.2f}, {np.degrees(goal[2]):6.1f} deg), "
-                     f"{len(rec.estimates)}/{len(hold)} poses [{k + 1}/{len(stops)}]")
-        time.sleep(0.5)
-        with player.lock:
-            traj_est.extend((t, p) for t, p in sorted(player.poses.items()))
-        try:  # the comparison node's own tables (live, fitted alignment): a cross-check
-            from std_srvs.srv import Trigger as _Trigger
-
-            rospy.wait_for_service("/comparison/write_tables", timeout=5)
-            rospy.ServiceProxy("/comparison/write_tables", _Trigger)()
-        except (rospy.ROSException, rospy.ServiceException) as exc:
-            progress(f"note: no tables from the comparison node ({exc})")
-        ros.stop(loc)
-        if missed:
-            progress(f"note: {missed} frames had no pose before the next frame (late or dropped by the localizer)")
+        rec = Recorder()
+        est_map = _map(ros, rec, args, mapping_cfg, scene, common, progress)
+        _localize(ros, rec, args, loc_cfg, stops, common, progress)
         rospy.signal_shutdown("demo done")
+    records = _records(rec, stops, route, loc_cfg.robot.hold_time, args.use_last, progress)
+    with rec.lock:
+        truth, poses = dict(rec.truth), dict(rec.poses)
     runtime = progress.elapsed()
-    summary = write_report(out, records, est_map, scene.truth_map(), scene, traj_est, traj_truth, args.fusion,
-                           args.method, args.mode, runtime)
+    summary = write_report(out, records, est_map, scene.truth_map(), scene, sorted(poses.items()),
+                           sorted(truth.items()), args.fusion, args.method, args.mode, runtime)
     sys.stdout.write("\n" + console_text(summary, out))
     return 0
-
-
-def _start_detectors(ros: RosSession) -> subprocess.Popen:
-    """Image mode: the 8 detector nodes (launch/ring_detectors.launch), kept for both phases."""
-    return ros.spawn(["roslaunch", PACKAGE, "ring_detectors.launch", "do_pose_estimation:=false"], "detectors")
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
