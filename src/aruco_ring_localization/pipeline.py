@@ -631,6 +631,7 @@ class MappingPipeline:
         self.builder = MapBuilder(self.input.ring, config.markers.sizes(), method=config.map.method,
                                   reference_marker=config.map.reference, options=config.mapping,
                                   frame_id=config.map.map_frame)
+        self.frames_missing = 0  # ring frames added without every camera
 
     # --- events -----------------------------------------------------------------------------
 
@@ -691,13 +692,19 @@ class MappingPipeline:
         return self.builder.summary()
 
     def format_summary(self) -> str:
-        return self.builder.format_summary() if self.builder.frames else "no ring frame yet"
+        if not self.builder.frames:
+            return "no ring frame yet"
+        text = self.builder.format_summary()
+        if self.frames_missing:
+            text += f"; {self.frames_missing} ring frames without every camera (input/timeout)"
+        return text
 
     def silent_cameras(self, now: float) -> List[str]:
         return self.input.silent_cameras(now)
 
     def _add(self, frames: List[RingFrame]) -> int:
         for f in frames:
+            self.frames_missing += bool(f.missing)
             self.builder.add_frame(f)
         return len(frames)
 

@@ -191,7 +191,10 @@ class MapperConfig:
                               "$ROS_HOME/aruco_map.yaml")
     ring_file: str = param("", "ring YAML (camera names, namespaces, frames, extrinsics); empty: the package's "
                                "config/ring.yaml")
-    input: RingInputParams = section(RingInputParams, "the ring's detections, camera_info and extrinsics")
+    # Mapping needs no low latency: a ring frame waits up to 1 s for a late camera (the live preview
+    # holds the pipeline for 0.1-0.4 s on a loaded machine; a shorter wait split frames).
+    input: RingInputParams = section(RingInputParams, "the ring's detections, camera_info and extrinsics",
+                                     timeout=1.0)
     markers: MarkerParams = section(MarkerParams, "marker sizes")
     map: MapParams = section(MapParams, "the map built")
     mapping: MappingOptions = section(MappingOptions, "the map builder (paper section II-D and beyond)")
