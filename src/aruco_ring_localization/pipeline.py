@@ -226,6 +226,36 @@ class RingInput:
         return self.assembler.silent_cameras(now, self.params.silent_after)
 
 
+class _RingPipeline:
+    """What both pipelines share: the way in (:attr:`input`), the calibration events, the warnings."""
+
+    input: RingInput
+    warn: ThrottledWarnings
+
+    def on_camera_info(self, camera: str, model: CameraModel) -> None:
+        """The intrinsics of ``camera`` from its camera_info."""
+        self.input.set_camera_model(camera, model)
+
+    def on_extrinsics(self, camera: str, T_base_cam: Optional[np.ndarray] = None) -> None:
+        """``T_base_cam`` of ``camera`` (tf); None: the calibrated ring's (the ring file's; for
+        localization refined with the map)."""
+        self.input.set_extrinsics(camera, T_base_cam)
+        self._use_ring(self.input.ring)
+
+    def _use_ring(self, ring: CameraRing) -> None:
+        """Hand the ring with the extrinsics in force to the estimator / map builder."""
+        raise NotImplementedError
+
+    @property
+    def ring(self) -> CameraRing:
+        """The ring with the extrinsics in force."""
+        return self.input.ring
+
+    @property
+    def camera_names(self) -> List[str]:
+        return list(self.input.camera_names)
+
+
 # --- localization ---------------------------------------------------------------------------------
 
 @dataclass
@@ -292,7 +322,7 @@ class _Motion:
     stamp: float = -np.inf
 
 
-class LocalizationPipeline:
+class LocalizationPipeline(_RingPipeline):
     """Detections (+ camera_info, extrinsics, motion) in, filtered poses out (module docstring).
 
     Args:
@@ -341,14 +371,8 @@ class LocalizationPipeline:
 
     # --- events -----------------------------------------------------------------------------
 
-    def on_camera_info(self, camera: str, model: CameraModel) -> None:
-        """The intrinsics of ``camera`` from its camera_info."""
-        self.input.set_camera_model(camera, model)
-
-    def on_extrinsics(self, camera: str, T_base_cam: Optional[np.ndarray] = None) -> None:
-        """``T_base_cam`` of ``camera`` (tf); None: the calibrated ring's (ring file, refined with the map)."""
-        self.input.set_extrinsics(camera, T_base_cam)
-        self.localizer.set_ring(self.input.ring)
+    def _use_ring(self, ring: CameraRing) -> None:
+        self.localizer.set_ring(ring)
 
     def on_detections(self, camera: str, stamp: float, observations: Sequence[MarkerObservation],
                       now: float) -> List[PoseOutput]:
@@ -428,15 +452,6 @@ class LocalizationPipeline:
         return self._process(self.input.poll(now, flush=True), now)
 
     # --- queries ------------------------------------------------------------------------------
-
-    @property
-    def ring(self) -> CameraRing:
-        """The ring with the extrinsics in force."""
-        return self.input.ring
-
-    @property
-    def camera_names(self) -> List[str]:
-        return list(self.input.camera_names)
 
     @property
     def height(self) -> float:
@@ -613,7 +628,7 @@ class LocalizationPipeline:
 
 # --- mapping ---------------------------------------------------------------------------------------
 
-class MappingPipeline:
+class MappingPipeline(_RingPipeline):
     """Detections (+ camera_info, extrinsics) in, a marker map out: the mapper node and ``build-map``.
 
     Args:
@@ -635,13 +650,8 @@ class MappingPipeline:
 
     # --- events -----------------------------------------------------------------------------
 
-    def on_camera_info(self, camera: str, model: CameraModel) -> None:
-        self.input.set_camera_model(camera, model)
-
-    def on_extrinsics(self, camera: str, T_base_cam: Optional[np.ndarray] = None) -> None:
-        """``T_base_cam`` of ``camera`` (tf); None: the ring file's."""
-        self.input.set_extrinsics(camera, T_base_cam)
-        self.builder.set_ring(self.input.ring)
+    def _use_ring(self, ring: CameraRing) -> None:
+        self.builder.set_ring(ring)
 
     def on_detections(self, camera: str, stamp: float, observations: Sequence[MarkerObservation],
                       now: float) -> int:
@@ -680,13 +690,14 @@ class MappingPipeline:
         return self.builder.frames
 
     @property
+    def station_count(self) -> int:
+        """Robot placements found so far."""
+        return self.builder.station_count
+
+    @property
     def last_ba(self):
         """The last bundle adjustment's result (:class:`bundle_adjustment.BAResult`), or None."""
         return self.builder.last_ba
-
-    @property
-    def camera_names(self) -> List[str]:
-        return list(self.input.camera_names)
 
     def summary(self) -> dict:
         return self.builder.summary()
