@@ -39,7 +39,6 @@ from aruco_ring_localization.config import with_overrides  # noqa: E402
 from aruco_ring_localization.detections import CameraFrame, RingFrame  # noqa: E402
 from aruco_ring_localization.localization import crlb_covariance, se2_covariance  # noqa: E402
 from aruco_ring_localization.marker_map import MarkerEntry, MarkerMap  # noqa: E402
-from aruco_ring_localization.markers import MarkerSizes  # noqa: E402
 from aruco_ring_localization.pipeline import LocalizationPipeline, MappingPipeline, feed_ring_frame  # noqa: E402
 from aruco_ring_localization.ring import CameraRing, apply_refined_extrinsics  # noqa: E402
 from aruco_ring_localization.schemas import LocalizerConfig, MapperConfig  # noqa: E402

@@ -37,7 +37,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import least_squares
 
-from .config import param
+from .config import in_radians, param
 from .errors import GeometryError
 from .markers import marker_corners
 
@@ -96,10 +96,7 @@ class BAOptions:
                                    "iteration, enough for quick adjustments of an initialisation)")
     covariance: bool = param(True, "compute per-marker covariances")
 
-    @property
-    def extrinsics_rot_sigma(self) -> float:
-        """``extrinsics_rot_sigma_deg`` in rad."""
-        return float(np.radians(self.extrinsics_rot_sigma_deg))
+    extrinsics_rot_sigma = in_radians("extrinsics_rot_sigma_deg")
 
 
 @dataclass

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from typing import Any, Callable, Dict, Iterator, List, Mapping, Optional, Tuple, Type, TypeVar
 
 from .errors import ConfigError
@@ -54,6 +55,21 @@ def section(cls: Type[Any], doc: str = "", **defaults: Any) -> Any:
     factory = (lambda: cls(**defaults)) if defaults else cls
     return dataclasses.field(default_factory=factory, metadata={
         "doc": doc or (cls.__doc__ or "").strip().split("\n")[0], "section": True})
+
+
+def in_radians(deg_field: str) -> property:
+    """A read-only property of a schema: its field ``deg_field`` (degrees, as people write them) in
+    radians (as the code uses them): ``base_angle = in_radians("base_angle_deg")``."""
+    return property(lambda self: math.radians(getattr(self, deg_field)), doc=f"``{deg_field}`` in rad.")
+
+
+def require_positive(config: Any, *names: str) -> None:
+    """Raise ConfigError naming the first of the fields ``names`` of ``config`` that is not > 0
+    (for a schema's ``__post_init__``; NaN is refused too)."""
+    for name in names:
+        value = getattr(config, name)
+        if not value > 0:
+            raise ConfigError(f"must be positive, got {value!r}", key=name)
 
 
 def _default_of(f: "dataclasses.Field[Any]") -> Any:

@@ -28,7 +28,7 @@ from typing import List, Optional, Tuple
 import numpy as np
 
 from . import geometry as geo
-from .config import param
+from .config import in_radians, param, require_positive
 from .errors import ConfigError
 
 logger = logging.getLogger(__name__)
@@ -65,22 +65,13 @@ class GateParams:
                                      "and the measurement (filter + estimator covariance): after a stretch of poor "
                                      "measurements (one camera left) good ones are not rejected; 0 disables")
 
+    base_angle = in_radians("base_angle_deg")
+    recovery_angle = in_radians("recovery_angle_deg")
+
     def __post_init__(self) -> None:
-        for name in ("base_distance", "base_angle_deg", "recovery_distance", "recovery_angle_deg"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"must be positive, got {getattr(self, name)!r}", key=name)
+        require_positive(self, "base_distance", "base_angle_deg", "recovery_distance", "recovery_angle_deg")
         if self.recovery_count < 1:
             raise ConfigError(f"must be >= 1, got {self.recovery_count!r}", key="recovery_count")
-
-    @property
-    def base_angle(self) -> float:
-        """``base_angle_deg`` in rad."""
-        return float(np.radians(self.base_angle_deg))
-
-    @property
-    def recovery_angle(self) -> float:
-        """``recovery_angle_deg`` in rad."""
-        return float(np.radians(self.recovery_angle_deg))
 
 
 @dataclass

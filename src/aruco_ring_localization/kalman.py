@@ -40,8 +40,7 @@ import numpy as np
 from filterpy.kalman import KalmanFilter
 
 from . import geometry as geo
-from .config import param
-from .errors import ConfigError
+from .config import param, require_positive
 
 logger = logging.getLogger(__name__)
 
@@ -71,10 +70,8 @@ class FilterParams:
                           unit="s")
 
     def __post_init__(self) -> None:
-        for name in ("jerk_noise_xy", "jerk_noise_yaw", "measurement_std_xy", "measurement_std_yaw",
-                     "initial_std_velocity", "initial_std_acceleration", "max_dt"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"must be positive, got {getattr(self, name)!r}", key=name)
+        require_positive(self, "jerk_noise_xy", "jerk_noise_yaw", "measurement_std_xy", "measurement_std_yaw",
+                         "initial_std_velocity", "initial_std_acceleration", "max_dt")
 
 
 def transition_matrix(dt: float) -> np.ndarray:

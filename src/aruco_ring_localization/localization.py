@@ -49,7 +49,7 @@ from scipy.linalg import lapack as _lapack
 
 from . import geometry as geo
 from .camera import CameraModel
-from .config import param
+from .config import in_radians, param, require_positive
 from .errors import ConfigError, MeasurementError
 from .detections import RingFrame
 from .marker_map import MarkerMap
@@ -101,16 +101,12 @@ class LocalizationParams:
     def __post_init__(self) -> None:
         if self.fusion not in FUSION_METHODS:
             raise ConfigError(f"expected one of {FUSION_METHODS}, got {self.fusion!r}", key="fusion")
-        for name in ("max_reprojection_error", "th_distance", "th_orientation_deg", "pixel_noise", "robust_scale"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"must be positive, got {getattr(self, name)!r}", key=name)
+        require_positive(self, "max_reprojection_error", "th_distance", "th_orientation_deg", "pixel_noise",
+                         "robust_scale")
         if self.fusion_gap < 0:
             raise ConfigError(f"must be >= 0, got {self.fusion_gap!r}", key="fusion_gap")
 
-    @property
-    def th_orientation(self) -> float:
-        """TH_or in rad."""
-        return float(np.radians(self.th_orientation_deg))
+    th_orientation = in_radians("th_orientation_deg")
 
 
 @dataclass

@@ -43,13 +43,13 @@ import dataclasses
 import logging
 from collections import defaultdict
 from dataclasses import dataclass, field
-from typing import Any, Dict, Hashable, List, Optional, Sequence, Tuple
+from typing import Any, Dict, Hashable, List, Optional, Tuple
 
 import cv2
 import numpy as np
 
 from . import geometry as geo
-from .config import param, section
+from .config import in_radians, param, section
 from .bundle_adjustment import BAOptions, BAProblem, BAResult, bundle_adjust, marker_std_in_frame
 from .errors import ArucoRingError, GeometryError, MeasurementError
 from .detections import RingFrame
@@ -98,10 +98,7 @@ class MappingOptions:
                                        "with priors around the calibration (several stations make them observable)",
                             refine_extrinsics=True)
 
-    @property
-    def consensus_angle(self) -> float:
-        """``consensus_angle_deg`` in rad."""
-        return float(np.radians(self.consensus_angle_deg))
+    consensus_angle = in_radians("consensus_angle_deg")
 
 
 @dataclass

@@ -29,7 +29,7 @@ from typing import Optional, Tuple
 import numpy as np
 
 from . import comparison as _comparison
-from .config import default, param, section
+from .config import default, param, require_positive, section
 from .detection import DetectorParams
 from .errors import ConfigError
 from .gating import GateParams
@@ -64,9 +64,7 @@ class RingInputParams:
     def __post_init__(self) -> None:
         if self.slop < 0:
             raise ConfigError(f"must be >= 0, got {self.slop!r}", key="slop")
-        for name in ("timeout", "silent_after"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"must be positive, got {getattr(self, name)!r}", key=name)
+        require_positive(self, "timeout", "silent_after")
         parse_id_list(self.ignore_fiducials, key="ignore_fiducials")
 
     def ignored_ids(self) -> frozenset:
@@ -108,9 +106,7 @@ class LocalizerOutputParams:
     def __post_init__(self) -> None:
         if self.tf_mode not in TF_MODES:
             raise ConfigError(f"expected one of {TF_MODES}, got {self.tf_mode!r}", key="tf_mode")
-        for name in ("markers_period", "diagnostics_period"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"must be positive, got {getattr(self, name)!r}", key=name)
+        require_positive(self, "markers_period", "diagnostics_period")
 
 
 @dataclass(frozen=True)
@@ -178,9 +174,7 @@ class MapperOutputParams:
     progress_period: float = param(5.0, "how often progress goes to the log", unit="s")
 
     def __post_init__(self) -> None:
-        for name in ("publish_period", "progress_period"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"must be positive, got {getattr(self, name)!r}", key=name)
+        require_positive(self, "publish_period", "progress_period")
 
 
 @dataclass(frozen=True)
