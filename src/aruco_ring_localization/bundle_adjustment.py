@@ -27,7 +27,6 @@ marker ``i`` is exactly ``A_i⁻¹ + A_i⁻¹ B_i S⁻¹ B_iᵀ A_i⁻¹`` with 
 """
 from __future__ import annotations
 
-import contextlib
 import logging
 import time
 from dataclasses import dataclass, field
@@ -36,7 +35,10 @@ from typing import Dict, Optional
 import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+from threadpoolctl import threadpool_limits
 
+from . import geometry as geo
 from .config import in_radians, param
 from .errors import GeometryError
 from .markers import marker_corners
@@ -129,110 +131,6 @@ class BAResult:
     extra: Dict[str, float] = field(default_factory=dict)
 
 
-# --- BLAS threads ----------------------------------------------------------------------------
-
-def _openblas_handles() -> list:
-    """(set, get) function pairs of the OpenBLAS libraries bundled with numpy and scipy wheels."""
-    import ctypes
-    import glob
-    import os
-
-    import scipy
-
-    out = []
-    for mod in (np, scipy):
-        libdir = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(mod.__file__))),
-                              f"{mod.__name__}.libs")
-        for path in glob.glob(os.path.join(libdir, "libopenblas*.so*")):
-            try:
-                lib = ctypes.CDLL(path)   # already loaded by numpy/scipy: the same handle
-            except OSError:
-                continue
-            for suffix in ("64_", ""):
-                setter = getattr(lib, f"openblas_set_num_threads{suffix}", None)
-                getter = getattr(lib, f"openblas_get_num_threads{suffix}", None)
-                if setter is not None and getter is not None:
-                    getter.restype = ctypes.c_int
-                    out.append((setter, getter))
-                    break
-    return out
-
-
-_BLAS: Optional[list] = None
-
-
-@contextlib.contextmanager
-def single_blas_thread():
-    """Run the block with OpenBLAS limited to one thread (restored afterwards).
-
-    On a busy 2-core machine OpenBLAS's worker threads spin against each other and the other
-    processes: a 28-marker adjustment took 129 s with them and 8.6 s without (the dense SVDs
-    of scipy's trust region). Wheels only (numpy.libs / scipy.libs); elsewhere a no-op, and
-    ``OPENBLAS_NUM_THREADS=1`` does the same for the whole process.
-    """
-    global _BLAS
-    if _BLAS is None:
-        try:
-            _BLAS = _openblas_handles()
-        except Exception:  # noqa: BLE001 - best effort: never fail an adjustment over a speed-up
-            _BLAS = []
-    before = []
-    for setter, getter in _BLAS:
-        before.append(getter())
-        setter(1)
-    try:
-        yield
-    finally:
-        for (setter, _), n in zip(_BLAS, before):
-            setter(n)
-
-
-# --- SO(3) helpers, vectorised over a leading axis ---------------------------------------------
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(..., 3) -> (..., 3, 3) cross-product matrices."""
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
-
-
-def _exp(w: np.ndarray) -> np.ndarray:
-    """(K, 3) rotation vectors -> (K, 3, 3) rotations (Rodrigues)."""
-    th = np.linalg.norm(w, axis=-1)
-    small = th < 1e-8
-    ths = np.where(small, 1.0, th)
-    a = np.where(small, 1.0 - th ** 2 / 6.0, np.sin(ths) / ths)
-    b = np.where(small, 0.5 - th ** 2 / 24.0, (1.0 - np.cos(ths)) / ths ** 2)
-    W = _skew(w)
-    return np.eye(3) + a[:, None, None] * W + b[:, None, None] * (W @ W)
-
-
-def _log(R: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation -> (3,) rotation vector (inverse of :func:`_exp`)."""
-    c = float(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))
-    th = float(np.arccos(c))
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if th < 1e-8:
-        return 0.5 * v
-    if th > np.pi - 1e-4:
-        w, V = np.linalg.eigh(0.5 * (R + R.T))
-        return th * V[:, np.argmax(w)]
-    return th / (2.0 * np.sin(th)) * v
-
-
-def _left_jacobian(w: np.ndarray) -> np.ndarray:
-    """(K, 3) -> (K, 3, 3) left Jacobians of SO(3): exp(w + d) ≈ exp(J_l(w) d) exp(w)."""
-    th = np.linalg.norm(w, axis=-1)
-    small = th < 1e-6
-    ths = np.where(small, 1.0, th)
-    b = np.where(small, 0.5 - th ** 2 / 24.0, (1.0 - np.cos(ths)) / ths ** 2)
-    c = np.where(small, 1.0 / 6.0 - th ** 2 / 120.0, (ths - np.sin(ths)) / ths ** 3)
-    W = _skew(w)
-    return np.eye(3) + b[:, None, None] * W + c[:, None, None] * (W @ W)
-
-
 # --- the problem as residual + Jacobian functions -----------------------------------------------
 
 class _Model:
@@ -319,7 +217,7 @@ class _Model:
             blocks = x[col[free][:, None] + np.arange(6)]
             w[free] = blocks[:, :3]
             dt[free] = blocks[:, 3:]
-        E = _exp(w)
+        E = Rotation.from_rotvec(w).as_matrix()
         return w, E @ R0, t0 + dt, E
 
     def poses(self, x: np.ndarray):
@@ -372,24 +270,24 @@ class _Model:
         DRcRs = np.einsum("nkij,njl->nkil", DRc, RsT)                 # d r / d p_W
         data = []
         # Marker: dp_W/dw = -[R_m X]x J_l(w_m), dp_W/dt = I.
-        Jl_m = _left_jacobian(wm)[im]                                 # (N, 3, 3)
-        dpw_dw = -np.einsum("nkij,njl->nkil", _skew(a), Jl_m)         # (N, 4, 3, 3)
+        Jl_m = geo.so3_left_jacobian(wm)[im]                         # (N, 3, 3)
+        dpw_dw = -np.einsum("nkij,njl->nkil", geo.skew(a), Jl_m)     # (N, 4, 3, 3)
         jm = np.concatenate([np.einsum("nkij,nkjl->nkil", DRcRs, dpw_dw), DRcRs], axis=-1)
         data.append(jm[self._blk_masks[0]])
         # Station: dp_b/dv = R_s0^T [exp(-v) q]x J_l(-v), dp_b/dt_s = -R_s^T.
         Einv = np.transpose(Es, (0, 2, 1))[is_]                        # exp(-v)
-        Jl_s = _left_jacobian(-ws)[is_]
+        Jl_s = geo.so3_left_jacobian(-ws)[is_]
         u = np.einsum("nij,nkj->nki", Einv, q)
         R0T = np.transpose(self.R_s0[is_], (0, 2, 1))
-        dpb_dv = np.einsum("nij,nkjl->nkil", R0T, np.einsum("nkij,njl->nkil", _skew(u), Jl_s))
+        dpb_dv = np.einsum("nij,nkjl->nkil", R0T, np.einsum("nkij,njl->nkil", geo.skew(u), Jl_s))
         js = np.concatenate([np.einsum("nkij,nkjl->nkil", DRc, dpb_dv), -DRcRs], axis=-1)
         data.append(js[self._blk_masks[1]])
         if self.o.refine_extrinsics:
             Einv_c = np.transpose(Ec, (0, 2, 1))[ic]
-            Jl_c = _left_jacobian(-wc)[ic]
+            Jl_c = geo.so3_left_jacobian(-wc)[ic]
             u2 = np.einsum("nij,nkj->nki", Einv_c, q2)
             Rc0T = np.transpose(self.R_c0[ic], (0, 2, 1))
-            dpc_de = np.einsum("nij,nkjl->nkil", Rc0T, np.einsum("nkij,njl->nkil", _skew(u2), Jl_c))
+            dpc_de = np.einsum("nij,nkjl->nkil", Rc0T, np.einsum("nkij,njl->nkil", geo.skew(u2), Jl_c))
             jc = np.concatenate([np.einsum("nkij,nkjl->nkil", D, dpc_de), -DRc], axis=-1)
             data.append(jc[self._blk_masks[2]])
         if self.n_prior_res:
@@ -437,12 +335,14 @@ def _marker_covariances(model: _Model, J: sp.csr_matrix, variance_factor: float)
 def bundle_adjust(prob: BAProblem, opts: Optional[BAOptions] = None) -> BAResult:
     """Refine the map by minimising the corner reprojection errors (see the module docstring).
 
-    Runs with one BLAS thread (:func:`single_blas_thread`).
+    Runs with one BLAS thread (threadpoolctl): on a busy 2-core machine OpenBLAS's worker threads
+    spin against each other and the other processes; a 28-marker adjustment took 129 s with them
+    and 8.6 s without (the dense SVDs of scipy's trust region).
 
     Raises:
         GeometryError: no observations, or no gauge.
     """
-    with single_blas_thread():
+    with threadpool_limits(limits=1, user_api="blas"):
         return _bundle_adjust(prob, opts)
 
 
@@ -455,7 +355,7 @@ def _bundle_adjust(prob: BAProblem, opts: Optional[BAOptions] = None) -> BAResul
         for i in range(model.C):
             T = np.asarray(prob.T_base_cams_start[i])
             c = model.col_c[i]
-            x0[c:c + 3] = _log(T[:3, :3] @ model.R_c0[i].T)
+            x0[c:c + 3] = Rotation.from_matrix(T[:3, :3] @ model.R_c0[i].T).as_rotvec()
             x0[c + 3:c + 6] = T[:3, 3] - model.t_c0[i]
     r0 = model.residuals(x0)[: model.n_obs_res] * opts.pixel_noise
     rms0 = float(np.sqrt(np.mean(r0 ** 2)))

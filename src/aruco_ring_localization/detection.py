@@ -354,7 +354,7 @@ def marker_pose(obs: MarkerObservation, model: CameraModel, size: float, refine:
         marker_id=int(obs.marker_id), corners=np.asarray(obs.corners, dtype=np.float64), size=float(size),
         T_cam_marker=T, image_error=image_error, object_error=float(object_error),
         fiducial_area=fiducial_area(obs.corners), ambiguity=float(cand.ambiguity),
-        T_cam_marker_alt=cand.poses[1] if len(cand.poses) > 1 else None)
+        T_cam_marker_alt=cand.T_cam_marker_alt)
 
 
 def marker_poses(observations: Sequence[MarkerObservation], model: CameraModel,

@@ -12,7 +12,8 @@ Cycle (filterpy.kalman.KalmanFilter):
 * predict to the measurement's stamp, ``dt = stamp - last stamp`` (seconds, from the messages)::
 
       # x = F x              F: per axis [[1, dt, dt^2/2], [0, 1, dt], [0, 0, 1]]
-      # P = F P F^T + Q      Q: discrete white-jerk noise, spectral density q (per axis)
+      # P = F P F^T + Q      Q: white jerk, spectral density q per axis (filterpy's
+      #                      Q_continuous_white_noise)
 
 * update with ``z`` and its covariance ``R`` (3x3; the estimator's covariance when it has one,
   never below ``min_measurement_std``)::
@@ -37,7 +38,9 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
+from filterpy.common import Q_continuous_white_noise
 from filterpy.kalman import KalmanFilter
+from scipy.linalg import block_diag
 
 from . import geometry as geo
 from .config import param, require_positive
@@ -85,16 +88,16 @@ def transition_matrix(dt: float) -> np.ndarray:
 
 
 def process_noise(dt: float, q_xy: float, q_yaw: float) -> np.ndarray:
-    """Q (9, 9): discrete white-jerk noise for one axis, ``q *
-    [[dt^5/20, dt^4/8, dt^3/6], [dt^4/8, dt^3/3, dt^2/2], [dt^3/6, dt^2/2, dt]]``."""
-    block = np.array([[dt ** 5 / 20, dt ** 4 / 8, dt ** 3 / 6],
-                      [dt ** 4 / 8, dt ** 3 / 3, dt ** 2 / 2],
-                      [dt ** 3 / 6, dt ** 2 / 2, dt]])
-    Q = np.zeros((9, 9))
-    for (p, v, a), q in zip(_AXES, (q_xy, q_xy, q_yaw)):
-        idx = np.array([p, v, a])
-        Q[np.ix_(idx, idx)] = q * block
-    return Q
+    """Q (9, 9): white jerk of spectral density ``q`` per axis (filterpy's
+    ``Q_continuous_white_noise``), per axis ``q * [[dt^5/20, dt^4/8, dt^3/6],
+    [dt^4/8, dt^3/3, dt^2/2], [dt^3/6, dt^2/2, dt]]``.
+
+    x and y share one call with ``block_size=2, order_by_dim=False``, which lays the state out
+    as (x, y, x', y', x'', y''): the paper's order, followed by the yaw block (phi, phi', phi'').
+    """
+    return block_diag(Q_continuous_white_noise(dim=3, dt=dt, spectral_density=q_xy, block_size=2,
+                                               order_by_dim=False),
+                      Q_continuous_white_noise(dim=3, dt=dt, spectral_density=q_yaw))
 
 
 class PoseFilter:

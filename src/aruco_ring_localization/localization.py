@@ -46,6 +46,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 from scipy.linalg import lapack as _lapack
+from scipy.spatial.transform import Rotation
 
 from . import geometry as geo
 from .camera import CameraModel
@@ -250,14 +251,8 @@ def fuse_paper(estimates: Sequence[CameraEstimate], fusion_gap: float
 
 def _perturb(T: np.ndarray, delta: np.ndarray) -> np.ndarray:
     """``geometry.se3_perturb`` without input validation (the solver's inner loop): left-multiply
-    ``T`` by (Rodrigues(w), v) with ``delta = (w, v)``."""
-    w = delta[:3]
-    theta = float(np.sqrt(w @ w))
-    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if theta < 1e-12:
-        R = np.eye(3) + K
-    else:
-        R = np.eye(3) + (np.sin(theta) / theta) * K + ((1.0 - np.cos(theta)) / (theta * theta)) * (K @ K)
+    ``T`` by (exp(w), v) with ``delta = (w, v)``."""
+    R = Rotation.from_rotvec(delta[:3]).as_matrix()
     out = np.empty((4, 4))
     out[:3, :3] = R @ T[:3, :3]
     out[:3, 3] = R @ T[:3, 3] + delta[3:6]
@@ -268,19 +263,10 @@ def _perturb(T: np.ndarray, delta: np.ndarray) -> np.ndarray:
 def _per_camera_poses(T_base_map: np.ndarray, deltas: np.ndarray, T_base_cams: np.ndarray) -> np.ndarray:
     """(C, 4, 4) ``T_map_cam`` for C perturbations ``deltas`` (C, 6) of ``T_base_map`` (batched
     :func:`_perturb`, inverse and extrinsics: one pass of array operations for all cameras)."""
-    w, v = deltas[:, :3], deltas[:, 3:]
-    theta = np.sqrt(np.sum(w * w, axis=1))
-    small = theta < 1e-12
-    th = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0, np.sin(th) / th)
-    b = np.where(small, 0.5, (1.0 - np.cos(th)) / (th * th))
-    K = np.zeros((len(w), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
-    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
-    R = np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
+    R = Rotation.from_rotvec(deltas[:, :3]).as_matrix()
     R_bm = R @ T_base_map[:3, :3]                          # rotation of the perturbed T_base_map
-    t_bm = R @ T_base_map[:3, 3] + v
-    out = np.zeros((len(w), 4, 4))
+    t_bm = R @ T_base_map[:3, 3] + deltas[:, 3:]
+    out = np.zeros((len(deltas), 4, 4))
     R_mb = np.transpose(R_bm, (0, 2, 1))
     out[:, :3, :3] = R_mb
     out[:, :3, 3] = -np.matmul(R_mb, t_bm[:, :, None])[:, :, 0]

@@ -4,11 +4,12 @@ Feed it ring frames (:meth:`MapBuilder.add_frame`), then :meth:`MapBuilder.build
 :class:`~aruco_ring_localization.marker_map.MarkerMap`.
 
 **Paper mode** (paper §II-D). Every detected marker gets its single-marker pose ``T_cam_marker``
-from IPPE (:func:`pnp.solve_marker_ippe`, both solutions and the ambiguity ratio kept). The
-reference marker is the one *closest to its camera with its z axis most parallel to the camera's
-axis*: we take the smallest ``distance / cos(angle)`` (angle between the marker's z and the
-ray back to the camera's optical axis), among the unambiguous detections of the first robot
-placement, unless the user names a ``reference_marker``. Every other marker is chained through
+from IPPE on the mean corners of each (station, camera, marker), refined from the IPPE poses and
+their mirrors (:func:`pnp.solve_marker_ippe_undistorted`, both solutions and the ambiguity ratio
+kept). The reference marker is the one *closest to its camera with its z axis most parallel to
+the camera's axis*: we take the smallest ``distance / cos(angle)`` (angle between the marker's z
+and the ray back to the camera's optical axis), among the unambiguous detections of the first
+robot placement, unless the user names a ``reference_marker``. Every other marker is chained through
 the ring extrinsics, ``T_M0_Mk = T_M0_Ci · T_Ci_Cj · T_Cj_Mk`` (with ``T_Ci_Cj = T_Ci_base ·
 T_base_Cj``), averaged over all frames of the placement (translations arithmetically, rotations
 by :func:`geometry.average_rotations`). The map frame is then fixed to the reference marker
@@ -45,7 +46,6 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Any, Dict, Hashable, List, Optional, Tuple
 
-import cv2
 import numpy as np
 
 from . import geometry as geo
@@ -56,7 +56,7 @@ from .detections import RingFrame
 from .marker_map import MarkerEntry, MarkerMap, map_frame_from_reference
 from .markers import MarkerSizes
 from .camera import CameraModel
-from .markers import marker_corners
+from .pnp import MarkerPoseCandidates, solve_marker_ippe_undistorted
 from .ring import CameraRing
 
 logger = logging.getLogger(__name__)
@@ -141,116 +141,15 @@ class _Group:
         return self.T_base_cam @ self.candidates[k]
 
 
-_LM = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-10)
-_EYE3 = np.eye(3)
+# Two candidate poses of one marker closer than this are one (pnp.solve_marker_ippe's mirror mode).
+_MIN_SEPARATION = np.radians(1.0)
 
 
-def _mirror_about_ray(R: np.ndarray, t: np.ndarray) -> Optional[np.ndarray]:
-    """The other rotation of the planar ambiguity: the marker normal reflected about the line of sight."""
-    u = t / np.linalg.norm(t)
-    n1 = R[:, 2]
-    n2 = 2.0 * (n1 @ u) * u - n1
-    axis = np.cross(n1, n2)
-    s = float(np.linalg.norm(axis))
-    if s < 1e-9:
-        return None
-    return cv2.Rodrigues(axis / s * np.arctan2(s, float(n1 @ n2)))[0] @ R
-
-
-def _rms_px(R: np.ndarray, t: np.ndarray, obj: np.ndarray, xy: np.ndarray, focal: np.ndarray) -> float:
-    """RMS pinhole reprojection error in undistorted pixels of pose (R, t) for corners ``xy`` (4, 2)."""
-    p = obj @ R.T + t
-    if np.any(p[:, 2] <= 1e-9):
-        return float("inf")
-    d = (p[:, :2] / p[:, 2:3] - xy) * focal
-    return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
-
-
-def _ippe_check(xy: np.ndarray, size: float, focal: np.ndarray) -> Tuple[float, float]:
-    """(distance m, RMS error in undistorted px) of the best IPPE pose of one detection."""
-    obj = marker_corners(size)
-    try:
-        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, np.ascontiguousarray(xy.reshape(-1, 1, 2)), _EYE3, None,
-                                                 flags=cv2.SOLVEPNP_IPPE_SQUARE)
-    except cv2.error as exc:
-        raise MeasurementError(f"IPPE failed: {exc}") from None
-    best = (float("inf"), float("inf"))
-    for r, t in zip(rvecs[:n], tvecs[:n]):
-        t = t.ravel()
-        if t[2] > 0.0:
-            err = _rms_px(cv2.Rodrigues(r)[0], t, obj, xy, focal)
-            if err < best[1]:
-                best = (float(np.linalg.norm(t)), err)
-    if not np.isfinite(best[1]):
-        raise MeasurementError("IPPE found no pose in front of the camera")
-    return best
-
-
-def marker_pose_candidates(corners_px: np.ndarray, size: float, model: CameraModel,
-                           min_separation: float = np.radians(1.0),
-                           normalized: Optional[np.ndarray] = None) -> Tuple[List[np.ndarray], List[float], float]:
-    """Both poses of the planar ambiguity of one marker, refined, best first.
-
-    IPPE (``cv2.SOLVEPNP_IPPE_SQUARE``, as :func:`pnp.solve_marker_ippe`) seeds; each seed and
-    its mirror about the line of sight are polished by Levenberg-Marquardt on the undistorted
-    corners (OpenCV's IPPE alone can miss the exact pose of a small, off-axis, nearly face-on
-    marker by tens of degrees while reprojecting within 0.1 px). Errors are RMS reprojection
-    errors in undistorted pixels (the ideal pinhole camera with the same focal lengths).
-
-    Args:
-        corners_px: (4, 2) raw pixels, aruco_detect order.
-        size: marker side, m.
-        model: the camera.
-        min_separation: two solutions closer than this (rad) are one.
-        normalized: optional ``model.normalize(corners_px)`` when the caller has it.
-
-    Returns:
-        (poses ``T_cam_marker``, RMS errors px, ambiguity ratio best/second; 0.0 when both
-        branches converge to one pose).
-
-    Raises:
-        MeasurementError: malformed corners or no pose in front of the camera.
-    """
-    px = np.asarray(corners_px, dtype=np.float64)
-    if px.shape != (4, 2) or not np.all(np.isfinite(px)):
-        raise MeasurementError(f"marker corners: expected 4 finite (x, y), got {px.tolist()}")
-    xy = np.asarray(model.normalize(px) if normalized is None else normalized, dtype=np.float64).reshape(4, 2)
-    focal = np.array([model.fx, model.fy])
-    obj = marker_corners(size)
-    pts = np.ascontiguousarray(xy.reshape(-1, 1, 2))
-    try:
-        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, pts, _EYE3, None, flags=cv2.SOLVEPNP_IPPE_SQUARE)
-    except cv2.error as exc:
-        raise MeasurementError(f"IPPE failed on corners {px.tolist()}: {exc}") from None
-    starts = []
-    for r, t in zip(rvecs[:n], tvecs[:n]):
-        R = cv2.Rodrigues(r)[0]
-        t = t.ravel()
-        starts.append((r.reshape(3, 1), t))
-        Rm = _mirror_about_ray(R, t)
-        if Rm is not None:
-            starts.append((cv2.Rodrigues(Rm)[0], t))
-    solved = []
-    for r, t in starts:
-        r2, t2 = cv2.solvePnPRefineLM(obj, pts, _EYE3, None, r.copy(), t.reshape(3, 1).copy(), criteria=_LM)
-        R2, t2 = cv2.Rodrigues(r2)[0], t2.ravel()
-        if not (np.all(np.isfinite(R2)) and np.all(np.isfinite(t2))) or t2[2] <= 0.0:
-            continue
-        solved.append((_rms_px(R2, t2, obj, xy, focal), R2, t2))
-    if not solved:
-        raise MeasurementError(f"no marker pose in front of the camera for corners {px.tolist()}")
-    solved.sort(key=lambda a: a[0])
-    keep = [solved[0]]
-    for cand in solved[1:]:
-        dR = cand[1].T @ keep[0][1]
-        if np.arccos(np.clip((np.trace(dR) - 1.0) / 2.0, -1.0, 1.0)) > min_separation:
-            keep.append(cand)
-            break
-    errors = [e for e, _, _ in keep]
-    # One distinct pose: both branches of the ambiguity converged together (face-on marker): the
-    # orientation is not ambiguous between two discrete poses, only uncertain near that one.
-    amb = errors[0] / errors[1] if len(errors) > 1 and errors[1] > 0 else 0.0
-    return [geo.make_transform(R, t) for _, R, t in keep], errors, float(amb)
+def _candidates(xy: np.ndarray, size: float, focal: np.ndarray) -> MarkerPoseCandidates:
+    """Both poses of the planar ambiguity of one marker from undistorted corners ``xy`` (4, 2),
+    refined from the IPPE poses and their mirrors, errors in undistorted px (see
+    :func:`pnp.solve_marker_ippe_undistorted`)."""
+    return solve_marker_ippe_undistorted(xy, size, focal, mirror=True, min_separation=_MIN_SEPARATION)
 
 
 def heading_std(T_W_marker: np.ndarray, cov6: np.ndarray) -> float:
@@ -376,11 +275,11 @@ class MapBuilder:
             xy = model.normalize(o.corners)
             focal = np.array([model.fx, model.fy])
             try:
-                distance, error = _ippe_check(xy, size, focal)
-                if error > opts.max_reprojection_px:
+                cand = solve_marker_ippe_undistorted(xy, size, focal)
+                if cand.error > opts.max_reprojection_px:
                     # OpenCV's IPPE can miss small off-axis markers: check with the refined pair first.
-                    poses, errors, _ = marker_pose_candidates(o.corners, size, model, normalized=xy)
-                    distance, error = float(np.linalg.norm(poses[0][:3, 3])), errors[0]
+                    cand = _candidates(xy, size, focal)
+                distance, error = float(np.linalg.norm(cand.T_cam_marker[:3, 3])), cand.error
             except (MeasurementError, GeometryError) as exc:
                 self._reject("no pose", name, detail=str(exc))
                 continue
@@ -429,16 +328,16 @@ class MapBuilder:
         out = []
         for (st, cam, mid), idxs in sorted(members.items()):
             first = self._obs[idxs[0]]
-            corners = np.mean([self._obs[i].corners for i in idxs], axis=0)
             xy = np.mean([self._obs[i].xy for i in idxs], axis=0)
             try:
-                poses, errors, amb = marker_pose_candidates(corners, self.sizes(mid), first.model, normalized=xy)
+                cand = _candidates(xy, self.sizes(mid), first.focal)
             except (MeasurementError, GeometryError):
                 continue
-            T = poses[0]
+            T = cand.T_cam_marker
             dist = float(np.linalg.norm(T[:3, 3]))
             cosf = float(-T[:3, 2] @ (T[:3, 3] / dist))
-            out.append(_Group(st, cam, mid, idxs, poses, errors, amb, dist, cosf, first.T_base_cam, xy, first.focal))
+            out.append(_Group(st, cam, mid, idxs, cand.poses, cand.errors, cand.ambiguity, dist, cosf,
+                              first.T_base_cam, xy, first.focal))
         return out
 
     def _unambiguous(self, g: _Group) -> bool:

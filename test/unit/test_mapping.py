@@ -9,7 +9,8 @@ import pytest
 from aruco_ring_localization import geometry as geo
 from aruco_ring_localization.evaluation import map_error
 from aruco_ring_localization.detections import CameraFrame, MarkerObservation, RingFrame
-from aruco_ring_localization.mapping import MapBuilder, marker_pose_candidates
+from aruco_ring_localization.mapping import MapBuilder
+from aruco_ring_localization.pnp import solve_marker_ippe_undistorted
 from aruco_ring_localization.markers import MarkerSizes, marker_corners
 from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.simulation.ring_sim import RingSimulator
@@ -93,7 +94,9 @@ def test_refined_reduces_map_error_on_noisy_multi_station(ring, scene):
     assert refined["n"] == len(scene.markers)
     assert refined["position_rms_mm"] < 0.5 * paper["position_rms_mm"], \
         f"refined RMS {refined['position_rms_mm']:.2f} mm vs paper {paper['position_rms_mm']:.2f} mm"
-    assert refined["position_rms_mm"] < 6.0, f"refined RMS {refined['position_rms_mm']:.2f} mm"
+    # The target for a refined map on the lab is 3 mm RMS (docs/mapping.md); this configuration
+    # measured 1.55, 1.82 and 2.37 mm for rig/noise seeds 1, 2, 3.
+    assert refined["position_rms_mm"] < 3.0, f"refined RMS {refined['position_rms_mm']:.2f} mm (target 3 mm)"
     stds = np.array([np.max(e.position_std) for e in refined_map if e.marker_id != refined_map.reference_marker])
     assert np.all(stds > 0) and np.all(stds < 0.05), f"position std (m) {stds}"
     # The map carries the refined ring calibration, and it is closer to the true rig than the file's.
@@ -146,7 +149,9 @@ def test_candidates_contain_true_pose_of_far_face_on_marker(ring):
     model = ring["cam0"].model
     T = geo.make_transform(np.diag([1.0, -1.0, -1.0]), [0.9, -0.3, 5.38])
     px = model.project(geo.transform_points(T, marker_corners(0.2)))
-    poses, errors, amb = marker_pose_candidates(px, 0.2, model)
+    cand = solve_marker_ippe_undistorted(model.normalize(px), 0.2, [model.fx, model.fy], mirror=True,
+                                         min_separation=np.radians(1.0))
+    poses, amb = cand.poses, cand.ambiguity
     dp, dr = geo.pose_distance(poses[0], T)
     assert dp < 1e-6 and dr < 1e-6, f"best candidate off by {dp:.2e} m, {np.degrees(dr):.3f} deg"
     assert amb < 0.01, f"ambiguity {amb}"
