@@ -72,7 +72,7 @@ def test_covariance_matches_monte_carlo_spread():
         prob, (T_mk, _, _) = _problem(seed=0, noise=0.5, per=150)
         rng = np.random.default_rng(100 + seed)
         prob.obs_xy = prob.obs_xy + rng.normal(0, 0.5 / 800.0, prob.obs_xy.shape)
-        res = bundle_adjust(prob, BAOptions(pixel_sigma=0.5, covariance=seed == 0))
+        res = bundle_adjust(prob, BAOptions(pixel_noise=0.5, covariance=seed == 0))
         if seed == 0:
             cov = res.marker_cov
         pos.append(res.T_W_markers[:, :3, 3])
