@@ -693,6 +693,52 @@ class MapBuilder:
         return dict(self._initialize().rejected)
 
     @property
+    def last_station(self) -> Optional[int]:
+        """The station of the latest frame with detections (None before any)."""
+        return self._last_station
+
+    def station_pose(self, station: int, marker_map: MarkerMap) -> Optional[np.ndarray]:
+        """Planar ``T_map_base`` of the robot at ``station`` in ``marker_map``'s frame, or None when it
+        saw none of the map's markers: its own view of them fitted to where the map has them
+        (:meth:`_station_pose`), so it holds for a paper and a refined map alike."""
+        self._initialize()
+        groups = [g for g in self._last_groups if g.station == station and g.marker_id in marker_map]
+        if not groups:
+            return None
+        est_pos = self._station_marker_estimates(groups, lambda g: True)[station]
+        est = self._station_marker_estimates(groups, self._unambiguous).get(station, {})
+        T = self._station_pose(est_pos, est, {m: marker_map.T_map_marker(m) for m in est_pos}, list(est_pos))
+        return geo.transform_from_se2(*geo.se2_from_transform(T))
+
+    def unmapped(self, marker_map: MarkerMap) -> Dict[int, str]:
+        """Every marker detected at least once that ``marker_map`` lacks, with the reason."""
+        init = self._initialize()
+        kept = {o.marker_id for o in self._obs}
+        out: Dict[int, str] = {}
+        for m in sorted(self.seen):
+            if m in marker_map:
+                continue
+            if m in init.rejected:
+                out[m] = init.rejected[m]
+            elif m in init.unlinked:
+                out[m] = "never seen together with mapped markers: drive so that it is"
+            elif m not in kept:
+                out[m] = "every detection was dropped (see the warnings: reprojection, too far, no pose)"
+            else:
+                out[m] = "not linked to the reference marker's station"
+        return out
+
+    def format_unmapped(self, marker_map: MarkerMap, multiline: bool = False) -> str:
+        """``""`` when every detected marker is in ``marker_map``, else a loud warning with the reasons
+        (one sentence, or with ``multiline`` one indented line per marker)."""
+        missing = self.unmapped(marker_map)
+        if not missing:
+            return ""
+        sep = "\n  marker " if multiline else "; "
+        return (f"WARNING: {len(missing)} of {len(self.seen)} detected markers are NOT in the map:"
+                + ("\n  marker " if multiline else " ") + sep.join(f"{m}: {why}" for m, why in missing.items()))
+
+    @property
     def reference(self) -> Optional[int]:
         """The reference marker that the current data gives (None before any usable detection)."""
         return self._initialize().reference
@@ -718,8 +764,8 @@ class MapBuilder:
     def format_summary(self) -> str:
         s = self.summary()
         obs = ", ".join(f"{m}:{n}" for m, n in s["observations"].items() if m in s["mapped"])
-        text = (f"{len(s['mapped'])} markers mapped (reference {s['reference_marker']}) from {s['frames']} frames, "
-                f"{s['linked_stations']}/{s['stations']} stations; observations per marker {{{obs}}}")
+        text = (f"{len(s['mapped'])} markers mapped from {s['frames']} frames, {s['linked_stations']}/{s['stations']} "
+                f"stations, chained from marker {s['reference_marker']}; observations per marker {{{obs}}}")
         if s["unlinked"]:
             text += f"; seen but not linked: {s['unlinked']}"
         if s["rejected"]:

@@ -243,5 +243,10 @@ def test_misread_id_is_not_mapped_and_says_why(ring, scene):
 
     b = build()
     assert 999 in b.rejected_markers() and "misread" in b.rejected_markers()[999], b.rejected_markers()
-    assert sorted(b.build("paper").ids) == sorted(m.marker_id for m in scene.markers)
+    m = b.build("paper")
+    assert sorted(m.ids) == sorted(sm.marker_id for sm in scene.markers)
+    # What ~save_map and build-map say: loudly, with the reason.
+    assert list(b.unmapped(m)) == [999]
+    assert b.format_unmapped(m).startswith("WARNING: 1 of 11 detected markers are NOT in the map: 999: detected in")
+    assert b.format_unmapped(build(min_detection_ratio=0.0).build("paper")) == ""
     assert 999 in build(min_detection_ratio=0.0).build("paper")

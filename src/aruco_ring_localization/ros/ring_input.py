@@ -56,6 +56,8 @@ class RingSubscriber:
         self._deliver_lock = threading.Lock()  # one deliver() at a time
         self._queue: "collections.deque[Any]" = collections.deque()  # filled in call order under lock
         self._info_keys: Dict[str, tuple] = {}
+        #: camera -> ROS time its last fiducial_vertices message arrived (before waiting for the lock).
+        self.last_arrival: Dict[str, float] = {}
         self._tf_frames: Dict[str, str] = {}   # camera -> frame_id its extrinsics were looked up for
         ring = pipeline.input.calibrated_ring
         self._ring = ring
@@ -93,6 +95,15 @@ class RingSubscriber:
                 self._queue.append(out)
         self._drain()
         return out
+
+    def silent_cameras(self, silence: float) -> List[str]:
+        """Cameras from which no fiducial_vertices message arrived for ``silence`` s (or ever).
+
+        Arrival, not processing: while the pipeline is busy (a map preview) messages wait for the
+        lock, and the pipeline's own idea of silence would blame the cameras.
+        """
+        now = self.now()
+        return [c for c in self.pipeline.camera_names if now - self.last_arrival.get(c, -np.inf) > silence]
 
     def shutdown(self) -> None:
         """Stop the subscriptions and the timer."""
@@ -137,6 +148,7 @@ class RingSubscriber:
                       frame_id, 1000.0 * drift)
 
     def _on_fiducials(self, msg: FiducialArray, camera: str) -> None:
+        self.last_arrival[camera] = self.now()
         try:
             if self.use_tf:
                 self._look_up_extrinsics(camera, msg.header.frame_id)
