@@ -293,6 +293,10 @@ class RingTfConfig:
                                "in one /tf_static message; empty: the package's config/ring.yaml")
     map_file: str = param("", "a marker map: when it carries a ring_calibration (the extrinsics refined while "
                               "mapping), those are published instead of the ring file's; empty: none")
+    frustum_depth: float = param(1.0, "length of each camera's field of view drawn on ~markers (rviz)", unit="m")
+
+    def __post_init__(self) -> None:
+        require_positive(self, "frustum_depth")
 
 
 # --- comparison ----------------------------------------------------------------------------------
