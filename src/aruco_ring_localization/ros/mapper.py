@@ -130,7 +130,7 @@ class MapperNode:
                                    out.odom_frame, out.tf_mode, "mapper")
         self.tf_broadcaster = tf2_ros.TransformBroadcaster()
         self._robot_tf = None          # the TransformStamped of the robot's latest station, re-stamped
-        self._robot_pose_stamp = None  # the frame stamp it was computed for
+        self._progress_frames = -1     # frames at the previous progress line
         if out.publish_tf:
             rospy.Timer(rospy.Duration(out.tf_period), self.on_tf_timer, reset=True)
         rospy.Service("~save_map", Trigger, self.on_save_map)
@@ -158,11 +158,12 @@ class MapperNode:
             return
         with self.ring_input.lock:
             pose = self.pipeline.robot_pose(m)
-        if pose is None or pose[0] == self._robot_pose_stamp:
+        if pose is None:
             return
+        # Every publish: the same stamp may come with another map frame (the refined map's, on a save).
         ts = self.map_tf.compute(pose[1], rospy.Time.from_sec(pose[0]))
         if ts is not None:
-            self._robot_tf, self._robot_pose_stamp = ts, pose[0]
+            self._robot_tf = ts
 
     def on_tf_timer(self, _event) -> None:
         ts = self._robot_tf
@@ -190,9 +191,15 @@ class MapperNode:
     def on_progress_timer(self, _event) -> None:
         with self.ring_input.lock:
             text = "mapper: " + self.pipeline.format_summary()
-        silent = self.ring_input.silent_cameras(self.config.input.silent_after)
+            frames = self.pipeline.frames
+        silence = self.config.input.silent_after
+        silent = self.ring_input.silent_cameras(silence)
         if silent:
             text += f"; silent cameras: {silent}"
+        age = self.ring_input.input_age()
+        if frames == self._progress_frames and age > silence:   # frames added: the input is alive
+            text += "; no camera message yet" if age == float("inf") else f"; no camera message for {age:.1f} s"
+        self._progress_frames = frames
         rospy.loginfo(text)
 
     def save(self) -> str:
