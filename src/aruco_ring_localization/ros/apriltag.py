@@ -1,0 +1,182 @@
+"""AprilTag detection messages -> :class:`~aruco_ring_localization.detections.MarkerObservation`.
+
+Two message types, read by their fields only (duck-typed: no apriltag package is needed, rosbag
+and :func:`message_class` build the classes from the definitions a bag or a publisher carries):
+
+* ``apriltag_msgs/ApriltagArrayStamped`` (TagSLAM's detector, versatran01/apriltag_ros):
+  ``header``, ``apriltags[]`` with ``id`` and ``corners[4]`` (``geometry_msgs/Point``, pixels of
+  the image the detector saw). AprilTag order (counter-clockwise from the tag's bottom-left) is
+  converted to aruco_detect's (:data:`markers.APRILTAG_TO_ARUCO`).
+* ``apriltag_ros/AprilTagDetectionArray`` (AprilRobotics/apriltag_ros): ``detections[]`` with
+  ``id[]``, ``size[]`` and ``pose`` (``T_cam_tag`` from ``cv::solvePnP`` on the four corners with
+  the camera_info's pinhole intrinsics and no distortion: apriltag_ros expects rectified images).
+  It carries no corners, so the tag's four corners are *projected* from that pose through the
+  camera model given (:func:`apriltag_ros_to_observations`): with the ordinary (distorted) camera_info
+  of a monocular camera whose ``image_rect`` was detected, that gives the raw-image corners the
+  package's pipeline expects. Bundles (``len(id) > 1``) are skipped: their pose is the bundle's.
+  The tag frame of apriltag_ros (x right, y up, z out of the tag) is the package's marker frame.
+
+Both functions return ``{frame_id: [MarkerObservation]}`` (the message header's frame, without a
+leading ``/``); :func:`observations_from_message` picks the right one by ``msg._type``.
+
+:func:`read_apriltag_bag` is a small bag reader for the benchmarks and the tests; it is to be
+replaced by the package's bag source (``ros/bag_source.py``) once that registers these converters.
+"""
+from __future__ import annotations
+
+import logging
+from typing import Callable, Dict, Iterator, List, Mapping, Optional
+
+import numpy as np
+
+from .. import geometry as geo
+from ..camera import CameraModel
+from ..detections import MarkerObservation, RingFrame, RingFrameAssembler, RingInputCore
+from ..errors import ArucoRingError, ConfigError, GeometryError, MeasurementError
+from ..markers import aruco_corners_from_apriltag, marker_corners
+from ..ring import CameraRing
+
+logger = logging.getLogger(__name__)
+
+APRILTAG_MSGS_TYPE = "apriltag_msgs/ApriltagArrayStamped"
+APRILTAG_ROS_TYPE = "apriltag_ros/AprilTagDetectionArray"
+MESSAGE_TYPES = (APRILTAG_MSGS_TYPE, APRILTAG_ROS_TYPE)
+
+
+def _frame(header) -> str:
+    return str(header.frame_id).lstrip("/")
+
+
+def apriltag_msgs_to_observations(msg) -> Dict[str, List[MarkerObservation]]:
+    """``apriltag_msgs/ApriltagArrayStamped`` -> ``{frame: observations}`` (corners in aruco order).
+
+    Raises:
+        MeasurementError: a tag without 4 corners (naming the field).
+    """
+    out: List[MarkerObservation] = []
+    for i, tag in enumerate(msg.apriltags):
+        if len(tag.corners) != 4:
+            raise MeasurementError(f"apriltags[{i}].corners: expected 4 points, got {len(tag.corners)}")
+        px = np.array([[float(c.x), float(c.y)] for c in tag.corners])
+        out.append(MarkerObservation(int(tag.id), aruco_corners_from_apriltag(px)))
+    return {_frame(msg.header): out}
+
+
+def apriltag_ros_to_observations(msg, model_for: Callable[[str], Optional[CameraModel]]) -> Dict[str, List[MarkerObservation]]:
+    """``apriltag_ros/AprilTagDetectionArray`` -> ``{frame: observations}``, corners projected from the poses.
+
+    Args:
+        model_for: frame_id -> the camera model to project with (None: that camera is unknown).
+
+    Raises:
+        MeasurementError: an unusable pose or size (naming the field), or no model for the frame.
+    """
+    out: Dict[str, List[MarkerObservation]] = {}
+    skipped = 0
+    for i, det in enumerate(msg.detections):
+        if len(det.id) != 1 or len(det.size) != 1:
+            skipped += 1          # a bundle: its pose is the bundle origin's, not a tag's
+            continue
+        frame = _frame(det.pose.header) or _frame(msg.header)
+        model = model_for(frame)
+        if model is None:
+            raise MeasurementError(f"detections[{i}]: no camera model for frame '{frame}' to project the tag with")
+        size = float(det.size[0])
+        if not np.isfinite(size) or size <= 0:
+            raise MeasurementError(f"detections[{i}].size: expected a positive length, got {size!r}")
+        p, q = det.pose.pose.pose.position, det.pose.pose.pose.orientation
+        try:
+            T_cam_tag = geo.transform_from_translation_quaternion([p.x, p.y, p.z], [q.x, q.y, q.z, q.w])
+        except GeometryError as exc:
+            raise MeasurementError(f"detections[{i}].pose: {exc}") from None
+        pts = geo.transform_points(T_cam_tag, marker_corners(size))
+        if np.any(pts[:, 2] <= 0):
+            raise MeasurementError(f"detections[{i}].pose: the tag is behind the camera")
+        out.setdefault(frame, []).append(MarkerObservation(int(det.id[0]), model.project(pts)))
+    if skipped:
+        logger.debug("apriltag_ros: %d bundle detection(s) skipped", skipped)
+    if not out:
+        out[_frame(msg.header)] = []
+    return out
+
+
+def observations_from_message(msg, model_for: Optional[Callable[[str], Optional[CameraModel]]] = None
+                              ) -> Dict[str, List[MarkerObservation]]:
+    """Either message type (by ``msg._type``) -> ``{frame: observations}``.
+
+    Raises:
+        MeasurementError: an unknown message type or a bad message.
+    """
+    kind = getattr(msg, "_type", "")
+    if kind == APRILTAG_MSGS_TYPE:
+        return apriltag_msgs_to_observations(msg)
+    if kind == APRILTAG_ROS_TYPE:
+        return apriltag_ros_to_observations(msg, model_for or (lambda _frame: None))
+    raise MeasurementError(f"message type {kind!r} is not an AprilTag detection type ({', '.join(MESSAGE_TYPES)})")
+
+
+def message_class(type_name: str, definition: str):
+    """The message class of ``type_name`` built from its full definition text (as rosbag does)."""
+    import genpy.dynamic
+
+    return genpy.dynamic.generate_dynamic(type_name, definition)[type_name]
+
+
+# --- a bag reader, to be replaced by ros/bag_source.py --------------------------------------------
+
+def read_apriltag_bag(path: str, ring: CameraRing, topics: Mapping[str, str], slop: float = 0.005,
+                      remap: Optional[Callable[[int, float], int]] = None,
+                      stats: Optional[Dict[str, int]] = None) -> Iterator[RingFrame]:
+    """Ring frames from a bag of AprilTag detections (TO BE REPLACED by the bag source).
+
+    Args:
+        path: the bag.
+        ring: the ring (intrinsics for apriltag_ros projections, extrinsics as given).
+        topics: detection topic -> ring camera name.
+        slop: stamp grouping tolerance, s (synchronized rigs: a few ms).
+        remap: optional (id, stamp) -> id (TagSLAM's ``tag_id_remap``).
+        stats: filled with counts (``messages``, ``bad_messages``).
+
+    Yields:
+        :class:`RingFrame` in stamp order, grouped as the nodes group them.
+    """
+    import rosbag
+
+    stats = stats if stats is not None else {}
+    stats.update(messages=0, bad_messages=0)
+    core = RingInputCore(ring, slop=slop, timeout=1e9, camera_info_fallback=True, extrinsics_from_ring=True)
+    core.assembler = RingFrameAssembler(core.camera_names, slop=slop, timeout=max(4 * slop, 0.1))
+    by_frame = {c.frame_id: c.model for c in ring.cameras}
+    try:
+        bag = rosbag.Bag(path)
+    except (OSError, rosbag.ROSBagException) as exc:
+        raise ConfigError(f"cannot open bag ({exc})", path=path) from None
+    wanted = {("/" + t.lstrip("/")): cam for t, cam in topics.items()}
+    with bag:
+        present = set(bag.get_type_and_topic_info().topics)
+        missing = [t for t in wanted if t not in present and t.lstrip("/") not in present]
+        if len(missing) == len(wanted):
+            raise ConfigError(f"none of the topics {sorted(wanted)} is in the bag", path=path)
+        read = [t for t in present if ("/" + t.lstrip("/")) in wanted]
+        for topic, msg, t in bag.read_messages(topics=read):
+            cam = wanted["/" + topic.lstrip("/")]
+            stats["messages"] += 1
+            stamp = float(msg.header.stamp.secs) + 1e-9 * float(msg.header.stamp.nsecs)
+            model = ring[cam].model
+            try:
+                per_frame = observations_from_message(msg, lambda f: by_frame.get(f, model))
+            except ArucoRingError as exc:
+                stats["bad_messages"] += 1
+                logger.warning("%s at %.3f: %s", topic, stamp, exc)
+                continue
+            obs = [o for v in per_frame.values() for o in v]
+            if remap is not None:
+                obs = [MarkerObservation(remap(o.marker_id, stamp), o.corners) for o in obs]
+            frames, _, _ = core.add_detections(cam, stamp, obs, t.to_sec())
+            yield from frames
+    yield from core.poll(float("inf"))
+
+
+def topics_for_ring(ring: CameraRing, suffix: str = "tags") -> Dict[str, str]:
+    """``/<ns>/<suffix>`` -> camera name for every ring camera."""
+    return {"/" + "/".join(p for p in (c.namespace.strip("/"), suffix) if p): c.name for c in ring.cameras}
