@@ -550,7 +550,7 @@ class MapBuilder:
         # the ring extrinsics are refined once enough stations are linked, and the latest
         # stations are adjusted together every few stations (a sliding window).
         windowed = len(est_pos) > opts.init_window_stations
-        calibrated = not (windowed and opts.ba.refine_extrinsics)
+        calibrated = not (windowed and self._refines_extrinsics)
         next_calibration = opts.init_calibrate_after
         calib0 = {g.camera: g.T_base_cam for g in groups}
         order = [ref_st]
@@ -1020,7 +1020,7 @@ class MapBuilder:
                        "station_model": "planar" if init.planar else "se3"}
         if init.station_note and not init.planar:
             out.quality["station_note"] = init.station_note
-        if res is not None and self.options.ba.refine_extrinsics:
+        if res is not None and self._refines_extrinsics:
             # The markers were estimated through these extrinsics: localizing with them removes the
             # ring's calibration error from every pose (ring_tf publishes them given the map file).
             out.ring_extrinsics = {c: res.T_base_cams[k] for k, c in enumerate(self.ring.names)}
@@ -1122,6 +1122,41 @@ class MapBuilder:
 
     def _refine(self, init: _Init) -> Tuple[BAResult, List[int]]:
         mids = sorted(init.T_W_markers)
-        res = bundle_adjust(self._problem(init, mids), self.options.ba)
+        opts = self.options.ba
+        if opts.refine_extrinsics and not self._refines_extrinsics:
+            opts = dataclasses.replace(opts, refine_extrinsics=False)
+        res = bundle_adjust(self._problem(init, mids), opts)
+        if opts.refine_extrinsics:
+            self._remove_common_extrinsics_motion(res)
         self.last_ba = res
         return res, mids
+
+    @property
+    def _refines_extrinsics(self) -> bool:
+        """``ba.refine_extrinsics``, for a ring of two cameras or more: only the cameras' poses
+        relative to each other are observable, a single camera's extrinsics are not at all."""
+        return bool(self.options.ba.refine_extrinsics) and len(self.ring) > 1
+
+    def _remove_common_extrinsics_motion(self, res: BAResult) -> None:
+        """Take out of the refined extrinsics the motion common to all cameras (in place).
+
+        Moving every camera by the same ``D`` in the base frame while the world moves by ``D`` too
+        (markers ``D T_W_m``, stations ``D T_W_s D^-1``; the reference station stays the identity)
+        changes no projection: only the extrinsics *relative to each other* are observable, the
+        common part is the priors' pull alone, where the solver stops short (a single camera
+        "moved" 5 mm, pure gauge, and the localizer then shifted every pose by it). Choosing ``D``
+        so that the cameras' mean motion from the calibration is zero keeps the base frame the
+        calibration's; the map relative to its reference marker is unchanged.
+        """
+        calib = [self.ring[c].T_base_cam for c in self.ring.names]
+        motions = [res.T_base_cams[k] @ geo.inverse(E) for k, E in enumerate(calib)]
+        D = geo.inverse(geo.average_transforms(motions))
+        D_inv = geo.inverse(D)
+        res.T_base_cams[:] = D @ res.T_base_cams
+        res.T_W_markers[:] = D @ res.T_W_markers
+        res.T_W_stations[:] = D @ res.T_W_stations @ D_inv
+        if res.marker_cov is not None:
+            # Covariances (w, t) in W: rotated with W (D's translation does not change them).
+            R = np.zeros((6, 6))
+            R[:3, :3] = R[3:, 3:] = D[:3, :3]
+            res.marker_cov[:] = R @ res.marker_cov @ R.T
