@@ -25,7 +25,7 @@ import numpy as np
 from .. import geometry as geo
 from ..camera import load_yaml_file
 from ..errors import ConfigError
-from ..markers import MarkerSizes
+from ..markers import MarkerSizes, parse_size_overrides
 
 logger = logging.getLogger(__name__)
 
@@ -192,3 +192,12 @@ def read_tagslam_tags(path: str, rig_bodies: Tuple[str, ...] = ()) -> TagslamTag
                           key="default_body")
     out.default_size = default_size
     return out
+
+
+def marker_sizes_from(fiducial_len: float, fiducial_len_override: str = "", tagslam_file: str = "") -> MarkerSizes:
+    """Marker sides from aruco_detect's parameters, or a ``tagslam.yaml`` (its sizes, then the
+    ``fiducial_len_override`` entries on top; ``fiducial_len`` is the default only without a file)."""
+    if not tagslam_file:
+        return MarkerSizes.parse(fiducial_len, fiducial_len_override)
+    base = read_tagslam_tags(tagslam_file).marker_sizes()
+    return MarkerSizes(base.default, {**base.overrides, **parse_size_overrides(fiducial_len_override)})

@@ -115,11 +115,17 @@ def observations_from_message(msg, model_for: Optional[Callable[[str], Optional[
     raise MeasurementError(f"message type {kind!r} is not an AprilTag detection type ({', '.join(MESSAGE_TYPES)})")
 
 
-def message_class(type_name: str, definition: str):
-    """The message class of ``type_name`` built from its full definition text (as rosbag does)."""
+def message_classes(type_name: str, definition: str) -> Dict[str, type]:
+    """Every message class of a full definition text (``type_name`` and the types it embeds),
+    built as rosbag builds them: no package of that type needs to be installed."""
     import genpy.dynamic
 
-    return genpy.dynamic.generate_dynamic(type_name, definition)[type_name]
+    return genpy.dynamic.generate_dynamic(type_name, definition)
+
+
+def message_class(type_name: str, definition: str):
+    """The message class of ``type_name`` built from its full definition text (:func:`message_classes`)."""
+    return message_classes(type_name, definition)[type_name]
 
 
 # --- a bag reader, to be replaced by ros/bag_source.py --------------------------------------------
