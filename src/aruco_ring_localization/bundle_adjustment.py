@@ -17,8 +17,10 @@ local lens scale keeps a fisheye's border corners weighted as what they are.
 
 Each pose is a perturbation of its initial value, ``R = exp(w) R0``, ``t = t0 + dt`` (w in the
 parent frame), so the parameters stay near zero. The Jacobian is analytic (left Jacobian of
-SO(3) included) and sparse; the solver is :func:`scipy.optimize.least_squares` (``trf``, ``lsmr``
-on the sparse Jacobian, ``x_scale='jac'``, a robust loss).
+SO(3) included) and sparse; the solver is Levenberg-Marquardt on the sparse normal equations with
+a direct sparse solve and the robust loss by reweighting (``solver: lm``, :func:`_solve_lm`), or
+:func:`scipy.optimize.least_squares` (``solver: trf``: ``lsmr`` on the sparse Jacobian,
+``x_scale='jac'``, a robust loss).
 
 Uncertainty: the Gauss–Newton information ``H = JᵀJ`` at the solution (with the robust loss's
 weights), scaled by the residual variance factor. Markers only touch stations and cameras, so
@@ -103,10 +105,15 @@ class BAOptions:
     lsmr_tol: float = param(1e-10, "LSMR's atol/btol for the sparse trust-region steps (looser is faster per "
                                    "iteration, enough for quick adjustments of an initialisation)")
     covariance: bool = param(True, "compute per-marker covariances")
+    solver: str = param("lm", "lm = Levenberg-Marquardt on the sparse normal equations (direct sparse solve, "
+                              "robust loss by iterative reweighting); trf = scipy's trust region with LSMR steps "
+                              "(slow to converge on long, weakly coupled problems)")
 
     def __post_init__(self) -> None:
         if self.loss not in ("huber", "soft_l1", "cauchy", "linear", "arctan"):
             raise ConfigError(f"expected huber, soft_l1, cauchy, arctan or linear, got {self.loss!r}", key="loss")
+        if self.solver not in ("lm", "trf"):
+            raise ConfigError(f"expected lm or trf, got {self.solver!r}", key="solver")
         for name in ("pixel_sigma", "robust_scale", "extrinsics_trans_sigma", "extrinsics_rot_sigma"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"must be positive, got {getattr(self, name)!r}", key=name)
@@ -350,12 +357,12 @@ class _Model:
     def _forward(self, x: np.ndarray):
         (wm, Rm, tm), (ws, Rs, ts, Es), (wc, Rc, tc, Ec) = self.poses(x)
         im, is_, ic = self.p.obs_marker, self.p.obs_station, self.p.obs_camera
-        a = np.einsum("nij,nkj->nki", Rm[im], self.X)                # R_m X, (N, 4, 3)
+        a = self.X @ np.transpose(Rm[im], (0, 2, 1))                 # R_m X, (N, 4, 3)
         pW = a + tm[im][:, None, :]
         q = pW - ts[is_][:, None, :]                                  # p_W - t_s
-        pb = np.einsum("nji,nkj->nki", Rs[is_], q)                    # R_s^T q
+        pb = q @ Rs[is_]                                              # R_s^T q
         q2 = pb - tc[ic][:, None, :]
-        pc = np.einsum("nji,nkj->nki", Rc[ic], q2)                    # R_c^T q2
+        pc = q2 @ Rc[ic]                                              # R_c^T q2
         return (wm, Rm, tm), (ws, Rs, ts, Es), (wc, Rc, tc, Ec), a, q, q2, pc
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
@@ -363,7 +370,7 @@ class _Model:
         z = pc[..., 2]
         z = np.where(np.abs(z) < 1e-9, 1e-9, z)
         proj = pc[..., :2] / z[..., None]
-        r = np.einsum("nkab,nkb->nka", self.A, proj - self.p.obs_xy)
+        r = (self.A @ (proj - self.p.obs_xy)[..., None])[..., 0]
         out = r.ravel()
         if self.n_prior_res:
             prior = x[self._prior_cols].reshape(self.C, 6).copy()
@@ -383,38 +390,143 @@ class _Model:
         D[..., 1, 1] = 1.0 / z
         D[..., 0, 2] = -pc[..., 0] / z ** 2
         D[..., 1, 2] = -pc[..., 1] / z ** 2
-        D = np.einsum("nkab,nkbc->nkac", self.A, D)
+        D = self.A @ D
         RcT = np.transpose(Rc[ic], (0, 2, 1))                         # (N, 3, 3)
         RsT = np.transpose(Rs[is_], (0, 2, 1))
-        DRc = np.einsum("nkij,njl->nkil", D, RcT)                     # d r / d p_b, (N, 4, 2, 3)
-        DRcRs = np.einsum("nkij,njl->nkil", DRc, RsT)                 # d r / d p_W
+        DRc = D @ RcT[:, None]                                        # d r / d p_b, (N, 4, 2, 3)
+        DRcRs = DRc @ RsT[:, None]                                    # d r / d p_W
         data = []
         # Marker: dp_W/dw = -[R_m X]x J_l(w_m), dp_W/dt = I.
         Jl_m = _left_jacobian(wm)[im]                                 # (N, 3, 3)
-        dpw_dw = -np.einsum("nkij,njl->nkil", _skew(a), Jl_m)         # (N, 4, 3, 3)
-        jm = np.concatenate([np.einsum("nkij,nkjl->nkil", DRcRs, dpw_dw), DRcRs], axis=-1)
+        dpw_dw = -(_skew(a) @ Jl_m[:, None])                          # (N, 4, 3, 3)
+        jm = np.concatenate([DRcRs @ dpw_dw, DRcRs], axis=-1)
         data.append(jm[self._blk_masks[0]])
         # Station: dp_b/dv = R_s0^T [exp(-v) q]x J_l(-v), dp_b/dt_s = -R_s^T.
         Einv = np.transpose(Es, (0, 2, 1))[is_]                        # exp(-v)
         Jl_s = _left_jacobian(-ws)[is_]
-        u = np.einsum("nij,nkj->nki", Einv, q)
+        u = q @ np.transpose(Einv, (0, 2, 1))
         R0T = np.transpose(self.R_s0[is_], (0, 2, 1))
-        dpb_dv = np.einsum("nij,nkjl->nkil", R0T, np.einsum("nkij,njl->nkil", _skew(u), Jl_s))
-        js = np.concatenate([np.einsum("nkij,nkjl->nkil", DRc, dpb_dv), -DRcRs], axis=-1)
+        dpb_dv = R0T[:, None] @ (_skew(u) @ Jl_s[:, None])
+        js = np.concatenate([DRc @ dpb_dv, -DRcRs], axis=-1)
         data.append(js[self._blk_masks[1]])
         if self.o.refine_extrinsics:
             Einv_c = np.transpose(Ec, (0, 2, 1))[ic]
             Jl_c = _left_jacobian(-wc)[ic]
-            u2 = np.einsum("nij,nkj->nki", Einv_c, q2)
+            u2 = q2 @ np.transpose(Einv_c, (0, 2, 1))
             Rc0T = np.transpose(self.R_c0[ic], (0, 2, 1))
-            dpc_de = np.einsum("nij,nkjl->nkil", Rc0T, np.einsum("nkij,njl->nkil", _skew(u2), Jl_c))
-            jc = np.concatenate([np.einsum("nkij,nkjl->nkil", D, dpc_de), -DRc], axis=-1)
+            dpc_de = Rc0T[:, None] @ (_skew(u2) @ Jl_c[:, None])
+            jc = np.concatenate([D @ dpc_de, -DRc], axis=-1)
             data.append(jc[self._blk_masks[2]])
         if self.n_prior_res:
             pd = np.tile(np.r_[np.full(3, 1.0 / self.o.extrinsics_rot_sigma),
                                np.full(3, 1.0 / self.o.extrinsics_trans_sigma)], self.C)
             data.append(pd)
         return sp.csr_matrix((np.concatenate(data), (self.rows, self.cols)), shape=(self.n_res, self.n_params))
+
+
+def _loss_weights(z: np.ndarray, loss: str) -> np.ndarray:
+    """IRLS weights rho'(z) of scipy's robust losses at z = (r / f_scale)^2."""
+    if loss == "huber":
+        return np.where(z <= 1.0, 1.0, 1.0 / np.sqrt(np.maximum(z, 1.0)))
+    if loss == "soft_l1":
+        return 1.0 / np.sqrt(1.0 + z)
+    if loss == "cauchy":
+        return 1.0 / (1.0 + z)
+    if loss == "arctan":
+        return 1.0 / (1.0 + z * z)
+    return np.ones_like(z)
+
+
+def _loss_cost(z: np.ndarray, loss: str) -> float:
+    """sum rho(z) of scipy's robust losses (the cost is 0.5 f_scale^2 times it)."""
+    if loss == "huber":
+        return float(np.sum(np.where(z <= 1.0, z, 2.0 * np.sqrt(np.maximum(z, 1.0)) - 1.0)))
+    if loss == "soft_l1":
+        return float(np.sum(2.0 * (np.sqrt(1.0 + z) - 1.0)))
+    if loss == "cauchy":
+        return float(np.sum(np.log1p(z)))
+    if loss == "arctan":
+        return float(np.sum(np.arctan(z)))
+    return float(np.sum(z))
+
+
+class _LMResult:
+    def __init__(self, x, nfev, message, jac):
+        self.x, self.nfev, self.message, self.jac = x, nfev, message, jac
+
+
+def _solve_lm(model: _Model, x0: np.ndarray, f_scale: float, opts: BAOptions, max_nfev: int) -> _LMResult:
+    """Levenberg-Marquardt on the sparse normal equations, robust loss by reweighting.
+
+    Each iteration: the Jacobian at ``x``, weights ``rho'((r/f_scale)^2)`` on the corner residuals
+    (the priors stay quadratic), ``(H + lambda diag(H)) dx = -g`` solved directly (SuperLU on the
+    sparse ``H = J^T W J``: markers, stations and cameras couple sparsely, so the factorisation is
+    cheap where LSMR's unpreconditioned iterations crawl along the long, weakly constrained
+    directions of a chain of stations). A step is kept when the robust cost decreases.
+    Stops on ``ftol`` (relative cost decrease), ``xtol`` (step), ``gtol`` (gradient) or ``max_nfev``.
+    """
+    from scipy.sparse.linalg import splu
+
+    n_obs = model.n_obs_res
+    s2 = f_scale * f_scale
+
+    def cost_of(r: np.ndarray) -> float:
+        return 0.5 * s2 * _loss_cost(r[:n_obs] ** 2 / s2, opts.loss) + 0.5 * float(r[n_obs:] @ r[n_obs:])
+
+    x = x0.copy()
+    r = model.residuals(x)
+    cost = cost_of(r)
+    nfev = 1
+    lam = 1e-4
+    message = "the maximum number of function evaluations is exceeded"
+    Jw = None
+    while nfev < max_nfev:
+        J = model.jacobian(x)
+        w = np.ones_like(r)
+        w[:n_obs] = _loss_weights(r[:n_obs] ** 2 / s2, opts.loss)
+        sw = np.sqrt(w)
+        Jw = sp.diags(sw) @ J
+        g = Jw.T @ (sw * r)
+        if float(np.max(np.abs(g))) <= opts.gtol * max(1.0, cost):
+            message = "`gtol` termination condition is satisfied"
+            break
+        H = (Jw.T @ Jw).tocsc()
+        d = np.maximum(H.diagonal(), 1e-12)
+        accepted = False
+        while nfev < max_nfev:
+            try:
+                dx = splu((H + sp.diags(lam * d)).tocsc()).solve(-g)
+            except RuntimeError:        # singular: damp harder
+                lam *= 10.0
+                continue
+            x_new = x + dx
+            r_new = model.residuals(x_new)
+            nfev += 1
+            cost_new = cost_of(r_new)
+            if np.isfinite(cost_new) and cost_new < cost:
+                accepted = True
+                break
+            lam *= 4.0
+            if lam > 1e10:
+                break
+        if not accepted:
+            message = "no step decreases the cost further"
+            break
+        decrease = cost - cost_new
+        small_step = float(np.linalg.norm(dx)) <= opts.xtol * (opts.xtol + float(np.linalg.norm(x_new)))
+        x, r, cost = x_new, r_new, cost_new
+        lam = max(lam / 3.0, 1e-10)
+        if decrease <= opts.ftol * cost:
+            message = "`ftol` termination condition is satisfied"
+            break
+        if small_step:
+            message = "`xtol` termination condition is satisfied"
+            break
+    # The Jacobian returned is the reweighted one at the solution (the covariance uses it).
+    J = model.jacobian(x)
+    w = np.ones_like(r)
+    w[:n_obs] = _loss_weights(r[:n_obs] ** 2 / s2, opts.loss)
+    return _LMResult(x, nfev, message, sp.diags(np.sqrt(w)) @ J)
 
 
 def _marker_covariances(model: _Model, J: sp.csr_matrix, variance_factor: float) -> np.ndarray:
@@ -486,6 +598,8 @@ def _bundle_adjust(prob: BAProblem, opts: Optional[BAOptions] = None) -> BAResul
         jac = model.jacobian if tr_solver == "lsmr" else (lambda x: model.jacobian(x).toarray())
 
         def solve(x_start: np.ndarray, f_scale: float, max_nfev: int):
+            if opts.solver == "lm":
+                return _solve_lm(model, x_start, f_scale, opts, max_nfev)
             return least_squares(model.residuals, x_start, jac=jac, method="trf", loss=opts.loss,
                                  f_scale=f_scale, x_scale="jac", tr_solver=tr_solver,
                                  tr_options={"atol": opts.lsmr_tol, "btol": opts.lsmr_tol} if tr_solver == "lsmr" else {},

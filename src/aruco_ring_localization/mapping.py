@@ -549,7 +549,9 @@ class MapBuilder:
         # the ring turns a 40 m hall by degrees), so the growth is interleaved with adjustments:
         # the ring extrinsics are refined once enough stations are linked, and the latest
         # stations are adjusted together every few stations (a sliding window).
-        windowed = len(est_pos) > opts.init_window_stations
+        # Not for a rig that keeps seeing the same markers from stations far apart in time (moving
+        # about a room): there the alternating re-averaging below is enough, and windows are costly.
+        windowed = len(est_pos) > opts.init_window_stations and not self._revisits(est_pos, sorted(est_pos))
         calibrated = not (windowed and self._refines_extrinsics)
         next_calibration = opts.init_calibrate_after
         calib0 = {g.camera: g.T_base_cam for g in groups}
@@ -593,8 +595,8 @@ class MapBuilder:
         if not windowed or self._revisits(est_pos, order):
             # Alternating re-averaging (no-op with one station): markers over stations, stations
             # over markers. After a windowed growth too when stations far apart in the growth
-            # order see the same markers (a rig moving about a room, not along a hall): the
-            # window adjustments moved markers that earlier stations, outside the window, see.
+            # order see the same markers (a hall driven twice): the window adjustments moved
+            # markers that earlier stations, outside the window, see.
             if len(T_W_s) > 1:
                 for _ in range(opts.refine_passes):
                     T_W_m = self._average_markers(est, T_W_s, T_W_m)
@@ -631,8 +633,8 @@ class MapBuilder:
                      planar, note)
 
     def _revisits(self, est_pos, order: List[int]) -> bool:
-        """Whether some marker is seen from stations more than two windows apart in the growth
-        order (then the windowed initialisation leaves the earlier stations inconsistent)."""
+        """Whether some marker is seen from stations more than two windows apart in ``order``
+        (time, or the growth order): not a chain of stations along a hall."""
         w = self.options.init_window_stations
         rank = {s: k for k, s in enumerate(order)}
         first: Dict[int, int] = {}
