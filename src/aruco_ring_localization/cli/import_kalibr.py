@@ -41,8 +41,9 @@ def run(args: argparse.Namespace) -> int:
         out.write(f"  {c.name}: pose from {c.pose_source}, topics under /{c.namespace}\n")
     out.write("\n".join(ring_summary(ring)) + "\n")
     out.write(f"base frame '{ring.base_frame}' = {rig.base_definition}. This is the rig's frame, not a ground "
-              f"robot's base_link with z up: map with the planar prior off and frame 'marker' unless the rig "
-              f"is mounted level (docs/real_robot.md).\n")
+              f"robot's base_link with z up: map with frame 'marker' (the mapper drops its planar prior by "
+              f"itself when the rig tilts), or put the rig's mounting into the extrinsics (docs/real_robot.md, "
+              f"section 8).\n")
     for note in rig.notes:
         out.write(f"note: {note}\n")
     out.write("wrote " + ", ".join(files) + "\n")
