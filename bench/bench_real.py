@@ -23,6 +23,7 @@ For every recording the package can handle (the others are listed with the reaso
 """
 from __future__ import annotations
 
+import json
 import os
 import sys
 import time
@@ -32,19 +33,18 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
-import yaml  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 sys.path.insert(0, os.path.join(ROOT, "src"))
 sys.path.insert(0, HERE)
 
-from tagslam_reference import DATA, cached_bag, load_reference  # noqa: E402
+from tagslam_reference import DATA, cached_bag, load_test, write_camera_poses  # noqa: E402
 
 from aruco_ring_localization import geometry as geo  # noqa: E402
 from aruco_ring_localization.errors import ArucoRingError  # noqa: E402
 from aruco_ring_localization.evaluation import map_error  # noqa: E402
-from aruco_ring_localization.importers import read_rig, read_tagslam_tags, write_ring_files  # noqa: E402
+from aruco_ring_localization.importers import read_rig, write_ring_files  # noqa: E402
 from aruco_ring_localization.localization import LocalizationParams, RingLocalizer  # noqa: E402
 from aruco_ring_localization.mapping import MapBuilder, MappingOptions  # noqa: E402
 from aruco_ring_localization.marker_map import MarkerEntry, MarkerMap  # noqa: E402
@@ -132,26 +132,12 @@ def _localize(ring, marker_map, frames, T_ref_map: np.ndarray):
     return per_frame, filtered, t1 - t0, _cpu() - t1
 
 
-def _camera_poses_file(ref, directory: str) -> str:
-    poses = {}
-    for cam, T in sorted(ref.cameras.items()):
-        r, t = geo.rvec_tvec_from_transform(T)
-        poses[cam] = {"pose": {"position": dict(zip("xyz", map(float, t))), "rotation": dict(zip("xyz", map(float, r)))}}
-    path = os.path.join(directory, "camera_poses_tagslam.yaml")
-    with open(path, "w", encoding="utf-8") as fh:
-        yaml.safe_dump(poses, fh)
-    return path
-
-
 def run_one(test: str, max_frames: int = 0) -> Dict[str, float]:
-    src = os.path.join(DATA, test)
     out_dir = os.path.join(OUT, test)
     os.makedirs(out_dir, exist_ok=True)
-    cams = yaml.safe_load(open(os.path.join(src, "cameras.yaml"), encoding="utf-8"))
-    rig_body = next(iter(cams.values())).get("rig_body", "rig")
-    tags = read_tagslam_tags(os.path.join(src, "tagslam.yaml"), rig_bodies=(rig_body,))
-    ref = load_reference(cached_bag(test, "reference"), rig_body, tags.static_bodies)
-    rig = read_rig(os.path.join(src, "cameras.yaml"), camera_poses=_camera_poses_file(ref, out_dir), base_frame=rig_body)
+    src, rig_body, tags, ref = load_test(test)
+    rig = read_rig(os.path.join(src, "cameras.yaml"), base_frame=rig_body,
+                   camera_poses=write_camera_poses(ref, os.path.join(out_dir, "camera_poses_tagslam.yaml")))
     ring = rig.ring()
     write_ring_files(ring, os.path.join(out_dir, "ring.yaml"))
     topics = {c.topic: c.name for c in rig.cameras}
@@ -247,6 +233,9 @@ def run(quick: bool = False) -> dict:
             continue
         sys.stderr.write(f"[bench real] {t} done in {time.perf_counter() - t0:.0f} s: "
                          f"map {rows[t].get('map_rms_mm', float('nan')):.2f} mm, missing {rows[t]['tags_missing']}\n")
+    os.makedirs(OUT, exist_ok=True)
+    with open(os.path.join(OUT, "rows.json"), "w", encoding="utf-8") as fh:
+        json.dump({"rows": rows, "failed": failed}, fh, indent=1, default=float)
     results: Dict[str, float] = {}
     for t, r in rows.items():
         results[f"real_{t}_map_rms_mm"] = r["map_rms_mm"]
@@ -301,7 +290,6 @@ def run(quick: bool = False) -> dict:
 
 if __name__ == "__main__":
     import argparse
-    import json
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true")

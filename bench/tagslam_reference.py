@@ -129,6 +129,37 @@ def read_tum_poses(path: str):
     return rows[:, 0], poses
 
 
+def load_test(test: str):
+    """(source directory, rig body name, :class:`importers.TagslamTags`, :class:`Reference`) of ``test``."""
+    import yaml
+
+    from aruco_ring_localization.importers import read_tagslam_tags
+
+    src = os.path.join(DATA, test)
+    with open(os.path.join(src, "cameras.yaml"), encoding="utf-8") as fh:
+        cams = yaml.safe_load(fh)
+    rig_body = next(iter(cams.values())).get("rig_body", "rig")
+    tags = read_tagslam_tags(os.path.join(src, "tagslam.yaml"), rig_bodies=(rig_body,))
+    return src, rig_body, tags, load_reference(cached_bag(test, "reference"), rig_body, tags.static_bodies)
+
+
+def write_camera_poses(ref: Reference, path: str, header: str = "") -> str:
+    """TagSLAM's camera poses of ``ref`` as a TagSLAM ``camera_poses.yaml`` (what the importer reads)."""
+    import yaml
+
+    from aruco_ring_localization import geometry as geo
+
+    poses = {}
+    for cam, T in sorted(ref.cameras.items()):
+        r, t = geo.rvec_tvec_from_transform(T)
+        poses[cam] = {"pose": {"position": dict(zip("xyz", map(float, t))), "rotation": dict(zip("xyz", map(float, r)))}}
+    with open(path, "w", encoding="utf-8") as fh:
+        if header:
+            fh.write(f"# {header}\n")
+        yaml.safe_dump(poses, fh, sort_keys=True)
+    return path
+
+
 def export_test_data(test: str, out_dir: str, every: int = 1, max_frames: int = 0) -> List[str]:
     """Copy what a unit test needs of ``test`` into ``out_dir`` (small, self-contained).
 
@@ -140,27 +171,18 @@ def export_test_data(test: str, out_dir: str, every: int = 1, max_frames: int = 
     import rosbag
     import yaml
 
-    from aruco_ring_localization import geometry as geo
-    from aruco_ring_localization.importers import read_tagslam_tags
     from aruco_ring_localization.marker_map import MarkerEntry, MarkerMap
 
-    src = os.path.join(DATA, test)
+    src, _, tags, ref = load_test(test)
     os.makedirs(out_dir, exist_ok=True)
-    cams = yaml.safe_load(open(os.path.join(src, "cameras.yaml"), encoding="utf-8"))
-    rig_body = next(iter(cams.values())).get("rig_body", "rig")
-    tags = read_tagslam_tags(os.path.join(src, "tagslam.yaml"), rig_bodies=(rig_body,))
-    ref = load_reference(cached_bag(test, "reference"), rig_body, tags.static_bodies)
+    with open(os.path.join(src, "cameras.yaml"), encoding="utf-8") as fh:
+        cams = yaml.safe_load(fh)
     written = []
     for name in ("cameras.yaml", "tagslam.yaml"):
         shutil.copyfile(os.path.join(src, name), os.path.join(out_dir, name))
         written.append(name)
-    poses = {}
-    for cam, T in sorted(ref.cameras.items()):
-        r, t = geo.rvec_tvec_from_transform(T)
-        poses[cam] = {"pose": {"position": dict(zip("xyz", map(float, t))), "rotation": dict(zip("xyz", map(float, r)))}}
-    with open(os.path.join(out_dir, "camera_poses.yaml"), "w", encoding="utf-8") as fh:
-        fh.write(f"# TagSLAM's optimized camera poses of {test} (reference.bag, rig -> camK)\n")
-        yaml.safe_dump(poses, fh, sort_keys=True)
+    write_camera_poses(ref, os.path.join(out_dir, "camera_poses.yaml"),
+                       f"TagSLAM's optimized camera poses of {test} (reference.bag, rig -> camK)")
     sizes = tags.marker_sizes()
     m = MarkerMap([MarkerEntry(i, T, sizes(i)) for i, T in sorted(ref.tags.items())], frame_id="map",
                   method=f"TagSLAM ({test} reference.bag)", frame_definition="TagSLAM's map frame")

@@ -283,6 +283,22 @@ def marker_pose_candidates(corners_px: np.ndarray, size: float, model: CameraMod
     return [geo.make_transform(R, t) for _, R, t in keep], errors, float(amb)
 
 
+def _robust_fit(fit, P: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """``fit(keep)`` (a transform from the markers flagged in ``keep``), refitted without the
+    markers whose centre ``P`` (station frame) lands farther than max(5 cm, 4 x the median) from
+    its mapped centre ``Q``: a bad link (a wrong size, a moved marker, a flipped pose)."""
+    keep = np.ones(len(P), dtype=bool)
+    for _ in range(3):
+        T = fit(keep)
+        res = np.linalg.norm(geo.transform_points(T, P) - Q, axis=1)
+        lim = max(0.05, 4.0 * float(np.median(res[keep])))
+        new = res <= lim
+        if keep.sum() < 3 or np.array_equal(new, keep) or new.sum() < 2:
+            break
+        keep = new
+    return T
+
+
 def heading_std(T_W_marker: np.ndarray, cov6: np.ndarray) -> float:
     """Standard deviation (rad) of a marker's heading: its x axis made horizontal, about W's z.
 
@@ -760,18 +776,9 @@ class MapBuilder:
             w.extend([wc] * 4)
             owner.extend([k] * 4)
         P, Q, w, owner = np.array(P), np.array(Q), np.array(w), np.array(owner)
-        keep = np.ones(len(mids), dtype=bool)
         centre = np.array([np.flatnonzero(owner == k)[0] for k in range(len(mids))])
-        for _ in range(3):
-            sel = keep[owner]
-            T = geo.rigid_fit(P[sel], Q[sel], w[sel])
-            res = np.linalg.norm(geo.transform_points(T, P[centre]) - Q[centre], axis=1)
-            lim = max(0.05, 4.0 * float(np.median(res[keep])))
-            new = res <= lim
-            if keep.sum() < 3 or np.array_equal(new, keep) or new.sum() < 2:
-                break
-            keep = new
-        return T
+        return _robust_fit(lambda keep: geo.rigid_fit(P[keep[owner]], Q[keep[owner]], w[keep[owner]]),
+                           P[centre], Q[centre])
 
     @staticmethod
     def _planar_station_pose(est_pos_s, est_s, T_W_m, mids) -> np.ndarray:
@@ -791,18 +798,7 @@ class MapBuilder:
             src = est_s if all(m in est_s for m in full) else est_pos_s
             Ts = [T_W_m[m] @ geo.inverse(src[m][0]) for m in full]
             return geo.average_transforms(Ts, [src[m][1] for m in full]) if len(Ts) > 1 else Ts[0]
-        keep = np.ones(len(mids), dtype=bool)
-        for _ in range(3):
-            T = MapBuilder._planar_fit(P[keep], Q[keep], w[keep])
-            # Robust: a marker whose mapped position disagrees with the others (a bad link: a
-            # wrong size, a moved marker, a flipped pose) is left out and the fit redone.
-            res = np.linalg.norm(geo.transform_points(T, P) - Q, axis=1)
-            lim = max(0.05, 4.0 * float(np.median(res[keep])))
-            new = res <= lim
-            if keep.sum() < 3 or np.array_equal(new, keep) or new.sum() < 2:
-                break
-            keep = new
-        return T
+        return _robust_fit(lambda keep: MapBuilder._planar_fit(P[keep], Q[keep], w[keep]), P, Q)
 
     @staticmethod
     def _planar_fit(P: np.ndarray, Q: np.ndarray, w: np.ndarray) -> np.ndarray:
