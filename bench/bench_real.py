@@ -255,6 +255,14 @@ def run(quick: bool = False) -> dict:
              "poses as the reference (a peer system's answer, not ground truth). Method: bench/bench_real.py's "
              "docstring. Targets: every tag TagSLAM maps is mapped; map RMS <= 3 mm; localization on TagSLAM's map "
              "with TagSLAM's extrinsics median <= 1.5 mm; no frame > 10 deg off in the filtered output.",
+             "", "Localization columns: *per frame* = the estimator alone on each ring frame (joint fusion, no "
+             "prediction), 6-DOF errors against TagSLAM's rig pose at the same stamp; *filtered* = the tracker "
+             "(gate + the planar Kalman filter of a ground robot: x, y, yaw of the pose in the map frame, compared "
+             "with the same projection of TagSLAM's pose); *flips* = filtered frames more than 10 deg off in yaw. "
+             "The planar filter is the robot's; for handheld and 6-DOF rigs (most of these recordings) it is not "
+             "the right model, which its errors show. Map columns: after the SE(3) fit of our map onto TagSLAM's "
+             "tags over the 4 corners of every common tag; *loc on our map*: our map and refined extrinsics, our "
+             "poses expressed in TagSLAM's frame through that same fit (nothing fitted to the trajectory).",
              "", f"Load average at the start {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f} (2 cores shared). "
              + ("`--quick`: 4 recordings, at most 600 frames each." if quick else ""), "",
              "| test | cams | frames | stations | map RMS / max mm | rot med / max deg | tags missing | "
