@@ -20,21 +20,28 @@ base_link z = 0, x along the reference marker's x made horizontal).
 * Ambiguity: a detection whose IPPE ambiguity ratio (best/second reprojection error) exceeds
   ``max_ambiguity`` is not used to initialise poses (a flipped pose would corrupt the average).
   A marker seen *only* ambiguously is resolved by consensus across different viewpoints (the
-  candidate pose that other views agree with); when nothing agrees it is reported, not mapped.
-* Multi-station: frames are grouped into *stations* (robot placements). A station is given by
-  the caller, or detected automatically: a frame whose detections moved less than ``still_px``
-  from the previous frame's belongs to the same station. Stations enter the map greedily, most
-  co-visible mapped markers first; each station's pose is the weighted average of what its
-  mapped markers imply, and its new markers are chained from it. Markers never seen together
-  with the mapped set (at the same instant, through any camera) are :meth:`unlinked_markers`.
-  A few alternating passes then re-average markers over all stations and stations over all
-  markers. A marker whose per-station estimates disagree by more than ``max_marker_spread``
-  (a wrong ``fiducial_len_override`` size, a marker that moved, the same id printed twice) is
-  rejected with a warning.
+  candidate pose that other views agree with, better supported than its rival); when the views
+  do not decide it is mapped with the better solution, flagged ``ambiguous`` with a rotation
+  uncertainty covering the other one, until another view resolves it.
+* Multi-station: frames are grouped into *stations* (ring poses). A station is given by the
+  caller, or detected automatically: a frame whose detections moved less than ``still_px`` from
+  the station's first frame belongs to it; a moving ring starts a new station once they moved
+  ``min_station_motion_px`` (the frames in between are left out). Stations enter the map
+  greedily, most co-visible mapped markers first; each station's pose is fitted to its mapped
+  markers (planar for a ground robot, SE(3) otherwise: :meth:`MapBuilder._station_model` tests
+  the planar prior on the data), and its new markers are chained from it. Markers never seen
+  together with the mapped set (at the same instant, through any camera) are
+  :meth:`unlinked_markers`. A few alternating passes then re-average markers over all stations
+  and stations over all markers. A marker whose per-station estimates disagree by more than
+  ``max_marker_spread`` (a wrong ``fiducial_len_override`` size, a marker that moved, the same id
+  printed twice) is rejected with a warning.
 * ``refined``: the paper initialisation followed by :mod:`bundle_adjustment` over every corner
-  of every observation (the paper's future work), with per-marker uncertainty.
+  of every observation (the paper's future work), with 6-DOF stations and per-marker uncertainty.
+* The map frame is ``floor`` (below the reference marker, z up) or ``marker`` (the reference
+  marker's own frame), ``MappingOptions.frame``; the map records it, its quality (reprojection
+  RMS, stations, station model) and passes :func:`marker_map.check_map` before any save.
 
-Frames: ``W`` is the robot's base frame at the reference station; ``T_W_*`` poses live there
+Frames: ``W`` is the ring's base frame at the reference station; ``T_W_*`` poses live there
 until :meth:`build` expresses them in the map frame.
 """
 from __future__ import annotations
