@@ -107,6 +107,8 @@ class MappingOptions:
     consensus_distance: float = param(0.10, "agreement tolerance of that consensus", unit="m")
     max_marker_spread: float = param(0.25, "reject a marker whose per-station positions disagree by more (robust "
                                            "spread: a wrong size, a moved marker, an id printed twice)", unit="m")
+    max_marker_rms_px: float = param(3.0, "refined maps: a marker still reprojecting worse than this after the "
+                                          "adjustment is rejected and the adjustment redone without it", unit="px")
     refine_passes: int = param(3, "alternating marker/station re-averaging passes in multi-station maps")
     refined_reference: bool = param(True, "in refined maps without a user reference_marker, fix the frame to the "
                                           "marker whose heading the adjustment determines best")
@@ -384,6 +386,7 @@ class MapBuilder:
         self._init_cache: Optional[Tuple[int, _Init]] = None
         self._last_groups: List[_Group] = []
         self.last_ba: Optional[BAResult] = None
+        self._refine_rejected: Tuple[int, Dict[int, str]] = (-1, {})
 
     @property
     def version(self) -> int:
@@ -516,10 +519,14 @@ class MapBuilder:
 
         Paper: the marker closest to its camera whose z axis is most parallel to the camera
         axis. Score ``distance / cos(angle)`` (angle between the marker's z and the line of sight),
-        lowest wins, among the unambiguous detections of the first placement.
+        lowest wins, among the unambiguous detections of the first placement *of the largest
+        co-visibility component* (markers linked through stations that saw them together): when the
+        data fall apart into groups never seen together, the map is the largest one, not whichever
+        the first frame happened to see.
         """
+        comp = self._largest_component(groups)
         scored = [(g.distance / max(g.cos_facing, 0.05), g.station, g.marker_id) for g in groups
-                  if self._unambiguous(g)]
+                  if self._unambiguous(g) and (self.reference_marker is not None or g.marker_id in comp)]
         if not scored:
             return None, None
         if self.reference_marker is not None:
@@ -531,6 +538,30 @@ class MapBuilder:
             first = min(s[1] for s in scored)
             best = min(s for s in scored if s[1] == first)
         return best[2], best[1]
+
+    @staticmethod
+    def _largest_component(groups: List[_Group]) -> set:
+        """Marker ids of the largest set linked by co-visibility (seen at a common station)."""
+        parent: Dict[int, int] = {}
+
+        def find(a: int) -> int:
+            while parent.setdefault(a, a) != a:
+                parent[a] = parent[parent[a]]
+                a = parent[a]
+            return a
+
+        by_station: Dict[int, set] = defaultdict(set)
+        for g in groups:
+            by_station[g.station].add(g.marker_id)
+            find(g.marker_id)
+        for ids in by_station.values():
+            ids = sorted(ids)
+            for a, b in zip(ids, ids[1:]):
+                parent[find(a)] = find(b)
+        comps: Dict[int, set] = defaultdict(set)
+        for m in parent:
+            comps[find(m)].add(m)
+        return max(comps.values(), key=lambda c: (len(c), -min(c))) if comps else set()
 
     def _initialize(self) -> _Init:
         if self._init_cache is not None and self._init_cache[0] == self._version:
@@ -923,17 +954,20 @@ class MapBuilder:
         per_marker = defaultdict(int)
         for o in self._obs:
             per_marker[o.marker_id] += 1
+        # Markers the last refined build rejected after its adjustment (same observations).
+        after_ba = self._refine_rejected[1] if self._refine_rejected[0] == self._version else {}
+        mapped = sorted(m for m in init.T_W_markers if m not in after_ba)
         return {
             "frames": self.frames,
             "stations": self.station_count,
             "linked_stations": len(init.T_W_stations),
             "skipped_moving_frames": self.skipped_moving,
             "reference_marker": init.reference,
-            "mapped": sorted(init.T_W_markers),
+            "mapped": mapped,
             "observations": {m: per_marker[m] for m in sorted(per_marker)},
             "unlinked": list(init.unlinked),
-            "rejected": dict(init.rejected),
-            "ambiguous": sorted(init.ambiguous),
+            "rejected": {**init.rejected, **after_ba},
+            "ambiguous": sorted(m for m in init.ambiguous if m not in after_ba),
             "station_model": "planar" if init.planar else "se3",
             "station_note": init.station_note,
             "rejected_detections": dict(self.rejected_detections),
@@ -992,7 +1026,7 @@ class MapBuilder:
             T_W = {m: init.T_W_markers[m] for m in mids}
             per_obs = observation_rms_px(self._problem(init, mids))
         else:
-            res, mids = self._refine(init)
+            res, mids, init = self._refine(init)
             ref = self._refined_reference(init, res, mids)
             T_W = {m: res.T_W_markers[k] for k, m in enumerate(mids)}
             per_obs = res.per_obs_rms_px
@@ -1125,16 +1159,43 @@ class MapBuilder:
             T_base_cams_start=np.stack([init.extrinsics.get(c, self.ring[c].T_base_cam) for c in cams]),
         )
 
-    def _refine(self, init: _Init) -> Tuple[BAResult, List[int]]:
-        mids = sorted(init.T_W_markers)
+    def _refine(self, init: _Init) -> Tuple[BAResult, List[int], _Init]:
+        """The bundle adjustment, and again without the markers that do not fit it.
+
+        A marker whose observations still reproject worse than ``max_marker_rms_px`` after the
+        adjustment (a flipped initial pose the adjustment could not leave, tiny tags at grazing
+        angles, a wrong size) is rejected with the reason and the adjustment redone without it
+        (twice at most): a map of the markers that fit rather than a map that fails its checks.
+        Returns (result, marker ids, the initialisation without the rejected markers).
+        """
         opts = self.options.ba
         if opts.refine_extrinsics and not self._refines_extrinsics:
             opts = dataclasses.replace(opts, refine_extrinsics=False)
-        res = bundle_adjust(self._problem(init, mids), opts)
+        rejected: Dict[int, str] = {}
+        for attempt in range(3):
+            mids = sorted(init.T_W_markers)
+            res = bundle_adjust(self._problem(init, mids), opts)
+            obs_k = np.array([k for k, m in enumerate(mids) for _ in init.marker_obs.get(m, [])], dtype=int)
+            n_k = np.maximum(np.bincount(obs_k, minlength=len(mids)), 1)
+            rms = np.sqrt(np.bincount(obs_k, weights=np.square(res.per_obs_rms_px), minlength=len(mids)) / n_k)
+            bad = [m for k, m in enumerate(mids) if rms[k] > self.options.max_marker_rms_px and m != init.reference]
+            if not bad or attempt == 2 or len(bad) >= len(mids) - 1:
+                break
+            for m in bad:
+                rejected[m] = (f"reprojects at {rms[mids.index(m)]:.1f} px RMS after the adjustment (limit "
+                               f"{self.options.max_marker_rms_px:g} px): a flipped pose, a tag too small or seen "
+                               f"too obliquely, or a wrong size")
+                logger.warning("mapping: marker %d rejected: %s", m, rejected[m])
+            keep = {m: T for m, T in init.T_W_markers.items() if m not in rejected}
+            init = dataclasses.replace(init, T_W_markers=keep,
+                                       marker_obs={m: v for m, v in init.marker_obs.items() if m in keep},
+                                       ambiguous={m: v for m, v in init.ambiguous.items() if m in keep},
+                                       rejected={**init.rejected, **rejected})
         if opts.refine_extrinsics:
             self._remove_common_extrinsics_motion(res)
         self.last_ba = res
-        return res, mids
+        self._refine_rejected = (self._version, dict(rejected))
+        return res, mids, init
 
     @property
     def _refines_extrinsics(self) -> bool:

@@ -228,3 +228,41 @@ def test_save_map_refuses_what_fails_and_keeps_the_old_file(ring, scene, tmp_pat
     with pytest.raises(MapSanityError, match="reprojection"):
         strict.save_map(str(path))
     assert path.read_text() == before
+
+
+def test_the_largest_co_visible_group_is_mapped_when_the_data_fall_apart(ring):
+    """The first placement saw two markers never seen with the others: the map is the larger group."""
+    rng = np.random.default_rng(3)
+    flip = geo.rotation_from_rvec([np.pi, 0.0, 0.0])
+    pair = {1: geo.make_transform(flip, [-0.4, 0.0, 2.0]), 2: geo.make_transform(flip, [0.4, 0.0, 2.2])}
+    trio = {3: geo.make_transform(flip, [-0.6, 0.1, 2.5]), 4: geo.make_transform(flip, [0.0, -0.1, 2.0]),
+            5: geo.make_transform(flip, [0.6, 0.0, 2.4])}
+    b = MapBuilder(ring, MarkerSizes(0.2), method="paper")
+    for _ in range(3):
+        b.add_frame(_one_view_frame(ring, pair, rng), station=0)
+    for _ in range(3):
+        b.add_frame(_one_view_frame(ring, trio, rng), station=1)
+    s = b.summary()
+    assert s["mapped"] == [3, 4, 5] and s["unlinked"] == [1, 2], s
+
+
+def test_a_marker_that_does_not_fit_the_adjustment_is_rejected_not_saved(ring, scene, tmp_path):
+    """Marker 42 moved by 12 cm between stations (below the 25 cm spread test): no pose fits both,
+    it is rejected after the adjustment with the reason, and the rest of the map is saved."""
+    from aruco_ring_localization.simulation.scene import SceneMarker
+
+    moved = [SceneMarker(m.marker_id, geo.make_transform(m.T_world_marker[:3, :3], m.T_world_marker[:3, 3]
+                                                         + (0.0, 0.0, 0.12)) if m.marker_id == 42 else m.T_world_marker,
+                         m.size) for m in scene.markers]
+    before = RingSimulator(scene, ring, pixel_noise=0.3, seed=4)
+    after = RingSimulator(Scene(**{**scene.__dict__, "markers": moved}), ring, pixel_noise=0.3, seed=5)
+    b = MapBuilder(ring, MarkerSizes(0.2))
+    for k, pose in enumerate(scene.mapping_stations):
+        sim = before if k < len(scene.mapping_stations) // 2 + 1 else after
+        for _ in range(3):
+            b.add_frame(sim.observe(Scene.T_world_base(pose), stamp=0.1 * k), station=k)
+    m = b.build("refined")
+    s = b.summary()
+    assert 42 not in m and "after the adjustment" in s["rejected"].get(42, ""), s["rejected"]
+    assert len(m) == len(scene.markers) - 1 and all(e.rms_px < 1.0 for e in m)
+    m.save(str(tmp_path / "map.yaml"), b.options.sanity)
