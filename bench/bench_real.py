@@ -248,7 +248,13 @@ def run(quick: bool = False) -> dict:
                          f"map {rows[t].get('map_rms_mm', float('nan')):.2f} mm, missing {rows[t]['tags_missing']}\n")
     os.makedirs(OUT, exist_ok=True)
     with open(os.path.join(OUT, "rows.json"), "w", encoding="utf-8") as fh:
-        json.dump({"rows": rows, "failed": failed}, fh, indent=1, default=float)
+        json.dump({"rows": rows, "failed": failed, "load": load, "quick": quick, "tests": tests}, fh, indent=1,
+                  default=float)
+    return report(rows, failed, load, quick, tests)
+
+
+def report(rows: Dict[str, dict], failed: Dict[str, str], load, quick: bool, tests: List[str]) -> dict:
+    """The results keys and the markdown section of a run (also from a saved rows.json: --render)."""
     results: Dict[str, float] = {}
     for t, r in rows.items():
         results[f"real_{t}_map_rms_mm"] = r["map_rms_mm"]
@@ -320,8 +326,15 @@ if __name__ == "__main__":
     p.add_argument("--quick", action="store_true")
     p.add_argument("--only", default="", help="comma-separated tests (test_5,test_8)")
     p.add_argument("--max-frames", type=int, default=0)
+    p.add_argument("--render", action="store_true", help="print the section of the last run (rows.json) again")
     a = p.parse_args()
-    if a.only:
+    if a.render:
+        with open(os.path.join(OUT, "rows.json"), encoding="utf-8") as fh:
+            saved = json.load(fh)
+        out = report(saved["rows"], saved["failed"], saved["load"], saved["quick"], saved["tests"])
+        print(out["markdown"])
+        print(json.dumps(out["results"], indent=1, sort_keys=True))
+    elif a.only:
         for t in a.only.split(","):
             r = run_one(t, a.max_frames)
             print(t, json.dumps({k: (v if not isinstance(v, float) else round(v, 3)) for k, v in r.items()}))
