@@ -81,7 +81,6 @@ class MapSanityLimits:
 
 
 
-
 @dataclass(frozen=True)
 class MarkerEntry:
     """One mapped marker.
