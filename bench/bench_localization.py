@@ -2,7 +2,7 @@
 the joint estimator against the Cramér-Rao bound, and the localizer's latency per ring frame.
 
 Accuracy: the simulated lab (config/lab_scene.yaml); the true rig is the ring file perturbed by a
-seeded calibration error (2 mm, 0.2 deg); the map is built by the mapping engineer's MapBuilder
+seeded calibration error (2 mm, 0.2 deg); the map is built by the mapping pipeline (MappingPipeline)
 (``refined``: bundle adjustment) from corners-mode observations at the scene's mapping stations
 with that same rig (the truth map when mapping.py is unavailable; the markdown says which). At
 each of the paper's 15 positions and 8 orientations, ring frames are *rendered* (image mode) and
@@ -13,10 +13,14 @@ frame by a best-fit alignment of the map to the true marker layout.
 CRLB: corners mode, perfect rig and map, 0.3 px noise: the RMS of the joint estimate over many
 noise draws at the 15 positions against sqrt(trace) of the bound's (x, y) block.
 
-Latency: RingLocalizer.process (the core: gather, PnP/joint, per-camera estimates, covariance)
-per ring frame with 8 cameras on the lab (about 10 markers in view, 15-20 detections) with the
-previous pose as prediction, as the node runs; then with the map grown to 100 and 1,000 markers
-(extra markers out of view).
+Everything runs through :class:`pipeline.LocalizationPipeline` with the node's parameters (the
+schema's defaults = config/localization.yaml), fed per camera as the node feeds it; accuracy and
+CRLB read the estimator's per-frame measurement (``PoseOutput.track.localization``).
+
+Latency: the pipeline per ring frame (8 cameras' ``on_detections``: sanitizing, assembly,
+PnP/joint, per-camera estimates, covariance, gate, filter) on the lab (about 10 markers in view,
+15-20 detections), each pose's frames after an initial pose there, as the node runs; then with
+the map grown to 100 and 1,000 markers (extra markers out of view).
 """
 from __future__ import annotations
 
@@ -31,38 +35,49 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(os.path.dirname(HERE), "src"))
 
 from aruco_ring_localization import geometry as geo  # noqa: E402
+from aruco_ring_localization.config import with_overrides  # noqa: E402
 from aruco_ring_localization.detections import CameraFrame, RingFrame  # noqa: E402
-from aruco_ring_localization.localization import (LocalizationParams, RingLocalizer, crlb_covariance,  # noqa: E402
-                                                  se2_covariance)
+from aruco_ring_localization.localization import crlb_covariance, se2_covariance  # noqa: E402
 from aruco_ring_localization.marker_map import MarkerEntry, MarkerMap  # noqa: E402
-from aruco_ring_localization.markers import MarkerSizes  # noqa: E402
+from aruco_ring_localization.pipeline import LocalizationPipeline, MappingPipeline, feed_ring_frame  # noqa: E402
 from aruco_ring_localization.ring import CameraRing, apply_refined_extrinsics  # noqa: E402
+from aruco_ring_localization.schemas import LocalizerConfig, MapperConfig  # noqa: E402
 from aruco_ring_localization.simulation.ring_sim import RingSimulator, perturb_ring  # noqa: E402
 from aruco_ring_localization.simulation.scene import Scene  # noqa: E402
 
 RING_FILE = os.path.join(os.path.dirname(HERE), "config", "ring.yaml")
 PIXEL_NOISE = 0.3
 RIG_SEED = 1
+#: The ring file's calibration, no tf, no camera_info topics: what the bag tools do without them.
+OFFLINE = {"input.use_tf": False, "input.camera_info_fallback": True}
+
+
+def _pipeline(ring: CameraRing, marker_map: MarkerMap, **estimator) -> LocalizationPipeline:
+    """The node's pipeline (its default parameters) with ``estimator`` overrides."""
+    config = with_overrides(LocalizerConfig(), {**OFFLINE, **{f"estimator.{k}": v for k, v in estimator.items()}})
+    return LocalizationPipeline(config, ring, marker_map)
+
+
+def _measure(p: LocalizationPipeline, frame: RingFrame):
+    """The estimator's per-frame result for ``frame`` through the pipeline (None: nothing out)."""
+    out = feed_ring_frame(p, frame)
+    return out[-1].track.localization if out else None
 
 
 def _build_map(scene: Scene, ring: CameraRing, true_ring: CameraRing, frames: int):
     """(map, description, ring with the bundle adjustment's refined extrinsics or None)."""
-    try:
-        from aruco_ring_localization.mapping import MapBuilder
-    except ImportError:
-        return scene.truth_map(), "the simulator's truth map (mapping.py unavailable)", None
     sim = RingSimulator(scene, true_ring, pixel_noise=PIXEL_NOISE, seed=7)
-    b = MapBuilder(ring, MarkerSizes(0.2))
+    b = MappingPipeline(with_overrides(MapperConfig(), OFFLINE), ring)
     t = 0.0
-    for s, pose in enumerate(scene.mapping_stations):
+    for pose in scene.mapping_stations:
         for _ in range(frames):
-            b.add_frame(sim.observe(Scene.T_world_base(pose), stamp=t), station=s)
+            feed_ring_frame(b, sim.observe(Scene.T_world_base(pose), stamp=t))
             t += 0.1
     m = b.build("refined")
     refined_ring = None
     if m.ring_extrinsics:  # what ring_tf publishes when localization.launch is given this map
         refined_ring = apply_refined_extrinsics(ring, m.ring_extrinsics, m.ring_base_frame)
-    return m, (f"the refined map (MapBuilder + bundle adjustment) from {len(scene.mapping_stations)} "
+    return m, (f"the refined map (MappingPipeline + bundle adjustment) from {len(scene.mapping_stations)} "
                f"stations x {frames} corners-mode frames, same miscalibrated rig"), refined_ring
 
 
@@ -81,7 +96,7 @@ def _detect_frame(sim: RingSimulator, det, T: np.ndarray, stamp: float, rng) -> 
     return frame
 
 
-def _accuracy(scene, rings: Dict[str, CameraRing], true_ring, marker_map, T_map_world,
+def _accuracy(scene, rings: Dict[str, Tuple[CameraRing, MarkerMap]], true_ring, T_map_world,
               frames_per_pose: int) -> Dict[str, Dict[str, float]]:
     sim = RingSimulator(scene, true_ring, pixel_noise=0.0, seed=11)
     det = _detector(scene.dictionary)
@@ -91,23 +106,24 @@ def _accuracy(scene, rings: Dict[str, CameraRing], true_ring, marker_map, T_map_
     for k, p in enumerate(poses):
         T_world = Scene.T_world_base(p)
         for j in range(frames_per_pose):
-            frames.append((T_map_world @ T_world, _detect_frame(sim, det, T_world, 10.0 * k + 0.1 * j, rng)))
+            frames.append((k, T_map_world @ T_world, _detect_frame(sim, det, T_world, 10.0 * k + 0.1 * j, rng)))
     out: Dict[str, Dict[str, float]] = {}
     for label, fusion in [(lb, fu) for lb in rings for fu in ("paper", "joint")]:
-        loc = RingLocalizer(rings[label], marker_map, LocalizationParams(fusion=fusion))
-        d, a, prev = [], [], None
-        for T_true, frame in frames:
-            # As the node: the previous measurement as the prediction (None on the first frame).
-            res = loc.process(frame, prediction=prev)
-            if not res.ok:
+        ring, m = rings[label]
+        pipe = _pipeline(ring, m, fusion=fusion)
+        d, a, pose_k = [], [], None
+        for k, T_true, frame in frames:
+            if k != pose_k:  # the robot was carried to the next test pose: a new track there
+                pipe.reset()
+                pose_k = k
+            res = _measure(pipe, frame)
+            if res is None or not res.ok:
                 d.append(np.inf)
                 a.append(np.inf)
-                prev = None
                 continue
             e = geo.se2_from_transform(res.T_map_base) - geo.se2_from_transform(T_true)
             d.append(float(np.hypot(e[0], e[1])))
             a.append(abs(float(geo.wrap_angle(e[2]))))
-            prev = res.T_map_base
         d, a = np.array(d), np.array(a)
         out[fusion + label] = {"pos_median_cm": 100 * float(np.median(d)), "pos_max_cm": 100 * float(d.max()),
                        "yaw_mean_deg": float(np.degrees(np.mean(a))), "yaw_max_deg": float(np.degrees(a.max())),
@@ -118,9 +134,10 @@ def _accuracy(scene, rings: Dict[str, CameraRing], true_ring, marker_map, T_map_
 def _crlb_ratio(scene, ring, trials: int) -> Tuple[float, float, float]:
     truth = scene.truth_map()
     sim = RingSimulator(scene, ring, pixel_noise=PIXEL_NOISE, seed=21)
-    loc = RingLocalizer(ring, truth, LocalizationParams(fusion="joint", pixel_noise=PIXEL_NOISE))
+    pipe = _pipeline(ring, truth, fusion="joint", pixel_noise=PIXEL_NOISE)
     rng = np.random.default_rng(22)
     sq, bound = [], []
+    t = 0.0
     for p in scene.test_positions:
         T = Scene.T_world_base(p)
         blocks = []
@@ -130,8 +147,11 @@ def _crlb_ratio(scene, ring, trials: int) -> Tuple[float, float, float]:
                 blocks.append((cam.T_cam_base, cam.model, np.concatenate([truth.corners(i) for i in ids])))
         bound.append(np.trace(se2_covariance(crlb_covariance(T, blocks, PIXEL_NOISE))[:2, :2]))
         for _ in range(trials):
+            # The filter's prediction, a perturbed truth, starts the joint estimator.
             start = geo.se3_perturb(T, np.r_[rng.normal(0, 0.01, 3), rng.normal(0, 0.03, 3)])
-            res = loc.process(sim.observe(T), prediction=start)
+            pipe.on_initial_pose(start, t)
+            res = _measure(pipe, sim.observe(T, t))
+            t += 0.1
             e = res.T_map_base[:2, 3] - T[:2, 3]
             sq.append(float(e @ e))
     rms = float(np.sqrt(np.mean(sq)))
@@ -147,23 +167,27 @@ def _grown_map(truth: MarkerMap, n: int) -> MarkerMap:
 
 def _latency(scene, ring, true_ring, marker_map: MarkerMap, fusion: str, n_frames: int) -> Dict[str, float]:
     sim = RingSimulator(scene, true_ring, pixel_noise=PIXEL_NOISE, seed=31)
-    loc = RingLocalizer(ring, marker_map, LocalizationParams(fusion=fusion))
+    p = _pipeline(ring, marker_map, fusion=fusion)
     poses = list(scene.test_positions) + list(scene.test_orientations)
-    frames = [(Scene.T_world_base(poses[k % len(poses)]), sim.observe(Scene.T_world_base(poses[k % len(poses)]), 0.1 * k))
-              for k in range(n_frames)]
-    for T, f in frames[:10]:  # warm-up (caches, first calls)
-        loc.process(f, prediction=T)
+    per_pose = max(1, n_frames // len(poses))
+    frames = [(k // per_pose, Scene.T_world_base(poses[(k // per_pose) % len(poses)])) for k in range(n_frames)]
+    frames = [(i, T, sim.observe(T, 0.1 * k)) for k, (i, T) in enumerate(frames)]
+    for _, T, f in frames[:10]:  # warm-up (caches, first calls)
+        p.on_initial_pose(T, f.stamp)
+        feed_ring_frame(p, f)
+    p.reset()
     times, walls, dets, markers = [], [], [], []
-    prev = None
-    for T, f in frames:
-        pred = prev if prev is not None else T
+    block = None
+    for i, T, f in frames:
+        if i != block:  # a new test pose: the track starts there (not timed)
+            p.on_initial_pose(T, f.stamp)
+            block = i
         c0, t0 = time.thread_time(), time.perf_counter()
-        res = loc.process(f, prediction=pred)
+        out = feed_ring_frame(p, f)
         times.append(time.thread_time() - c0)
         walls.append(time.perf_counter() - t0)
-        prev = res.T_map_base if res.ok and np.linalg.norm(res.T_map_base[:2, 3] - T[:2, 3]) < 0.1 else None
         dets.append(f.observation_count())
-        markers.append(len(res.marker_ids))
+        markers.append(len(out[-1].track.localization.marker_ids) if out else 0)
     t = 1000.0 * np.array(times)
     w = 1000.0 * np.array(walls)
     return {"median": float(np.median(t)), "p99": float(np.percentile(t, 99)), "detections": float(np.mean(dets)),
@@ -179,16 +203,18 @@ def run(quick: bool = False) -> dict:
     # Truth expressed in the map's frame: best-fit alignment of the map to the true layout.
     truth = scene.truth_map()
     if marker_map.reference_marker is not None:
-        from aruco_ring_localization.evaluation import align_map_to_truth
+        from aruco_ring_localization.evaluation.maps import align_map_to_truth
         T_map_world = geo.inverse(align_map_to_truth(marker_map, truth))
     else:
         T_map_world = np.eye(4)
     # The default pipeline localizes with the extrinsics stored in the map (ring_tf publishes them);
     # the ring file's are reported beside them.
-    rings = {"": refined_ring} if refined_ring is not None else {"": ring}
+    # (The pipeline applies the map's refined extrinsics itself; the ring file's variant gets the
+    # map without them.)
+    rings = {"": (ring, marker_map)}
     if refined_ring is not None:
-        rings["_ring_file_extrinsics"] = ring
-    acc = _accuracy(scene, rings, true_ring, marker_map, T_map_world, frames_per_pose=1 if quick else 2)
+        rings["_ring_file_extrinsics"] = (ring, MarkerMap(list(marker_map), frame_id=marker_map.frame_id))
+    acc = _accuracy(scene, rings, true_ring, T_map_world, frames_per_pose=1 if quick else 2)
     ratio, rms, crlb = _crlb_ratio(scene, ring, trials=10 if quick else 60)
     n_lat = 200 if quick else 600
     lat = {n: _latency(scene, ring, true_ring, _grown_map(truth, n), "joint", n_lat) for n in (10, 100, 1000)}
@@ -242,9 +268,10 @@ def run(quick: bool = False) -> dict:
         f"{10 if quick else 60} draws x 15 positions): position RMS {rms * 1000:.3f} mm, bound "
         f"{crlb * 1000:.3f} mm, **ratio {ratio:.3f}** (target <= 1.25).",
         "",
-        f"Latency of RingLocalizer.process per ring frame (8 cameras, {lat[10]['markers']:.1f} markers / "
-        f"{lat[10]['detections']:.1f} detections in view on average, previous pose as prediction, {n_lat} frames; "
-        "single thread). CPU time of the calling thread (the keys), because this machine is shared by several "
+        f"Latency of the localization pipeline per ring frame (LocalizationPipeline: 8 cameras' detections in, "
+        f"sanitized, assembled, estimated, gated, filtered; {lat[10]['markers']:.1f} markers / "
+        f"{lat[10]['detections']:.1f} detections in view on average, the track started at each test pose, {n_lat} "
+        "frames; single thread). CPU time of the calling thread (the keys), because this machine is shared by several "
         "sessions and wall-clock times include waiting for a core; wall-clock shown beside it:",
         "",
         "| map size (markers) | fusion | CPU median (ms) | CPU p99 (ms) | wall median (ms) | wall p99 (ms) |",

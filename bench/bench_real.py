@@ -6,12 +6,14 @@ For every recording the package can handle (the others are listed with the reaso
    the published ``camera_poses.yaml`` fixes only camera 0 of most multi-camera rigs), through the
    package's importer (:func:`importers.read_rig`). Tag sizes, ignored and moving tags and id
    remaps from ``tagslam.yaml`` (:func:`importers.read_tagslam_tags`).
-2. The detections (apriltag_msgs, corner order converted) through :func:`ros.apriltag.read_apriltag_bag`.
+2. The detections (apriltag_msgs, corner order converted) through the package's bag source
+   (:class:`ros.bag_source.BagSource`, what build-map and localize read bags with:
+   :func:`tagslam_reference.ring_frames`).
 3. **Map**: :class:`mapping.MapBuilder` with its defaults (``refined``; the planar prior and its
    data test decide the station model; frame ``marker``), saved through the sanity checks. Against
    TagSLAM's tags: SE(3) fit over the 4 corners of every common tag (:func:`evaluation.map_error`
    ``best_fit``): position RMS and max (mm), rotation median and max (deg), tags missing.
-4. **Localization** (:class:`tracker.RingTracker`, ``joint`` fusion) of every ring frame, on
+4. **Localization** (:class:`pipeline.LocalizationPipeline`, ``joint`` fusion) of every ring frame, on
    TagSLAM's map with TagSLAM's extrinsics, and on the package's map with its refined extrinsics
    (expressed in TagSLAM's frame by the map's best-fit alignment, nothing fitted to the
    trajectory), against TagSLAM's rig poses at the same stamps: the per-frame estimate in 6-DOF
@@ -39,18 +41,19 @@ ROOT = os.path.dirname(HERE)
 sys.path.insert(0, os.path.join(ROOT, "src"))
 sys.path.insert(0, HERE)
 
-from tagslam_reference import DATA, cached_bag, load_test, write_camera_poses  # noqa: E402
+from tagslam_reference import DATA, cached_bag, load_test, ring_frames, write_camera_poses  # noqa: E402
 
 from aruco_ring_localization import geometry as geo  # noqa: E402
 from aruco_ring_localization.errors import ArucoRingError  # noqa: E402
-from aruco_ring_localization.evaluation import map_error  # noqa: E402
+from aruco_ring_localization.evaluation.maps import map_error  # noqa: E402
 from aruco_ring_localization.importers import read_rig, write_ring_files  # noqa: E402
 from aruco_ring_localization.localization import LocalizationParams, RingLocalizer  # noqa: E402
 from aruco_ring_localization.mapping import MapBuilder, MappingOptions  # noqa: E402
 from aruco_ring_localization.marker_map import MarkerEntry, MarkerMap  # noqa: E402
 from aruco_ring_localization.ring import apply_refined_extrinsics  # noqa: E402
-from aruco_ring_localization.ros.apriltag import read_apriltag_bag  # noqa: E402
-from aruco_ring_localization.tracker import RingTracker  # noqa: E402
+from aruco_ring_localization.config import with_overrides  # noqa: E402
+from aruco_ring_localization.pipeline import LocalizationPipeline, feed_ring_frame  # noqa: E402
+from aruco_ring_localization.schemas import LocalizerConfig  # noqa: E402
 
 OUT = os.path.join(ROOT, "results", "bench", "real")
 FLIP_DEG = 10.0
@@ -77,6 +80,9 @@ LIMITS = {
 }
 QUICK = ("test_1", "test_8", "test_22", "test_17")
 QUICK_FRAMES = 600
+#: The localizer's parameters offline: the ring file's (or the map's refined) extrinsics, its
+#: intrinsics, the joint fusion (several cameras see one tag set at once).
+OFFLINE = {"input.use_tf": False, "input.camera_info_fallback": True, "estimator.fusion": "joint"}
 
 
 def _tests() -> List[str]:
@@ -120,10 +126,15 @@ def _filtered_errors(est: Dict[int, np.ndarray], ref: Dict[int, np.ndarray]):
 
 
 def _localize(ring, marker_map, frames, T_ref_map: np.ndarray):
-    """Per-frame 6-DOF estimates (the estimator alone, no prediction) and the tracker's filtered
-    (x, y, yaw), keyed by stamp (us), in the reference frame; CPU s of each."""
-    localizer = RingLocalizer(ring, marker_map, LocalizationParams(fusion="joint"))
-    tracker = RingTracker(ring, marker_map, LocalizationParams(fusion="joint"))
+    """Per-frame 6-DOF estimates (the estimator alone, no prediction) and the localizer pipeline's
+    filtered (x, y, yaw), keyed by stamp (us), in the reference frame; CPU s of each.
+
+    ``ring``: the ring file's calibration; a map with refined extrinsics brings its own (the
+    pipeline applies them as the localizer node does)."""
+    loc_ring = apply_refined_extrinsics(ring, marker_map.ring_extrinsics, marker_map.ring_base_frame) \
+        if marker_map.ring_extrinsics else ring
+    localizer = RingLocalizer(loc_ring, marker_map, LocalizationParams(fusion="joint"))
+    pipeline = LocalizationPipeline(with_overrides(LocalizerConfig(), OFFLINE), ring, marker_map)
     per_frame: Dict[int, np.ndarray] = {}
     filtered: Dict[int, np.ndarray] = {}
     t0 = _cpu()
@@ -136,12 +147,8 @@ def _localize(ring, marker_map, frames, T_ref_map: np.ndarray):
             per_frame[int(round(f.stamp * 1e6))] = T_ref_map @ loc.T_map_base
     t1 = _cpu()
     for f in frames:
-        try:
-            out = tracker.process(f)
-        except ArucoRingError:
-            continue
-        if out.pose is not None:
-            filtered[int(round(f.stamp * 1e6))] = geo.se2_from_transform(T_ref_map @ geo.transform_from_se2(*out.pose))
+        for out in feed_ring_frame(pipeline, f):
+            filtered[int(round(out.stamp * 1e6))] = geo.se2_from_transform(T_ref_map @ out.T_map_base)
     return per_frame, filtered, t1 - t0, _cpu() - t1
 
 
@@ -153,19 +160,19 @@ def run_one(test: str, max_frames: int = 0) -> Dict[str, float]:
                    camera_poses=write_camera_poses(ref, os.path.join(out_dir, "camera_poses_tagslam.yaml")))
     ring = rig.ring()
     write_ring_files(ring, os.path.join(out_dir, "ring.yaml"))
-    topics = {c.topic: c.name for c in rig.cameras}
-    frames = list(read_apriltag_bag(cached_bag(test, "tag_detections"), ring, topics, remap=tags.remap))
-    if max_frames:
-        frames = frames[:max_frames]
     sizes = tags.marker_sizes()
     ignore = tags.ignore | tags.moving
+    frames = ring_frames(cached_bag(test, "tag_detections"), ring, remap=tags.remap,
+                         ignore=",".join(str(i) for i in sorted(ignore)))
+    if max_frames:
+        frames = frames[:max_frames]
     truth = MarkerMap([MarkerEntry(i, T, sizes(i)) for i, T in sorted(ref.tags.items()) if i not in ignore],
                       frame_id="map", method="TagSLAM")
     truth.save(os.path.join(out_dir, "tagslam_map.yaml"))
     res: Dict[str, float] = {"frames": len(frames), "cameras": len(ring), "tagslam_tags": len(truth)}
     # --- map ---
     t0 = _cpu()
-    b = MapBuilder(ring, sizes, ignore_ids=sorted(ignore), options=MappingOptions(frame="marker"))
+    b = MapBuilder(ring, sizes, options=MappingOptions(frame="marker"))
     for f in frames:
         b.add_frame(f)
     ours: Optional[MarkerMap] = None
@@ -199,9 +206,7 @@ def run_one(test: str, max_frames: int = 0) -> Dict[str, float]:
     reference = {int(round(t * 1e6)): T for t, T in zip(ref.stamps, ref.T_map_rig)}
     runs = [("tagslam", ring, truth, np.eye(4))]
     if ours is not None:
-        loc_ring = apply_refined_extrinsics(ring, ours.ring_extrinsics, ours.ring_base_frame) \
-            if ours.ring_extrinsics else ring
-        runs.append(("ours", loc_ring, ours, T_truth_ours))
+        runs.append(("ours", ring, ours, T_truth_ours))
     for name, r, m, T in runs:
         per_frame, filtered, cpu, cpu_tracker = _localize(r, m, frames, T)
         pos, rot = _pose_errors(per_frame, reference)

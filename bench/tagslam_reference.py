@@ -6,6 +6,9 @@ and ``<rig> -> camK`` (the camera poses TagSLAM calibrated or kept). Tag and cam
 constant over the bag; the last message is used. The tag frame is the package's marker frame
 (x right, y up, z out of the tag: test/unit/test_apriltag.py shows it by reprojection).
 
+The detections are read through the package's bag source (:func:`ring_frames`: the one reader
+``aruco_ring build-map`` and ``localize`` use), TagSLAM's tag id remapping applied.
+
 Bags are bzip2-compressed in the shared folder: :func:`cached_bag` decompresses each one once
 into ``results/cache/tagslam/<test>/`` (ignored by git).
 """
@@ -15,7 +18,7 @@ import bz2
 import os
 import shutil
 from dataclasses import dataclass, field
-from typing import Dict, List
+from typing import Callable, Dict, List, Optional
 
 import numpy as np
 
@@ -127,6 +130,62 @@ def read_tum_poses(path: str):
     rows = np.loadtxt(path, comments="#", ndmin=2)
     poses = np.array([geo.transform_from_translation_quaternion(r[1:4], r[4:8]) for r in rows])
     return rows[:, 0], poses
+
+
+def ring_frames(bag_path: str, ring, ignore: str = "", remap: Optional[Callable[[int, float], int]] = None,
+                slop: float = 0.005) -> list:
+    """The ring frames of a bag of detections as the bag source hands them to build-map's pipeline.
+
+    The mapper's input settings offline: the ring file's extrinsics and (without camera_info in the
+    bag) intrinsics, stamps grouped within ``slop`` (TagSLAM's rigs are hardware-synchronized: a few
+    ms), ``ignore`` ids dropped (aruco_detect syntax); ``remap`` (id, stamp) -> id is TagSLAM's
+    ``tag_id_remap``, applied to the detections before they enter the pipeline.
+    """
+    from aruco_ring_localization.config import with_overrides
+    from aruco_ring_localization.detections import MarkerObservation
+    from aruco_ring_localization.pipeline import MappingPipeline
+    from aruco_ring_localization.ros.bag_source import BagSource
+    from aruco_ring_localization.schemas import MapperConfig
+
+    class _Recorder(MappingPipeline):
+        """The mapper's pipeline, keeping the ring frames it adds (and remapping ids first)."""
+
+        def __init__(self, config, ring_):
+            super().__init__(config, ring_)
+            self.recorded: list = []
+
+        def on_detections(self, camera, stamp, observations, now):
+            if remap is not None:
+                observations = [MarkerObservation(remap(o.marker_id, stamp), o.corners) for o in observations]
+            return super().on_detections(camera, stamp, observations, now)
+
+        def _add(self, frames):
+            self.recorded.extend(frames)
+            return len(frames)
+
+    config = with_overrides(MapperConfig(), {"input.use_tf": False, "input.camera_info_fallback": True,
+                                             "input.slop": slop, "input.timeout": max(4 * slop, 0.1),
+                                             "input.ignore_fiducials": ignore})
+    pipeline = _Recorder(config, ring)
+    with BagSource(bag_path, ring, progress=False, out=_NullOut()) as source:
+        source.run(pipeline, command="tagslam_reference")
+    return pipeline.recorded
+
+
+class _NullOut:
+    """The bag source's summary lines, to the debug log."""
+
+    def write(self, text: str) -> None:
+        if text.strip():
+            import logging
+
+            logging.getLogger(__name__).debug(text.rstrip())
+
+    def flush(self) -> None:
+        pass
+
+    def isatty(self) -> bool:
+        return False
 
 
 def load_test(test: str):

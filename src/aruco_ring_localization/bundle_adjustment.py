@@ -8,7 +8,7 @@ Unknowns (all in one frame W, the robot's base frame at the reference station):
 
 Measurements: every detected corner of every observation. A corner ``X`` (marker frame) is seen by
 camera ``c`` of station ``s`` at ``p_c = T_base_cam^-1 · T_W_base^-1 · T_W_marker · X``, and the
-residual is ``A · (p_c.xy / p_c.z - xy_obs) / pixel_sigma`` where ``xy_obs`` are the observed
+residual is ``A · (p_c.xy / p_c.z - xy_obs) / pixel_noise`` where ``xy_obs`` are the observed
 corners undistorted to normalised coordinates (``CameraModel.normalize``) and ``A`` the 2x2
 Jacobian of the raw pixels with respect to them at the observed corner (``obs_lens``; by default
 ``diag(f)``, the ideal pinhole camera): the raw pixel reprojection error to first order, in units
@@ -30,7 +30,6 @@ marker ``i`` is exactly ``A_i⁻¹ + A_i⁻¹ B_i S⁻¹ B_iᵀ A_i⁻¹`` with 
 """
 from __future__ import annotations
 
-import contextlib
 import logging
 import time
 from dataclasses import dataclass, field
@@ -39,8 +38,11 @@ from typing import Dict, Optional
 import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+from threadpoolctl import threadpool_limits
 
-from .config import param
+from . import geometry as geo
+from .config import in_radians, param, require_positive
 from .errors import ConfigError, GeometryError
 from .markers import marker_corners
 
@@ -88,17 +90,17 @@ class BAProblem:
 
 @dataclass(frozen=True)
 class BAOptions:
-    """Solver settings of :func:`bundle_adjust`."""
+    """Solver settings of the bundle adjustment (the mapper's ``mapping.ba`` section, config/mapping.yaml)."""
 
-    pixel_sigma: float = param(0.5, "expected corner noise (residuals are divided by it)", unit="px")
+    pixel_noise: float = param(0.5, "expected 1-sigma corner noise (the residuals are divided by it)", unit="px")
     loss: str = param("huber", "scipy robust loss: huber, soft_l1, cauchy or linear")
-    robust_scale: float = param(3.0, "where the loss turns robust, in units of pixel_sigma")
+    robust_scale: float = param(3.0, "where the loss turns robust, in units of pixel_noise")
     refine_extrinsics: bool = param(False, "also refine each camera's T_base_cam, with the priors below")
-    extrinsics_trans_sigma: float = param(0.005, "prior std of the calibrated translations", unit="m")
-    extrinsics_rot_sigma: float = param(float(np.radians(0.5)), "prior std of the calibrated rotations", unit="rad")
+    extrinsics_trans_sigma: float = param(0.005, "prior std of the calibrated camera translations", unit="m")
+    extrinsics_rot_sigma_deg: float = param(0.5, "prior std of the calibrated camera rotations", unit="deg")
     max_nfev: int = param(200, "solver iteration cap (function evaluations)")
     dense_max_params: int = param(300, "up to this many unknowns the trust-region steps are solved densely "
-                                       "(tr_solver='exact'), above with LSMR on the sparse Jacobian")
+                                       "(tr_solver exact), above with LSMR on the sparse Jacobian (solver trf)")
     ftol: float = param(1e-8, "solver tolerance on the cost")
     xtol: float = param(1e-10, "solver tolerance on the step")
     gtol: float = param(1e-10, "solver tolerance on the gradient")
@@ -109,14 +111,14 @@ class BAOptions:
                               "robust loss by iterative reweighting); trf = scipy's trust region with LSMR steps "
                               "(slow to converge on long, weakly coupled problems)")
 
+    extrinsics_rot_sigma = in_radians("extrinsics_rot_sigma_deg")
+
     def __post_init__(self) -> None:
         if self.loss not in ("huber", "soft_l1", "cauchy", "linear", "arctan"):
             raise ConfigError(f"expected huber, soft_l1, cauchy, arctan or linear, got {self.loss!r}", key="loss")
         if self.solver not in ("lm", "trf"):
             raise ConfigError(f"expected lm or trf, got {self.solver!r}", key="solver")
-        for name in ("pixel_sigma", "robust_scale", "extrinsics_trans_sigma", "extrinsics_rot_sigma"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"must be positive, got {getattr(self, name)!r}", key=name)
+        require_positive(self, "pixel_noise", "robust_scale", "extrinsics_trans_sigma", "extrinsics_rot_sigma_deg")
 
 
 @dataclass
@@ -129,7 +131,7 @@ class BAResult:
             zeros for the fixed marker. None when not computed.
         rms_px_before, rms_px_after: RMS corner reprojection error (px, undistorted).
         per_obs_rms_px: (N,) RMS error per observation after the refinement, px.
-        variance_factor: residual variance / pixel_sigma^2 (≈ (true noise / pixel_sigma)^2).
+        variance_factor: residual variance / pixel_noise^2 (≈ (true noise / pixel_noise)^2).
         seconds: solver wall time (covariance included); nfev: evaluations; status: scipy's message.
     """
 
@@ -147,110 +149,6 @@ class BAResult:
     n_residuals: int = 0
     n_params: int = 0
     extra: Dict[str, float] = field(default_factory=dict)
-
-
-# --- BLAS threads ----------------------------------------------------------------------------
-
-def _openblas_handles() -> list:
-    """(set, get) function pairs of the OpenBLAS libraries bundled with numpy and scipy wheels."""
-    import ctypes
-    import glob
-    import os
-
-    import scipy
-
-    out = []
-    for mod in (np, scipy):
-        libdir = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(mod.__file__))),
-                              f"{mod.__name__}.libs")
-        for path in glob.glob(os.path.join(libdir, "libopenblas*.so*")):
-            try:
-                lib = ctypes.CDLL(path)   # already loaded by numpy/scipy: the same handle
-            except OSError:
-                continue
-            for suffix in ("64_", ""):
-                setter = getattr(lib, f"openblas_set_num_threads{suffix}", None)
-                getter = getattr(lib, f"openblas_get_num_threads{suffix}", None)
-                if setter is not None and getter is not None:
-                    getter.restype = ctypes.c_int
-                    out.append((setter, getter))
-                    break
-    return out
-
-
-_BLAS: Optional[list] = None
-
-
-@contextlib.contextmanager
-def single_blas_thread():
-    """Run the block with OpenBLAS limited to one thread (restored afterwards).
-
-    On a busy 2-core machine OpenBLAS's worker threads spin against each other and the other
-    processes: a 28-marker adjustment took 129 s with them and 8.6 s without (the dense SVDs
-    of scipy's trust region). Wheels only (numpy.libs / scipy.libs); elsewhere a no-op, and
-    ``OPENBLAS_NUM_THREADS=1`` does the same for the whole process.
-    """
-    global _BLAS
-    if _BLAS is None:
-        try:
-            _BLAS = _openblas_handles()
-        except Exception:  # noqa: BLE001 - best effort: never fail an adjustment over a speed-up
-            _BLAS = []
-    before = []
-    for setter, getter in _BLAS:
-        before.append(getter())
-        setter(1)
-    try:
-        yield
-    finally:
-        for (setter, _), n in zip(_BLAS, before):
-            setter(n)
-
-
-# --- SO(3) helpers, vectorised over a leading axis ---------------------------------------------
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(..., 3) -> (..., 3, 3) cross-product matrices."""
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
-
-
-def _exp(w: np.ndarray) -> np.ndarray:
-    """(K, 3) rotation vectors -> (K, 3, 3) rotations (Rodrigues)."""
-    th = np.linalg.norm(w, axis=-1)
-    small = th < 1e-8
-    ths = np.where(small, 1.0, th)
-    a = np.where(small, 1.0 - th ** 2 / 6.0, np.sin(ths) / ths)
-    b = np.where(small, 0.5 - th ** 2 / 24.0, (1.0 - np.cos(ths)) / ths ** 2)
-    W = _skew(w)
-    return np.eye(3) + a[:, None, None] * W + b[:, None, None] * (W @ W)
-
-
-def _log(R: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation -> (3,) rotation vector (inverse of :func:`_exp`)."""
-    c = float(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))
-    th = float(np.arccos(c))
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if th < 1e-8:
-        return 0.5 * v
-    if th > np.pi - 1e-4:
-        w, V = np.linalg.eigh(0.5 * (R + R.T))
-        return th * V[:, np.argmax(w)]
-    return th / (2.0 * np.sin(th)) * v
-
-
-def _left_jacobian(w: np.ndarray) -> np.ndarray:
-    """(K, 3) -> (K, 3, 3) left Jacobians of SO(3): exp(w + d) ≈ exp(J_l(w) d) exp(w)."""
-    th = np.linalg.norm(w, axis=-1)
-    small = th < 1e-6
-    ths = np.where(small, 1.0, th)
-    b = np.where(small, 0.5 - th ** 2 / 24.0, (1.0 - np.cos(ths)) / ths ** 2)
-    c = np.where(small, 1.0 / 6.0 - th ** 2 / 120.0, (ths - np.sin(ths)) / ths ** 3)
-    W = _skew(w)
-    return np.eye(3) + b[:, None, None] * W + c[:, None, None] * (W @ W)
 
 
 # --- the problem as residual + Jacobian functions -----------------------------------------------
@@ -297,11 +195,11 @@ class _Model:
         unit = marker_corners(1.0)
         self.X = unit[None, :, :] * np.asarray(prob.sizes, dtype=float)[prob.obs_marker][:, None, None]
         if prob.obs_lens is not None:
-            self.A = np.asarray(prob.obs_lens, dtype=float) / opts.pixel_sigma     # (N, 4, 2, 2)
+            self.A = np.asarray(prob.obs_lens, dtype=float) / opts.pixel_noise     # (N, 4, 2, 2)
         else:
             self.A = np.zeros((N, 4, 2, 2))
-            self.A[..., 0, 0] = (prob.obs_focal[:, 0] / opts.pixel_sigma)[:, None]
-            self.A[..., 1, 1] = (prob.obs_focal[:, 1] / opts.pixel_sigma)[:, None]
+            self.A[..., 0, 0] = (prob.obs_focal[:, 0] / opts.pixel_noise)[:, None]
+            self.A[..., 1, 1] = (prob.obs_focal[:, 1] / opts.pixel_noise)[:, None]
         self.n_obs_res = 8 * N
         self.n_prior_res = 6 * C if opts.refine_extrinsics else 0
         self.n_res = self.n_obs_res + self.n_prior_res
@@ -344,7 +242,7 @@ class _Model:
             blocks = x[col[free][:, None] + np.arange(6)]
             w[free] = blocks[:, :3]
             dt[free] = blocks[:, 3:]
-        E = _exp(w)
+        E = Rotation.from_rotvec(w).as_matrix()
         return w, E @ R0, t0 + dt, E
 
     def poses(self, x: np.ndarray):
@@ -397,24 +295,24 @@ class _Model:
         DRcRs = DRc @ RsT[:, None]                                    # d r / d p_W
         data = []
         # Marker: dp_W/dw = -[R_m X]x J_l(w_m), dp_W/dt = I.
-        Jl_m = _left_jacobian(wm)[im]                                 # (N, 3, 3)
-        dpw_dw = -(_skew(a) @ Jl_m[:, None])                          # (N, 4, 3, 3)
+        Jl_m = geo.so3_left_jacobian(wm)[im]                         # (N, 3, 3)
+        dpw_dw = -(geo.skew(a) @ Jl_m[:, None])                      # (N, 4, 3, 3)
         jm = np.concatenate([DRcRs @ dpw_dw, DRcRs], axis=-1)
         data.append(jm[self._blk_masks[0]])
         # Station: dp_b/dv = R_s0^T [exp(-v) q]x J_l(-v), dp_b/dt_s = -R_s^T.
         Einv = np.transpose(Es, (0, 2, 1))[is_]                        # exp(-v)
-        Jl_s = _left_jacobian(-ws)[is_]
+        Jl_s = geo.so3_left_jacobian(-ws)[is_]
         u = q @ np.transpose(Einv, (0, 2, 1))
         R0T = np.transpose(self.R_s0[is_], (0, 2, 1))
-        dpb_dv = R0T[:, None] @ (_skew(u) @ Jl_s[:, None])
+        dpb_dv = R0T[:, None] @ (geo.skew(u) @ Jl_s[:, None])
         js = np.concatenate([DRc @ dpb_dv, -DRcRs], axis=-1)
         data.append(js[self._blk_masks[1]])
         if self.o.refine_extrinsics:
             Einv_c = np.transpose(Ec, (0, 2, 1))[ic]
-            Jl_c = _left_jacobian(-wc)[ic]
+            Jl_c = geo.so3_left_jacobian(-wc)[ic]
             u2 = q2 @ np.transpose(Einv_c, (0, 2, 1))
             Rc0T = np.transpose(self.R_c0[ic], (0, 2, 1))
-            dpc_de = Rc0T[:, None] @ (_skew(u2) @ Jl_c[:, None])
+            dpc_de = Rc0T[:, None] @ (geo.skew(u2) @ Jl_c[:, None])
             jc = np.concatenate([D @ dpc_de, -DRc], axis=-1)
             data.append(jc[self._blk_masks[2]])
         if self.n_prior_res:
@@ -567,12 +465,14 @@ def _marker_covariances(model: _Model, J: sp.csr_matrix, variance_factor: float)
 def bundle_adjust(prob: BAProblem, opts: Optional[BAOptions] = None) -> BAResult:
     """Refine the map by minimising the corner reprojection errors (see the module docstring).
 
-    Runs with one BLAS thread (:func:`single_blas_thread`).
+    Runs with one BLAS thread (threadpoolctl): on a busy 2-core machine OpenBLAS's worker threads
+    spin against each other and the other processes; a 28-marker adjustment took 129 s with them
+    and 8.6 s without (the dense SVDs of scipy's trust region).
 
     Raises:
         GeometryError: no observations, or no gauge.
     """
-    with single_blas_thread():
+    with threadpool_limits(limits=1, user_api="blas"):
         return _bundle_adjust(prob, opts)
 
 
@@ -585,9 +485,9 @@ def _bundle_adjust(prob: BAProblem, opts: Optional[BAOptions] = None) -> BAResul
         for i in range(model.C):
             T = np.asarray(prob.T_base_cams_start[i])
             c = model.col_c[i]
-            x0[c:c + 3] = _log(T[:3, :3] @ model.R_c0[i].T)
+            x0[c:c + 3] = Rotation.from_matrix(T[:3, :3] @ model.R_c0[i].T).as_rotvec()
             x0[c + 3:c + 6] = T[:3, 3] - model.t_c0[i]
-    r0 = model.residuals(x0)[: model.n_obs_res] * opts.pixel_sigma
+    r0 = model.residuals(x0)[: model.n_obs_res] * opts.pixel_noise
     rms0 = float(np.sqrt(np.mean(r0 ** 2)))
     if model.n_params == 0:
         res_x, nfev, status, J = x0, 0, "nothing to refine", None
@@ -620,7 +520,7 @@ def _bundle_adjust(prob: BAProblem, opts: Optional[BAOptions] = None) -> BAResul
         res = solve(x_start, opts.robust_scale, max(opts.max_nfev - nfev, 10))
         res_x, nfev, status, J = res.x, nfev + int(res.nfev), str(res.message), res.jac
     r = model.residuals(res_x)
-    r_obs = r[: model.n_obs_res] * opts.pixel_sigma
+    r_obs = r[: model.n_obs_res] * opts.pixel_noise
     per_obs = np.sqrt(np.mean(r_obs.reshape(model.N, 8) ** 2, axis=1))
     rms1 = float(np.sqrt(np.mean(r_obs ** 2)))
     # Variance factor from the inliers (beyond robust_scale sigmas the loss down-weights anyway).
@@ -651,7 +551,7 @@ def observation_rms_px(prob: BAProblem) -> np.ndarray:
 
     What a map that is not adjusted (method ``paper``) reports as its reprojection error.
     """
-    model = _Model(prob, BAOptions(pixel_sigma=1.0))
+    model = _Model(prob, BAOptions(pixel_noise=1.0))
     r = model.residuals(np.zeros(model.n_params))[: model.n_obs_res]
     return np.sqrt(np.mean(r.reshape(model.N, 8) ** 2, axis=1))
 

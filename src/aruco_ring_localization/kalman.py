@@ -12,7 +12,8 @@ Cycle (filterpy.kalman.KalmanFilter):
 * predict to the measurement's stamp, ``dt = stamp - last stamp`` (seconds, from the messages)::
 
       # x = F x              F: per axis [[1, dt, dt^2/2], [0, 1, dt], [0, 0, 1]]
-      # P = F P F^T + Q      Q: discrete white-jerk noise, spectral density q (per axis)
+      # P = F P F^T + Q      Q: white jerk, spectral density q per axis (filterpy's
+      #                      Q_continuous_white_noise)
 
 * update with ``z`` and its covariance ``R`` (3x3; the estimator's covariance when it has one,
   never below ``min_measurement_std``)::
@@ -37,10 +38,12 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
+from filterpy.common import Q_continuous_white_noise
 from filterpy.kalman import KalmanFilter
+from scipy.linalg import block_diag
 
 from . import geometry as geo
-from .errors import ConfigError
+from .config import param, require_positive
 
 logger = logging.getLogger(__name__)
 
@@ -51,37 +54,27 @@ _AXES = ((IX, IVX, IAX), (IY, IVY, IAY), (IPHI, IW, IALPHA))
 
 @dataclass(frozen=True)
 class FilterParams:
-    """Noise parameters of :class:`PoseFilter` (documented in config/localization.yaml).
+    """Noise parameters of :class:`PoseFilter` (the localizer's ``filter`` section, config/localization.yaml)."""
 
-    Attributes:
-        jerk_noise_xy: spectral density of the white jerk driving x and y, m^2/s^5.
-        jerk_noise_yaw: same for the yaw, rad^2/s^5.
-        measurement_std_xy: position measurement std when the estimator gives no covariance, m.
-        measurement_std_yaw: yaw measurement std when the estimator gives none, rad.
-        min_measurement_std_xy, min_measurement_std_yaw: floors applied to any measurement
-            covariance (the estimator's covariance ignores map and calibration errors), m, rad.
-        initial_std_velocity: initial std of the velocities, m/s and rad/s.
-        initial_std_acceleration: initial std of the accelerations, m/s^2 and rad/s^2.
-        time_jump_tolerance: a stamp this much (s) earlier than the last one resets the filter.
-        max_dt: predictions longer than this (s) are clamped (a long gap; covariance still grows).
-    """
-
-    jerk_noise_xy: float = 0.1
-    jerk_noise_yaw: float = 0.1
-    measurement_std_xy: float = 0.02
-    measurement_std_yaw: float = 0.01
-    min_measurement_std_xy: float = 0.003
-    min_measurement_std_yaw: float = 0.002
-    initial_std_velocity: float = 0.5
-    initial_std_acceleration: float = 1.0
-    time_jump_tolerance: float = 0.5
-    max_dt: float = 5.0
+    jerk_noise_xy: float = param(0.1, "spectral density of the white jerk driving x and y (constant-acceleration "
+                                      "model): larger follows faster, smaller smooths more", unit="m^2/s^5")
+    jerk_noise_yaw: float = param(0.1, "the same for the yaw", unit="rad^2/s^5")
+    measurement_std_xy: float = param(0.02, "position measurement std when the estimator gives no covariance",
+                                      unit="m")
+    measurement_std_yaw: float = param(0.01, "yaw measurement std when the estimator gives none", unit="rad")
+    min_measurement_std_xy: float = param(0.003, "floor added to the estimator's position covariance (it only "
+                                                 "knows the pixel noise, not map or calibration errors)", unit="m")
+    min_measurement_std_yaw: float = param(0.002, "the same for the yaw", unit="rad")
+    initial_std_velocity: float = param(0.5, "initial std of the velocities (m/s and rad/s)")
+    initial_std_acceleration: float = param(1.0, "initial std of the accelerations (m/s^2 and rad/s^2)")
+    time_jump_tolerance: float = param(0.5, "a stamp this much earlier than the last one (a bag loop, a clock "
+                                            "reset) resets the filter", unit="s")
+    max_dt: float = param(5.0, "predictions longer than this are clamped (a long gap; the covariance still grows)",
+                          unit="s")
 
     def __post_init__(self) -> None:
-        for name in ("jerk_noise_xy", "jerk_noise_yaw", "measurement_std_xy", "measurement_std_yaw",
-                     "initial_std_velocity", "initial_std_acceleration", "max_dt"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"must be positive, got {getattr(self, name)!r}", key=name)
+        require_positive(self, "jerk_noise_xy", "jerk_noise_yaw", "measurement_std_xy", "measurement_std_yaw",
+                         "initial_std_velocity", "initial_std_acceleration", "max_dt")
 
 
 def transition_matrix(dt: float) -> np.ndarray:
@@ -95,16 +88,16 @@ def transition_matrix(dt: float) -> np.ndarray:
 
 
 def process_noise(dt: float, q_xy: float, q_yaw: float) -> np.ndarray:
-    """Q (9, 9): discrete white-jerk noise for one axis, ``q *
-    [[dt^5/20, dt^4/8, dt^3/6], [dt^4/8, dt^3/3, dt^2/2], [dt^3/6, dt^2/2, dt]]``."""
-    block = np.array([[dt ** 5 / 20, dt ** 4 / 8, dt ** 3 / 6],
-                      [dt ** 4 / 8, dt ** 3 / 3, dt ** 2 / 2],
-                      [dt ** 3 / 6, dt ** 2 / 2, dt]])
-    Q = np.zeros((9, 9))
-    for (p, v, a), q in zip(_AXES, (q_xy, q_xy, q_yaw)):
-        idx = np.array([p, v, a])
-        Q[np.ix_(idx, idx)] = q * block
-    return Q
+    """Q (9, 9): white jerk of spectral density ``q`` per axis (filterpy's
+    ``Q_continuous_white_noise``), per axis ``q * [[dt^5/20, dt^4/8, dt^3/6],
+    [dt^4/8, dt^3/3, dt^2/2], [dt^3/6, dt^2/2, dt]]``.
+
+    x and y share one call with ``block_size=2, order_by_dim=False``, which lays the state out
+    as (x, y, x', y', x'', y''): the paper's order, followed by the yaw block (phi, phi', phi'').
+    """
+    return block_diag(Q_continuous_white_noise(dim=3, dt=dt, spectral_density=q_xy, block_size=2,
+                                               order_by_dim=False),
+                      Q_continuous_white_noise(dim=3, dt=dt, spectral_density=q_yaw))
 
 
 class PoseFilter:

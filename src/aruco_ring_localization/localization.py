@@ -46,9 +46,11 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 from scipy.linalg import lapack as _lapack
+from scipy.spatial.transform import Rotation
 
 from . import geometry as geo
 from .camera import CameraModel
+from .config import in_radians, param, require_positive
 from .errors import ConfigError, MeasurementError
 from .detections import RingFrame
 from .marker_map import MarkerMap
@@ -69,56 +71,43 @@ REJECT_NO_MODEL = "no camera model"
 
 @dataclass(frozen=True)
 class LocalizationParams:
-    """Parameters of :class:`RingLocalizer` (documented in config/localization.yaml).
+    """Parameters of :class:`RingLocalizer` (the localizer's ``estimator`` section, config/localization.yaml)."""
 
-    Attributes:
-        fusion: ``paper`` (per-camera estimates, accuracy-weighted fusion) or ``joint``.
-        max_reprojection_error: per-camera RMS reprojection error (px) above which an estimate
-            is discarded (paper); in ``joint`` also the per-marker RMS above which a marker is
-            dropped as an outlier and the pose re-solved.
-        th_distance: TH_d, m (paper: 5 m).
-        th_orientation: TH_or, rad (paper: 60 deg).
-        fusion_gap: estimates whose positions lie within this (m) of the best one are averaged.
-        pixel_noise: 1-sigma corner noise, px, used for covariances (the residual RMS is used
-            instead when it is larger).
-        robust_scale: Huber loss threshold of the joint estimator, px. Above the residuals that
-            the extrinsic calibration error alone leaves (0.2 deg ~ 3-5 px): with a smaller
-            threshold most corners are down-weighted, IRLS converges only linearly (8+
-            iterations instead of 2-3) and nothing is gained; gross outliers (tens of px) are
-            still down-weighted, and whole misfit markers are dropped (joint_outlier_threshold).
-        max_iterations: Gauss-Newton iterations of the joint estimator.
-        ambiguity_gate: a single-marker IPPE pose is only trusted without a reference when its
-            ambiguity ratio (err_best / err_second) is below this.
-        ignore_ids: marker ids never used.
-        min_markers_joint: fewer markers than this in the whole ring -> the joint estimator falls
-            back to the per-camera fusion (a single marker's pose is ambiguous).
-        joint_outlier_threshold: in ``joint``, a marker whose RMS residual exceeds this (px) is
-            dropped and the pose re-solved; a final RMS above it rejects the joint solution.
-            Larger than ``max_reprojection_error`` because the joint residuals also carry the
-            extrinsic calibration error (0.2 deg is ~3 px), which per-camera PnP absorbs.
-    """
-
-    fusion: str = "joint"
-    max_reprojection_error: float = 3.0
-    th_distance: float = 5.0
-    th_orientation: float = float(np.radians(60.0))
-    fusion_gap: float = 0.10
-    pixel_noise: float = 0.5
-    robust_scale: float = 8.0
-    max_iterations: int = 8
-    ambiguity_gate: float = 0.3
-    ignore_ids: Tuple[int, ...] = ()
-    min_markers_joint: int = 2
-    joint_outlier_threshold: float = 10.0
+    fusion: str = param("joint", "paper: per-camera PnP and the accuracy-weighted fusion, exactly the paper; "
+                                 "joint: one multi-camera PnP over every corner with a Jacobian covariance "
+                                 "(measured better)")
+    max_reprojection_error: float = param(3.0, "per-camera RMS reprojection error above which a camera's estimate "
+                                               "is discarded (paper; it gives no value)", unit="px")
+    th_distance: float = param(5.0, "TH_d: Ac_d = (TH_d - dist)/TH_d, 0 beyond (paper: 5 m)", unit="m")
+    th_orientation_deg: float = param(60.0, "TH_or: Ac_or = (TH_or - angle)/TH_or, 0 beyond (paper: 60 deg)",
+                                      unit="deg")
+    fusion_gap: float = param(0.10, "per-camera estimates within this distance of the best one are Ac-averaged",
+                              unit="m")
+    pixel_noise: float = param(0.5, "1-sigma corner noise used for covariances (the residuals' own RMS when "
+                                    "larger); about 0.3-0.5 px for aruco_detect with subpixel refinement", unit="px")
+    robust_scale: float = param(8.0, "Huber threshold of the joint estimator: above the 3-5 px that a 0.2 deg "
+                                     "calibration error leaves (a smaller one down-weights most corners and IRLS "
+                                     "converges only linearly); gross outliers are still down-weighted", unit="px")
+    max_iterations: int = param(8, "Gauss-Newton iterations of the joint estimator")
+    ambiguity_gate: float = param(0.3, "a single-marker IPPE pose is trusted without a reference only when its "
+                                       "ambiguity ratio (err_best / err_second) is below this")
+    min_markers_joint: int = param(2, "with fewer markers in the whole ring the joint estimator falls back to the "
+                                      "per-camera fusion (a single marker's pose is ambiguous)")
+    joint_outlier_threshold: float = param(10.0, "a marker whose RMS residual in the joint solution exceeds this "
+                                                 "is dropped (moved or mis-mapped marker) and the pose re-solved; a "
+                                                 "final RMS above it rejects the joint solution. Larger than "
+                                                 "max_reprojection_error: the joint residuals also carry the "
+                                                 "extrinsic calibration error (0.2 deg ~ 3 px)", unit="px")
 
     def __post_init__(self) -> None:
         if self.fusion not in FUSION_METHODS:
             raise ConfigError(f"expected one of {FUSION_METHODS}, got {self.fusion!r}", key="fusion")
-        for name in ("max_reprojection_error", "th_distance", "th_orientation", "pixel_noise", "robust_scale"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"must be positive, got {getattr(self, name)!r}", key=name)
+        require_positive(self, "max_reprojection_error", "th_distance", "th_orientation_deg", "pixel_noise",
+                         "robust_scale")
         if self.fusion_gap < 0:
             raise ConfigError(f"must be >= 0, got {self.fusion_gap!r}", key="fusion_gap")
+
+    th_orientation = in_radians("th_orientation_deg")
 
 
 @dataclass
@@ -262,14 +251,8 @@ def fuse_paper(estimates: Sequence[CameraEstimate], fusion_gap: float
 
 def _perturb(T: np.ndarray, delta: np.ndarray) -> np.ndarray:
     """``geometry.se3_perturb`` without input validation (the solver's inner loop): left-multiply
-    ``T`` by (Rodrigues(w), v) with ``delta = (w, v)``."""
-    w = delta[:3]
-    theta = float(np.sqrt(w @ w))
-    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if theta < 1e-12:
-        R = np.eye(3) + K
-    else:
-        R = np.eye(3) + (np.sin(theta) / theta) * K + ((1.0 - np.cos(theta)) / (theta * theta)) * (K @ K)
+    ``T`` by (exp(w), v) with ``delta = (w, v)``."""
+    R = Rotation.from_rotvec(delta[:3]).as_matrix()
     out = np.empty((4, 4))
     out[:3, :3] = R @ T[:3, :3]
     out[:3, 3] = R @ T[:3, 3] + delta[3:6]
@@ -280,19 +263,10 @@ def _perturb(T: np.ndarray, delta: np.ndarray) -> np.ndarray:
 def _per_camera_poses(T_base_map: np.ndarray, deltas: np.ndarray, T_base_cams: np.ndarray) -> np.ndarray:
     """(C, 4, 4) ``T_map_cam`` for C perturbations ``deltas`` (C, 6) of ``T_base_map`` (batched
     :func:`_perturb`, inverse and extrinsics: one pass of array operations for all cameras)."""
-    w, v = deltas[:, :3], deltas[:, 3:]
-    theta = np.sqrt(np.sum(w * w, axis=1))
-    small = theta < 1e-12
-    th = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0, np.sin(th) / th)
-    b = np.where(small, 0.5, (1.0 - np.cos(th)) / (th * th))
-    K = np.zeros((len(w), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
-    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
-    R = np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
+    R = Rotation.from_rotvec(deltas[:, :3]).as_matrix()
     R_bm = R @ T_base_map[:3, :3]                          # rotation of the perturbed T_base_map
-    t_bm = R @ T_base_map[:3, 3] + v
-    out = np.zeros((len(w), 4, 4))
+    t_bm = R @ T_base_map[:3, 3] + deltas[:, 3:]
+    out = np.zeros((len(deltas), 4, 4))
     R_mb = np.transpose(R_bm, (0, 2, 1))
     out[:, :3, :3] = R_mb
     out[:, :3, 3] = -np.matmul(R_mb, t_bm[:, :, None])[:, :, 0]
@@ -532,20 +506,6 @@ def crlb_covariance(T_map_base: np.ndarray, blocks: Sequence[Tuple[np.ndarray, C
 
 # --- the localizer --------------------------------------------------------------------------
 
-def _quads_ok(c: np.ndarray, min_area_px: float = 4.0) -> np.ndarray:
-    """Vectorised :func:`markers.quad_is_degenerate` negation for (k, 4, 2) corners -> (k,) bool."""
-    finite = np.isfinite(c).all(axis=(1, 2))
-    c = np.where(np.isfinite(c), c, 0.0)
-    nxt = [1, 2, 3, 0]
-    cn = c[:, nxt]
-    e = cn - c
-    en = e[:, nxt]
-    cross = e[:, :, 0] * en[:, :, 1] - e[:, :, 1] * en[:, :, 0]
-    convex = (cross > 0).all(axis=1) | (cross < 0).all(axis=1)
-    area = 0.5 * np.abs(np.sum(c[:, :, 0] * cn[:, :, 1] - cn[:, :, 0] * c[:, :, 1], axis=1))
-    return finite & convex & (area >= min_area_px)
-
-
 @dataclass
 class _JointSolution:
     problem: JointProblem
@@ -572,7 +532,6 @@ class RingLocalizer:
     def __init__(self, ring: CameraRing, marker_map: MarkerMap, params: Optional[LocalizationParams] = None):
         self.params = params or LocalizationParams()
         self.marker_map = marker_map
-        self.ignore = frozenset(int(i) for i in self.params.ignore_ids)
         self._axes_cache: Dict[int, np.ndarray] = {}
         self.set_ring(ring)
 
@@ -585,67 +544,30 @@ class RingLocalizer:
     # --- input ------------------------------------------------------------------------------
 
     def _gather(self, ring_frame: RingFrame, rejected: Dict[str, int]) -> Dict[str, CameraView]:
-        """Per camera, the usable detections of mapped markers (malformed ones counted and dropped)."""
+        """Per camera, the detections of mapped markers (others counted as ``unknown id``).
+
+        The detections must be sanitized already (:func:`detections.sanitize_observations`:
+        finite, convex, unique ids, not ignored): the pipeline does it once, where they enter.
+        """
         mm = self.marker_map
-
-        def count(reason: str, n: int = 1) -> None:
-            rejected[reason] = rejected.get(reason, 0) + n
-
-        cams = []  # (name, model, ids, first index into quads)
-        quads: List[np.ndarray] = []
+        views: Dict[str, CameraView] = {}
         for name, cf in ring_frame.cameras.items():
             if not cf.observations:
                 continue
             if name not in self._T_cam_base:
-                count(REJECT_NO_MODEL, len(cf.observations))
+                rejected[REJECT_NO_MODEL] = rejected.get(REJECT_NO_MODEL, 0) + len(cf.observations)
                 continue
-            model = cf.model if cf.model is not None else self.ring[name].model
-            ids = []
-            first = len(quads)
-            for obs in cf.observations:
-                mid = int(obs.marker_id)
-                if mid in self.ignore:
-                    count("ignored")
-                elif mid not in mm:
-                    count(REJECT_UNKNOWN_ID)
-                else:
-                    c = np.asarray(obs.corners, dtype=np.float64)
-                    if c.shape != (4, 2):
-                        count("non-finite")
-                        continue
-                    ids.append(mid)
-                    quads.append(c)
-            if ids:
-                cams.append((name, model, ids, first))
-        views: Dict[str, CameraView] = {}
-        if not quads:
-            return views
-        q_all = np.stack(quads)
-        ok_all = _quads_ok(q_all)
-        # Corners far outside the image (more than one image size away): corrupted messages.
-        sizes = np.repeat(np.array([[m.width, m.height] for _, m, ids, _ in cams], dtype=np.float64),
-                          [len(ids) for _, _, ids, _ in cams], axis=0)[:, None, :]
-        with np.errstate(invalid="ignore"):
-            ok_all &= (np.abs(q_all - 0.5 * sizes) <= 1.5 * sizes).all(axis=(1, 2))
-        bad = int(ok_all.size - np.count_nonzero(ok_all))
-        if bad:
-            count("degenerate", bad)
-        for name, model, ids, first in cams:
-            ok = ok_all[first:first + len(ids)]
-            if len(set(ids)) != len(ids):
-                dup = np.array([ids.count(i) > 1 for i in ids])
-                count("duplicate id", int(dup.sum()))
-                ok = ok & ~dup
-            q = q_all[first:first + len(ids)]
-            if ok.all():
-                keep_ids, px = ids, q.reshape(-1, 2)
-            else:
-                keep = np.flatnonzero(ok)
-                if keep.size == 0:
-                    continue
-                keep_ids, px = [ids[k] for k in keep], q[keep].reshape(-1, 2)
-            views[name] = CameraView(name=name, T_cam_base=self._T_cam_base[name], model=model, ids=keep_ids,
-                                     px=px, X=np.concatenate([mm.corners(i) for i in keep_ids]),
+            obs = [o for o in cf.observations if int(o.marker_id) in mm]
+            unknown = len(cf.observations) - len(obs)
+            if unknown:
+                rejected[REJECT_UNKNOWN_ID] = rejected.get(REJECT_UNKNOWN_ID, 0) + unknown
+            if not obs:
+                continue
+            ids = [int(o.marker_id) for o in obs]
+            views[name] = CameraView(name=name, T_cam_base=self._T_cam_base[name],
+                                     model=cf.model if cf.model is not None else self.ring[name].model, ids=ids,
+                                     px=np.concatenate([np.asarray(o.corners, dtype=np.float64) for o in obs]),
+                                     X=np.concatenate([mm.corners(i) for i in ids]),
                                      T_base_cam=self._T_base_cam[name])
         return views
 

@@ -4,11 +4,12 @@ Feed it ring frames (:meth:`MapBuilder.add_frame`), then :meth:`MapBuilder.build
 :class:`~aruco_ring_localization.marker_map.MarkerMap`.
 
 **Paper mode** (paper §II-D). Every detected marker gets its single-marker pose ``T_cam_marker``
-from IPPE (:func:`pnp.solve_marker_ippe`, both solutions and the ambiguity ratio kept). The
-reference marker is the one *closest to its camera with its z axis most parallel to the camera's
-axis*: we take the smallest ``distance / cos(angle)`` (angle between the marker's z and the
-ray back to the camera's optical axis), among the unambiguous detections of the first robot
-placement, unless the user names a ``reference_marker``. Every other marker is chained through
+from IPPE on the mean corners of each (station, camera, marker), refined from the IPPE poses and
+their mirrors (:func:`pnp.solve_marker_ippe_undistorted`, both solutions and the ambiguity ratio
+kept). The reference marker is the one *closest to its camera with its z axis most parallel to
+the camera's axis*: we take the smallest ``distance / cos(angle)`` (angle between the marker's z
+and the ray back to the camera's optical axis), among the unambiguous detections of the first
+robot placement, unless the user names a ``reference_marker``. Every other marker is chained through
 the ring extrinsics, ``T_M0_Mk = T_M0_Ci · T_Ci_Cj · T_Cj_Mk`` (with ``T_Ci_Cj = T_Ci_base ·
 T_base_Cj``), averaged over all frames of the placement (translations arithmetically, rotations
 by :func:`geometry.average_rotations`). The map frame is then fixed to the reference marker
@@ -50,21 +51,20 @@ import dataclasses
 import logging
 from collections import defaultdict
 from dataclasses import dataclass, field
-from typing import Any, Dict, Hashable, List, Optional, Sequence, Tuple
+from typing import Any, Dict, Hashable, List, Optional, Tuple
 
-import cv2
 import numpy as np
 
 from . import geometry as geo
 from .bundle_adjustment import (BAOptions, BAProblem, BAResult, bundle_adjust, marker_std_in_frame,
                                 observation_rms_px)
-from .config import param, section
+from .config import in_radians, param, section
 from .errors import ArucoRingError, ConfigError, GeometryError, MeasurementError
-from .detections import RingFrame, sanitize_observations
+from .detections import RingFrame
 from .marker_map import MapSanityLimits, MarkerEntry, MarkerMap, map_frame_from_reference
-from .markers import MarkerSizes
+from .markers import MarkerSizes, marker_corners
 from .camera import CameraModel
-from .markers import marker_corners
+from .pnp import MarkerPoseCandidates, solve_marker_ippe_undistorted
 from .ring import CameraRing
 
 logger = logging.getLogger(__name__)
@@ -76,62 +76,60 @@ FRAMES = ("floor", "marker")
 
 
 @dataclass(frozen=True)
-class MappingBAOptions(BAOptions):
-    """Bundle adjustment of a map: :class:`~bundle_adjustment.BAOptions`, with the ring extrinsics
-    refined by default (priors around the calibration; several stations make them observable)."""
-
-    refine_extrinsics: bool = param(True, "also refine each camera's T_base_cam, with priors around the "
-                                          "calibration (extrinsics_trans_sigma, extrinsics_rot_sigma)")
-
-
-@dataclass(frozen=True)
 class MappingOptions:
-    """Settings of :class:`MapBuilder` (documented in docs/mapping.md and config/mapping.yaml)."""
+    """Settings of :class:`MapBuilder` (the mapper's ``mapping`` section, config/mapping.yaml)."""
 
-    max_ambiguity: float = param(0.6, "IPPE ambiguity ratio (best/second reprojection error) above which a "
-                                      "detection does not initialise poses")
-    max_reprojection_px: float = param(3.0, "detections whose best IPPE pose reprojects worse than this (RMS) "
-                                            "are rejected as bad detections", unit="px")
+    max_ambiguity: float = param(0.6, "IPPE ambiguity ratio (best/second reprojection error) above which a detection "
+                                      "does not initialise a pose (a flipped pose would corrupt the average)")
+    max_reprojection_px: float = param(3.0, "detections whose best single-marker pose reprojects worse (RMS) are "
+                                            "rejected as bad detections", unit="px")
     max_distance: float = param(12.0, "detections of markers farther than this are ignored", unit="m")
-    still_px: float = param(1.5, "automatic stations: a frame whose common detections moved less than this "
-                                 "(median of the largest corner motion) continues the previous station", unit="px")
+    still_px: float = param(1.5, "automatic stations: consecutive frames whose common detections moved less than "
+                                 "this (median of the largest corner motion) belong to one robot placement", unit="px")
     max_frames_per_station: int = param(30, "frames kept per station (more add little and cost time)")
     min_station_motion_px: float = param(10.0, "automatic stations of a moving ring (handheld, driving): a "
                                                "frame starts a new station only once its detections moved this "
                                                "far (median) from the current station's first frame; frames "
                                                "in between are left out (0: every moving frame is a station)",
                                          unit="px")
-    min_views_for_consensus: int = param(2, "distinct (station, camera) views needed to resolve a marker seen "
-                                            "only ambiguously")
-    consensus_angle: float = param(float(np.radians(10.0)), "agreement tolerance of that consensus", unit="rad")
-    consensus_distance: float = param(0.10, "agreement tolerance of that consensus", unit="m")
-    max_marker_spread: float = param(0.25, "reject a marker whose per-station positions disagree by more (robust "
-                                           "spread: a wrong size, a moved marker, an id printed twice)", unit="m")
+    min_views_for_consensus: int = param(2, "distinct (station, camera) views needed to resolve a marker seen only "
+                                            "ambiguously")
+    consensus_angle_deg: float = param(10.0, "agreement tolerance of that consensus, rotation", unit="deg")
+    consensus_distance: float = param(0.10, "agreement tolerance of that consensus, position", unit="m")
+    max_marker_spread: float = param(0.25, "a marker whose per-station positions disagree by more is rejected (a "
+                                           "wrong fiducial_len_override, a moved marker, an id printed twice)",
+                                     unit="m")
     max_marker_rms_px: float = param(3.0, "refined maps: a marker still reprojecting worse than this after the "
                                           "adjustment is rejected and the adjustment redone without it", unit="px")
     refine_passes: int = param(3, "alternating marker/station re-averaging passes in multi-station maps")
-    refined_reference: bool = param(True, "in refined maps without a user reference_marker, fix the frame to the "
-                                          "marker whose heading the adjustment determines best")
+    refined_reference: bool = param(True, "refined maps without a reference_marker: fix the frame to the marker "
+                                          "whose heading the adjustment determines best, not the paper's reference")
     refined_reference_min_stations: int = param(2, "... among markers seen from at least this many stations")
-    init_window_stations: int = param(12, "with more stations than this (a long chain), the initialisation "
-                                          "adjusts as it grows: the last init_window_stations stations every "
-                                          "init_ba_every new ones")
-    init_ba_every: int = param(4, "see init_window_stations")
-    init_calibrate_after: int = param(6, "chained initialisation: refine the ring extrinsics once this many "
-                                         "stations are linked (and again each time the linked set doubles)")
-    init_calibrate_max: int = param(96, "... up to this many stations")
+    init_window_stations: int = param(12, "with more stations than this (a hall mapped along a chain of stations) "
+                                          "the initialisation adjusts the last this-many stations as it grows")
+    init_ba_every: int = param(4, "... every this-many new stations")
+    init_calibrate_after: int = param(6, "the ring extrinsics are adjusted during the growth once this many "
+                                         "stations are linked (with ba.refine_extrinsics), again each time the "
+                                         "linked set doubles")
+    init_calibrate_max: int = param(96, "... up to this many stations (all linked stations adjusted)")
     planar: bool = param(True, "ground robot: the initialisation moves stations in x, y and yaw only (the ring "
                                "base frame's z is up and the floor flat); the bundle adjustment always "
                                "estimates full 6-DOF stations. Turned off automatically, with a warning, when the "
                                "detections show the ring tilting or changing height between stations")
-    planar_max_tilt: float = param(float(np.radians(5.0)), "the planar prior is contradicted when the ring tilts "
-                                                           "by more than this between stations (median)", unit="rad")
+    planar_max_tilt_deg: float = param(5.0, "the planar prior is contradicted when the ring tilts by more than this "
+                                            "between stations (median)", unit="deg")
     planar_max_height_change: float = param(0.10, "... or changes height by more than this (median)", unit="m")
-    frame: str = param("floor", "map frame: 'floor' = origin on the floor below the reference marker, z up (the "
-                                "ring base frame's z), x the marker's x made horizontal; 'marker' = the reference "
+    frame: str = param("floor", "map frame: floor = origin on the floor below the reference marker, z up (the "
+                                "ring base frame's z), x the marker's x made horizontal; marker = the reference "
                                 "marker's own frame (fiducial_slam's convention)")
-    ba: MappingBAOptions = section(MappingBAOptions)
-    sanity: MapSanityLimits = section(MapSanityLimits)
+    ba: BAOptions = section(BAOptions, "bundle adjustment of method refined; the ring extrinsics are refined too, "
+                                       "with priors around the calibration (several stations make them observable)",
+                            refine_extrinsics=True)
+    sanity: MapSanityLimits = section(MapSanityLimits, "checks every map passes before it is saved (a map failing one "
+                                                       "is not written, the previous file stays)")
+
+    consensus_angle = in_radians("consensus_angle_deg")
+    planar_max_tilt = in_radians("planar_max_tilt_deg")
 
     def __post_init__(self) -> None:
         if self.frame not in FRAMES:
@@ -180,116 +178,15 @@ class _Group:
         return self.T_base_cam @ self.candidates[k]
 
 
-_LM = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-10)
-_EYE3 = np.eye(3)
+# Two candidate poses of one marker closer than this are one (pnp.solve_marker_ippe's mirror mode).
+_MIN_SEPARATION = np.radians(1.0)
 
 
-def _mirror_about_ray(R: np.ndarray, t: np.ndarray) -> Optional[np.ndarray]:
-    """The other rotation of the planar ambiguity: the marker normal reflected about the line of sight."""
-    u = t / np.linalg.norm(t)
-    n1 = R[:, 2]
-    n2 = 2.0 * (n1 @ u) * u - n1
-    axis = np.cross(n1, n2)
-    s = float(np.linalg.norm(axis))
-    if s < 1e-9:
-        return None
-    return cv2.Rodrigues(axis / s * np.arctan2(s, float(n1 @ n2)))[0] @ R
-
-
-def _rms_px(R: np.ndarray, t: np.ndarray, obj: np.ndarray, xy: np.ndarray, focal: np.ndarray) -> float:
-    """RMS pinhole reprojection error in undistorted pixels of pose (R, t) for corners ``xy`` (4, 2)."""
-    p = obj @ R.T + t
-    if np.any(p[:, 2] <= 1e-9):
-        return float("inf")
-    d = (p[:, :2] / p[:, 2:3] - xy) * focal
-    return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
-
-
-def _ippe_check(xy: np.ndarray, size: float, focal: np.ndarray) -> Tuple[float, float]:
-    """(distance m, RMS error in undistorted px) of the best IPPE pose of one detection."""
-    obj = marker_corners(size)
-    try:
-        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, np.ascontiguousarray(xy.reshape(-1, 1, 2)), _EYE3, None,
-                                                 flags=cv2.SOLVEPNP_IPPE_SQUARE)
-    except cv2.error as exc:
-        raise MeasurementError(f"IPPE failed: {exc}") from None
-    best = (float("inf"), float("inf"))
-    for r, t in zip(rvecs[:n], tvecs[:n]):
-        t = t.ravel()
-        if t[2] > 0.0:
-            err = _rms_px(cv2.Rodrigues(r)[0], t, obj, xy, focal)
-            if err < best[1]:
-                best = (float(np.linalg.norm(t)), err)
-    if not np.isfinite(best[1]):
-        raise MeasurementError("IPPE found no pose in front of the camera")
-    return best
-
-
-def marker_pose_candidates(corners_px: np.ndarray, size: float, model: CameraModel,
-                           min_separation: float = np.radians(1.0),
-                           normalized: Optional[np.ndarray] = None) -> Tuple[List[np.ndarray], List[float], float]:
-    """Both poses of the planar ambiguity of one marker, refined, best first.
-
-    IPPE (``cv2.SOLVEPNP_IPPE_SQUARE``, as :func:`pnp.solve_marker_ippe`) seeds; each seed and
-    its mirror about the line of sight are polished by Levenberg-Marquardt on the undistorted
-    corners (OpenCV's IPPE alone can miss the exact pose of a small, off-axis, nearly face-on
-    marker by tens of degrees while reprojecting within 0.1 px). Errors are RMS reprojection
-    errors in undistorted pixels (the ideal pinhole camera with the same focal lengths).
-
-    Args:
-        corners_px: (4, 2) raw pixels, aruco_detect order.
-        size: marker side, m.
-        model: the camera.
-        min_separation: two solutions closer than this (rad) are one.
-        normalized: optional ``model.normalize(corners_px)`` when the caller has it.
-
-    Returns:
-        (poses ``T_cam_marker``, RMS errors px, ambiguity ratio best/second; 0.0 when both
-        branches converge to one pose).
-
-    Raises:
-        MeasurementError: malformed corners or no pose in front of the camera.
-    """
-    px = np.asarray(corners_px, dtype=np.float64)
-    if px.shape != (4, 2) or not np.all(np.isfinite(px)):
-        raise MeasurementError(f"marker corners: expected 4 finite (x, y), got {px.tolist()}")
-    xy = np.asarray(model.normalize(px) if normalized is None else normalized, dtype=np.float64).reshape(4, 2)
-    focal = np.array([model.fx, model.fy])
-    obj = marker_corners(size)
-    pts = np.ascontiguousarray(xy.reshape(-1, 1, 2))
-    try:
-        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, pts, _EYE3, None, flags=cv2.SOLVEPNP_IPPE_SQUARE)
-    except cv2.error as exc:
-        raise MeasurementError(f"IPPE failed on corners {px.tolist()}: {exc}") from None
-    starts = []
-    for r, t in zip(rvecs[:n], tvecs[:n]):
-        R = cv2.Rodrigues(r)[0]
-        t = t.ravel()
-        starts.append((r.reshape(3, 1), t))
-        Rm = _mirror_about_ray(R, t)
-        if Rm is not None:
-            starts.append((cv2.Rodrigues(Rm)[0], t))
-    solved = []
-    for r, t in starts:
-        r2, t2 = cv2.solvePnPRefineLM(obj, pts, _EYE3, None, r.copy(), t.reshape(3, 1).copy(), criteria=_LM)
-        R2, t2 = cv2.Rodrigues(r2)[0], t2.ravel()
-        if not (np.all(np.isfinite(R2)) and np.all(np.isfinite(t2))) or t2[2] <= 0.0:
-            continue
-        solved.append((_rms_px(R2, t2, obj, xy, focal), R2, t2))
-    if not solved:
-        raise MeasurementError(f"no marker pose in front of the camera for corners {px.tolist()}")
-    solved.sort(key=lambda a: a[0])
-    keep = [solved[0]]
-    for cand in solved[1:]:
-        dR = cand[1].T @ keep[0][1]
-        if np.arccos(np.clip((np.trace(dR) - 1.0) / 2.0, -1.0, 1.0)) > min_separation:
-            keep.append(cand)
-            break
-    errors = [e for e, _, _ in keep]
-    # One distinct pose: both branches of the ambiguity converged together (face-on marker): the
-    # orientation is not ambiguous between two discrete poses, only uncertain near that one.
-    amb = errors[0] / errors[1] if len(errors) > 1 and errors[1] > 0 else 0.0
-    return [geo.make_transform(R, t) for _, R, t in keep], errors, float(amb)
+def _candidates(xy: np.ndarray, size: float, focal: np.ndarray) -> MarkerPoseCandidates:
+    """Both poses of the planar ambiguity of one marker from undistorted corners ``xy`` (4, 2),
+    refined from the IPPE poses and their mirrors, errors in undistorted px (see
+    :func:`pnp.solve_marker_ippe_undistorted`)."""
+    return solve_marker_ippe_undistorted(xy, size, focal, mirror=True, min_separation=_MIN_SEPARATION)
 
 
 def _robust_fit(fit, P: np.ndarray, Q: np.ndarray) -> np.ndarray:
@@ -344,19 +241,21 @@ class MapBuilder:
     """Build a marker map from ring frames (see the module docstring).
 
     Args:
-        ring: the calibrated ring (extrinsics used for chaining; intrinsics when a camera frame
-            carries no model). May be replaced (:attr:`ring`) when tf extrinsics arrive.
+        ring: the calibrated ring (extrinsics used for chaining and as the adjustment's priors;
+            intrinsics when a camera frame carries no model); :meth:`set_ring` when tf's arrive.
         sizes: marker side per id.
         method: ``paper`` or ``refined`` (default of :meth:`build`).
         reference_marker: id that fixes the map frame, or None for the paper's rule.
         options: :class:`MappingOptions`.
         frame_id: name of the map frame in the built map.
-        ignore_ids: marker ids never mapped.
+
+    Ring frames must hold sanitized detections (:func:`detections.sanitize_observations`, ignored
+    ids removed): :class:`pipeline.MappingPipeline` does it once where they enter.
     """
 
     def __init__(self, ring: CameraRing, sizes: MarkerSizes, method: str = "refined",
                  reference_marker: Optional[int] = None, options: Optional[MappingOptions] = None,
-                 frame_id: str = "map", ignore_ids: Sequence[int] = ()):
+                 frame_id: str = "map"):
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         self.ring = ring
@@ -365,8 +264,12 @@ class MapBuilder:
         self.reference_marker = reference_marker
         self.options = options or MappingOptions()
         self.frame_id = frame_id
-        self.ignore_ids = frozenset(int(i) for i in ignore_ids)
         self.clear()
+
+    def set_ring(self, ring: CameraRing) -> None:
+        """The ring with the extrinsics in force (tf's): used for the frames added from now on and
+        as the bundle adjustment's priors."""
+        self.ring = ring
 
     # --- input ------------------------------------------------------------------------------
 
@@ -416,10 +319,7 @@ class MapBuilder:
                 self._reject("unknown camera", name)
                 continue
             model = cam_frame.model or rc.model
-            kept, reasons = sanitize_observations(cam_frame.observations, self.ignore_ids, model.width, model.height)
-            for reason, n in reasons.items():
-                self._reject(reason, name, n)
-            for o in kept:
+            for o in cam_frame.observations:
                 self.seen[o.marker_id] += 1
                 detections.append((name, o, model, rc.T_base_cam))
         if not detections:
@@ -436,11 +336,11 @@ class MapBuilder:
             xy = model.normalize(o.corners)
             focal = np.array([model.fx, model.fy])
             try:
-                distance, error = _ippe_check(xy, size, focal)
-                if error > opts.max_reprojection_px:
+                cand = solve_marker_ippe_undistorted(xy, size, focal)
+                if cand.error > opts.max_reprojection_px:
                     # OpenCV's IPPE can miss small off-axis markers: check with the refined pair first.
-                    poses, errors, _ = marker_pose_candidates(o.corners, size, model, normalized=xy)
-                    distance, error = float(np.linalg.norm(poses[0][:3, 3])), errors[0]
+                    cand = _candidates(xy, size, focal)
+                distance, error = float(np.linalg.norm(cand.T_cam_marker[:3, 3])), cand.error
             except (MeasurementError, GeometryError) as exc:
                 self._reject("no pose", name, detail=str(exc))
                 continue
@@ -497,18 +397,17 @@ class MapBuilder:
         out = []
         for (st, cam, mid), idxs in sorted(members.items()):
             first = self._obs[idxs[0]]
-            corners = np.mean([self._obs[i].corners for i in idxs], axis=0)
             xy = np.mean([self._obs[i].xy for i in idxs], axis=0)
             try:
-                poses, errors, amb = marker_pose_candidates(corners, self.sizes(mid), first.model, normalized=xy)
+                cand = _candidates(xy, self.sizes(mid), first.focal)
             except (MeasurementError, GeometryError):
                 continue
-            T = poses[0]
+            T = cand.T_cam_marker
             dist = float(np.linalg.norm(T[:3, 3]))
             cosf = float(-T[:3, 2] @ (T[:3, 3] / dist))
             lens = np.mean([self._obs[i].lens for i in idxs], axis=0)
-            out.append(_Group(st, cam, mid, idxs, poses, errors, amb, dist, cosf, first.T_base_cam, xy, first.focal,
-                              lens))
+            out.append(_Group(st, cam, mid, idxs, cand.poses, cand.errors, cand.ambiguity, dist, cosf,
+                              first.T_base_cam, xy, first.focal, lens))
         return out
 
     def _unambiguous(self, g: _Group) -> bool:
@@ -738,6 +637,8 @@ class MapBuilder:
             fixed_station=0,
             T_base_cams_start=np.stack([current[c] for c in cams]),
         )
+        # A quick adjustment of the growing initialisation: the user's noise, loss and priors,
+        # loose tolerances, no covariance.
         res = bundle_adjust(prob, dataclasses.replace(self.options.ba, refine_extrinsics=refine_extrinsics,
                                                       max_nfev=30, ftol=1e-5, xtol=1e-8, gtol=1e-8, lsmr_tol=1e-6,
                                                       covariance=False))
@@ -779,7 +680,7 @@ class MapBuilder:
         if tilt <= opts.planar_max_tilt and dz <= opts.planar_max_height_change:
             return True, ""
         note = (f"the ring tilts by {np.degrees(tilt):.1f} deg and changes height by {dz:.3f} m between stations "
-                f"(medians; a ground robot on a flat floor: below {np.degrees(opts.planar_max_tilt):.1f} deg and "
+                f"(medians; a ground robot on a flat floor: below {opts.planar_max_tilt_deg:.1f} deg and "
                 f"{opts.planar_max_height_change:.2f} m): stations initialised in SE(3) instead of the planar prior "
                 f"(set planar: false for a handheld or flying rig)")
         if note.split(":")[0] != getattr(self, "_last_station_note", "").split(":")[0]:

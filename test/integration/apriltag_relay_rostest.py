@@ -15,31 +15,15 @@ import rosbag
 import rospy
 import rostest
 from fiducial_msgs.msg import FiducialArray
-from geometry_msgs.msg import PoseWithCovarianceStamped
 
 from aruco_ring_localization import geometry as geo
 from aruco_ring_localization.markers import APRILTAG_TO_ARUCO, marker_corners
 from aruco_ring_localization.ring import CameraRing
-from aruco_ring_localization.ros.apriltag import message_class, message_classes
+from aruco_ring_localization.ros.apriltag import APRILTAG_ROS_TYPE, apriltag_ros_definition, message_class, message_classes
 
 PKG = "aruco_ring_localization"
 N_FRAMES = 20
 
-APRILTAG_ROS_DEFINITION = """std_msgs/Header header
-AprilTagDetection[] detections
-
-================================================================================
-MSG: std_msgs/Header
-uint32 seq
-time stamp
-string frame_id
-
-================================================================================
-MSG: apriltag_ros/AprilTagDetection
-int32[] id
-float64[] size
-geometry_msgs/PoseWithCovarianceStamped pose
-""" + "\n" + "=" * 80 + "\nMSG: geometry_msgs/PoseWithCovarianceStamped\n" + PoseWithCovarianceStamped._full_text
 
 
 class ApriltagRelayTest(unittest.TestCase):
@@ -109,7 +93,7 @@ class ApriltagRelayTest(unittest.TestCase):
 
     def test_2_apriltag_ros_poses_become_projected_corners(self):
         cam = self.ring["cam2"]
-        classes = message_classes("apriltag_ros/AprilTagDetectionArray", APRILTAG_ROS_DEFINITION)
+        classes = message_classes(APRILTAG_ROS_TYPE, apriltag_ros_definition())
         pub = self._publisher("/" + cam.namespace + "/tag_detections", classes["apriltag_ros/AprilTagDetectionArray"])
         msg = classes["apriltag_ros/AprilTagDetectionArray"]()
         msg.header.stamp = rospy.Time(1234, 5000)

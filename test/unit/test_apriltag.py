@@ -14,6 +14,7 @@ from aruco_ring_localization.errors import MeasurementError
 from aruco_ring_localization.markers import APRILTAG_TO_ARUCO, aruco_corners_from_apriltag, marker_corners
 
 rosbag = pytest.importorskip("rosbag")
+import genpy  # noqa: E402  (with rosbag)
 from aruco_ring_localization.ros import apriltag as at  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
@@ -144,10 +145,62 @@ def test_converted_corners_fit_tagslams_solution(recording):
         assert np.median(_reprojection_errors(recording, wrong)) > 10.0, wrong
 
 
-def test_bag_reader_groups_the_cameras_of_a_frame(recording):
-    topics = {"/" + c.topic.lstrip("/"): c.name for c in recording.rig.cameras}
-    stats = {}
-    frames = list(at.read_apriltag_bag(str(REC / "tag_detections.bag"), recording.ring, topics, stats=stats))
-    assert stats["messages"] == 4 * len(frames) and stats["bad_messages"] == 0
+def test_the_bag_source_reads_apriltag_msgs_bags(recording):
+    """build-map's and localize's bag source takes the detections topic of every camera and groups
+    the four cameras of each frame (the TagSLAM rig is hardware-synchronized)."""
+    from tagslam_reference import ring_frames
+
+    from aruco_ring_localization.ros.bag_source import plan_topics
+
+    with rosbag.Bag(str(REC / "tag_detections.bag")) as bag:
+        info = bag.get_type_and_topic_info().topics
+        direct = {}
+        for topic, msg, _ in bag.read_messages():
+            direct.setdefault(msg.header.stamp.to_sec(), {})[topic.strip("/")] = msg
+    plan = plan_topics({t: (i.msg_type, i.message_count) for t, i in info.items()}, recording.ring,
+                       recording.ring.names)
+    assert {c: topics for c, (topics, _) in plan.detections.items()} == \
+        {c.name: [c.topic] for c in recording.rig.cameras}
+    frames = ring_frames(str(REC / "tag_detections.bag"), recording.ring)
+    assert sum(i.message_count for i in info.values()) == 4 * len(frames)
     assert all(len(f.cameras) == 4 for f in frames)
     assert all(b.stamp > a.stamp for a, b in zip(frames, frames[1:]))
+    # The corners are the converter's of the bag's messages.
+    f = frames[len(frames) // 2]
+    for cam in recording.rig.cameras:
+        msg = direct[f.cameras[cam.name].stamp][cam.topic.strip("/")]
+        want = {o.marker_id: o.corners for o in at.observations_from_message(msg)[msg.header.frame_id.lstrip("/")]}
+        got = {o.marker_id: o.corners for o in f.cameras[cam.name].observations}
+        assert sorted(got) == sorted(want) and all(np.array_equal(got[i], want[i]) for i in want)
+
+
+def test_the_bag_source_reads_apriltag_ros_bags(recording, tmp_path):
+    """An apriltag_ros bag (classes from its stored definition): the tag's corners are projected
+    from its pose through the camera's intrinsics (here the ring file's: no camera_info)."""
+    from tagslam_reference import ring_frames
+
+    cam = recording.ring["cam2"]
+    classes = at.message_classes(at.APRILTAG_ROS_TYPE, at.apriltag_ros_definition())
+    T = geo.make_transform(geo.rotation_from_rvec([np.pi, 0.0, 0.0]), [0.1, -0.05, 1.5])
+    path = str(tmp_path / "apriltag_ros.bag")
+    with rosbag.Bag(path, "w") as bag:
+        for k in range(3):
+            msg = classes[at.APRILTAG_ROS_TYPE]()
+            msg.header.stamp = genpy.Time(100 + k)
+            msg.header.frame_id = "camera"
+            det = classes["apriltag_ros/AprilTagDetection"]()
+            det.id, det.size = [17], [0.15]
+            det.pose.header = msg.header
+            p = det.pose.pose.pose
+            p.position.x, p.position.y, p.position.z = (float(v) for v in T[:3, 3])
+            p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = \
+                (float(v) for v in geo.quaternion_from_matrix(T))
+            msg.detections = [det]
+            bag.write(f"/{cam.namespace}/tag_detections", msg, msg.header.stamp)
+    frames = ring_frames(path, recording.ring)
+    assert [f.stamp for f in frames] == [100.0, 101.0, 102.0]
+    for f in frames:
+        (obs,) = f.cameras["cam2"].observations
+        assert obs.marker_id == 17
+        np.testing.assert_allclose(obs.corners, cam.model.project(geo.transform_points(T, marker_corners(0.15))),
+                                   atol=1e-9)

@@ -72,7 +72,7 @@ def test_covariance_matches_monte_carlo_spread():
         prob, (T_mk, _, _) = _problem(seed=0, noise=0.5, per=150)
         rng = np.random.default_rng(100 + seed)
         prob.obs_xy = prob.obs_xy + rng.normal(0, 0.5 / 800.0, prob.obs_xy.shape)
-        res = bundle_adjust(prob, BAOptions(pixel_sigma=0.5, covariance=seed == 0))
+        res = bundle_adjust(prob, BAOptions(pixel_noise=0.5, covariance=seed == 0))
         if seed == 0:
             cov = res.marker_cov
         pos.append(res.T_W_markers[:, :3, 3])
@@ -90,3 +90,19 @@ def test_needs_observations_and_gauge():
     prob2, _ = _problem(per=0)
     with pytest.raises(GeometryError, match="observation"):
         bundle_adjust(prob2)
+
+
+def test_adjustment_runs_with_one_blas_thread_and_restores_the_count(monkeypatch):
+    import aruco_ring_localization.bundle_adjustment as ba
+    from threadpoolctl import threadpool_info
+
+    def blas_threads():
+        return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+
+    before = blas_threads()
+    assert before, "no BLAS library found by threadpoolctl: the thread limit would do nothing"
+    seen = []
+    monkeypatch.setattr(ba, "_bundle_adjust", lambda prob, opts=None: seen.append(blas_threads()))
+    ba.bundle_adjust(None)
+    assert seen == [[1] * len(before)], f"BLAS threads inside the adjustment: {seen} (outside: {before})"
+    assert blas_threads() == before, "the thread count was not restored"

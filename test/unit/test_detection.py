@@ -182,11 +182,8 @@ def test_marker_poses_recovers_projected_pose_and_skips_degenerate():
 
 # --- image mode of the ring simulator ----------------------------------------------------------------
 
-def _render_or_skip(sim, T):
-    try:
-        return sim.render(T, rng=np.random.default_rng(5))
-    except (ImportError, NotImplementedError, AttributeError) as exc:  # pragma: no cover - until render lands
-        pytest.skip(f"RingSimulator.render is not available yet ({type(exc).__name__}: {exc})")
+def _render(sim, T):
+    return sim.render(T, rng=np.random.default_rng(5))
 
 
 def test_detector_finds_every_rendered_marker():
@@ -203,7 +200,7 @@ def test_detector_finds_every_rendered_marker():
     errors, missed, n_visible = [], [], 0
     for pose in (scene.test_positions[0], scene.test_positions[-1]):
         T = Scene.T_world_base(pose)
-        images = _render_or_skip(sim, T)
+        images = _render(sim, T)
         for cam, visible in sim.visible(T).items():
             found = {o.marker_id: o.corners for o in det.detect(images[cam])}
             assert set(found) <= scene_ids, f"{cam}: ids {set(found) - scene_ids} are not in the scene"

@@ -132,6 +132,43 @@ def test_rvec_tvec_accept_opencv_column_vectors():
     assert_close(T[:3, 3], [1, 2, 3], 0.0, "translation from (3,1) tvec")
 
 
+def test_rvec_conversions_equal_the_rodrigues_formula_on_seeded_draws():
+    # SciPy's Rotation replaced a hand-written Rodrigues formula: same matrices, and the inverse.
+    rng = np.random.default_rng(13)
+    for _ in range(200):
+        axis, theta = rng.normal(size=3), rng.uniform(0.0, math.pi - 1e-3)
+        rvec = axis / np.linalg.norm(axis) * theta
+        R = axis_angle_matrix(axis, theta)
+        assert_close(geo.rotation_from_rvec(rvec), R, 1e-12, "rotation_from_rvec vs Rodrigues")
+        assert_close(geo.rvec_from_rotation(R), rvec, 1e-9, "rvec_from_rotation vs the drawn rvec")
+
+
+@PROPS
+@given(st.tuples(coord, coord, coord), st.tuples(coord, coord, coord))
+def test_skew_is_the_cross_product(a, b):
+    a, b = np.array(a), np.array(b)
+    assert_close(geo.skew(a) @ b, np.cross(a, b), 1e-15, "skew(a) @ b vs cross(a, b)")
+    assert_close(geo.skew(a), -geo.skew(a).T, 0.0, "skew is antisymmetric")
+    stacked = geo.skew(np.stack([a, b]))
+    assert stacked.shape == (2, 3, 3)
+    assert_close(stacked[1], geo.skew(b), 0.0, "vectorised skew")
+
+
+@pytest.mark.parametrize("theta", [0.0, 1e-7, 1e-3, 0.5, 2.0, 3.0])
+def test_left_jacobian_matches_finite_differences(theta):
+    # exp(w + d) ~ exp(J_l(w) d) exp(w): compare J_l against central differences of log(exp(w+d) exp(w)^T).
+    rng = np.random.default_rng(14)
+    axis = rng.normal(size=3)
+    w = axis / np.linalg.norm(axis) * theta
+    J = geo.so3_left_jacobian(w[None])[0]
+    eps = 1e-6
+    R0T = geo.rotation_from_rvec(w).T
+    num = np.stack([(geo.rvec_from_rotation(geo.rotation_from_rvec(w + eps * e) @ R0T)
+                     - geo.rvec_from_rotation(geo.rotation_from_rvec(w - eps * e) @ R0T)) / (2 * eps)
+                    for e in np.eye(3)], axis=1)
+    assert_close(J, num, 1e-8, f"left Jacobian at angle {theta}")
+
+
 # --- quaternions -------------------------------------------------------------------------------
 
 @PROPS
@@ -377,18 +414,34 @@ def test_average_rotations_insensitive_to_quaternion_sign():
     assert_close(R, axis_angle_matrix(axis, math.pi), 1e-12, "mean of rotations around a half turn")
 
 
-def test_average_rotations_agrees_with_the_sign_of_the_input_quaternions(monkeypatch):
-    # Feed the averaging quaternions of either sign: the eigenvector method must not care.
+def _markley_mean(Rs, weights) -> np.ndarray:
+    """The former hand-written average: eigenvector of sum w q q^T, quaternion signs flipped at
+    random (the method must not care), independent of the core."""
+    rng = np.random.default_rng(0)
+    quats = []
+    for R in Rs:
+        w = math.sqrt(max(1.0 + np.trace(R), 0.0)) / 2.0  # valid away from a half turn (w > 0 here)
+        q = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1], 4.0 * w * w]) / (4.0 * w)
+        quats.append(q * rng.choice([-1.0, 1.0]))
+    quats = np.array(quats)
+    M = (quats * (np.asarray(weights) / np.sum(weights))[:, None]).T @ quats
+    x, y, z, w = np.linalg.eigh(M)[1][:, -1]
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def test_average_rotations_equals_the_markley_eigenvector_formula():
+    # SciPy's Rotation.mean replaced a hand-written Markley average: same result on seeded draws.
     rng = np.random.default_rng(9)
-    base = random_rotation(rng)
-    Rs = [base @ geo.rotation_from_rvec(rng.normal(scale=0.1, size=3)) for _ in range(5)]
-    weights = rng.uniform(0.5, 1.5, size=5)
-    expected = geo.average_rotations(Rs, weights)
-    original = geo.quaternion_from_matrix
-    signs = iter([1, -1, -1, 1, -1])
-    monkeypatch.setattr(geo, "quaternion_from_matrix", lambda M: next(signs) * original(M))
-    got = geo.average_rotations(Rs, weights)
-    assert_close(got, expected, 1e-12, "average with flipped quaternion signs")
+    for _ in range(50):
+        n = int(rng.integers(2, 8))
+        base = axis_angle_matrix(rng.normal(size=3), rng.uniform(0.0, 1.2))
+        Rs = [base @ axis_angle_matrix(rng.normal(size=3), rng.uniform(0.0, 0.3)) for _ in range(n)]
+        weights = rng.uniform(0.1, 2.0, size=n)
+        assert_close(geo.average_rotations(Rs, weights), _markley_mean(Rs, weights), 1e-9, "Rotation.mean vs Markley")
 
 
 def test_average_rotations_is_close_to_the_noisy_truth():

@@ -18,6 +18,20 @@ def test_transition_and_noise_shapes():
     assert np.allclose(Q, Q.T) and np.all(np.linalg.eigvalsh(Q) > -1e-15)
 
 
+@pytest.mark.parametrize("dt", [0.001, 0.05, 0.1, 0.7, 5.0])
+def test_process_noise_is_the_white_jerk_block_per_axis(dt):
+    # filterpy's Q_continuous_white_noise replaced this hand-written block: equal to 1e-12, each
+    # block on its own axis (x, y, phi), the axes uncoupled.
+    q_xy, q_yaw = 0.3, 0.02
+    block = np.array([[dt ** 5 / 20, dt ** 4 / 8, dt ** 3 / 6],
+                      [dt ** 4 / 8, dt ** 3 / 3, dt ** 2 / 2],
+                      [dt ** 3 / 6, dt ** 2 / 2, dt]])
+    expected = np.zeros((9, 9))
+    for idx, q in (([0, 2, 4], q_xy), ([1, 3, 5], q_xy), ([6, 7, 8], q_yaw)):  # (x x' x''), (y ...), (phi ...)
+        expected[np.ix_(idx, idx)] = q * block
+    assert np.abs(process_noise(dt, q_xy, q_yaw) - expected).max() <= 1e-12
+
+
 def test_follows_constant_velocity():
     rng = np.random.default_rng(1)
     f = PoseFilter()

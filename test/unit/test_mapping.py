@@ -1,16 +1,16 @@
-"""MapBuilder: the paper's mode, the reference rule, multi-station linking, malformed inputs."""
+"""MapBuilder: the paper's mode, the reference rule, multi-station linking (malformed inputs: test_pipeline.py)."""
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from aruco_ring_localization import geometry as geo
-from aruco_ring_localization.evaluation import map_error
+from aruco_ring_localization.evaluation.maps import map_error
 from aruco_ring_localization.detections import CameraFrame, MarkerObservation, RingFrame
-from aruco_ring_localization.mapping import MapBuilder, marker_pose_candidates
+from aruco_ring_localization.mapping import MapBuilder
+from aruco_ring_localization.pnp import solve_marker_ippe_undistorted
 from aruco_ring_localization.markers import MarkerSizes, marker_corners
 from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.simulation.ring_sim import RingSimulator
@@ -94,7 +94,9 @@ def test_refined_reduces_map_error_on_noisy_multi_station(ring, scene):
     assert refined["n"] == len(scene.markers)
     assert refined["position_rms_mm"] < 0.5 * paper["position_rms_mm"], \
         f"refined RMS {refined['position_rms_mm']:.2f} mm vs paper {paper['position_rms_mm']:.2f} mm"
-    assert refined["position_rms_mm"] < 6.0, f"refined RMS {refined['position_rms_mm']:.2f} mm"
+    # The target for a refined map on the lab is 3 mm RMS (docs/mapping.md); this configuration
+    # measured 1.55, 1.82 and 2.37 mm for rig/noise seeds 1, 2, 3.
+    assert refined["position_rms_mm"] < 3.0, f"refined RMS {refined['position_rms_mm']:.2f} mm (target 3 mm)"
     stds = np.array([np.max(e.position_std) for e in refined_map if e.marker_id != refined_map.reference_marker])
     assert np.all(stds > 0) and np.all(stds < 0.05), f"position std (m) {stds}"
     # The map carries the refined ring calibration, and it is closer to the true rig than the file's.
@@ -123,24 +125,6 @@ def test_disconnected_marker_is_reported(ring, scene):
     assert 999 in b.summary()["unlinked"]
 
 
-def test_malformed_inputs_rejected_with_warning(ring, scene, caplog):
-    sim = RingSimulator(scene, ring, pixel_noise=0.0, seed=0)
-    frame = sim.observe(Scene.T_world_base(scene.mapping_pose))
-    cam, cf = next((n, f) for n, f in frame.cameras.items() if len(f.observations) >= 1)
-    good = cf.observations[0]
-    nan = good.corners.copy()
-    nan[1, 1] = np.nan
-    cf.observations = [MarkerObservation(good.marker_id, nan), MarkerObservation(4000, good.corners),
-                       MarkerObservation(4000, good.corners + 50.0)] + cf.observations[1:]
-    b = MapBuilder(ring, MarkerSizes(0.2))
-    with caplog.at_level(logging.WARNING, logger="aruco_ring_localization.mapping"):
-        b.add_frame(frame)
-    assert b.rejected_detections["non-finite"] == 1, dict(b.rejected_detections)
-    assert b.rejected_detections["duplicate id"] == 2, dict(b.rejected_detections)
-    assert "non-finite" in caplog.text and "duplicate id" in caplog.text, caplog.text
-    assert 4000 not in b.build("paper")
-
-
 def test_marker_with_wrong_size_rejected(ring, scene):
     """Marker 42 is printed at 0.16 m while the map believes 0.2 m: stations disagree, it is rejected."""
     markers = [SceneMarker(m.marker_id, m.T_world_marker, 0.16 if m.marker_id == 42 else m.size)
@@ -165,7 +149,9 @@ def test_candidates_contain_true_pose_of_far_face_on_marker(ring):
     model = ring["cam0"].model
     T = geo.make_transform(np.diag([1.0, -1.0, -1.0]), [0.9, -0.3, 5.38])
     px = model.project(geo.transform_points(T, marker_corners(0.2)))
-    poses, errors, amb = marker_pose_candidates(px, 0.2, model)
+    cand = solve_marker_ippe_undistorted(model.normalize(px), 0.2, [model.fx, model.fy], mirror=True,
+                                         min_separation=np.radians(1.0))
+    poses, amb = cand.poses, cand.ambiguity
     dp, dr = geo.pose_distance(poses[0], T)
     assert dp < 1e-6 and dr < 1e-6, f"best candidate off by {dp:.2e} m, {np.degrees(dr):.3f} deg"
     assert amb < 0.01, f"ambiguity {amb}"

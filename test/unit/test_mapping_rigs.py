@@ -12,7 +12,7 @@ from aruco_ring_localization import geometry as geo
 from aruco_ring_localization.cli import main
 from aruco_ring_localization.detections import CameraFrame, MarkerObservation, RingFrame
 from aruco_ring_localization.errors import MapSanityError
-from aruco_ring_localization.evaluation import map_error
+from aruco_ring_localization.evaluation.maps import map_error
 from aruco_ring_localization.mapping import MapBuilder, MappingOptions
 from aruco_ring_localization.marker_map import MarkerEntry, MarkerMap, check_map
 from aruco_ring_localization.markers import MarkerSizes, marker_corners

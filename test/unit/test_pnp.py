@@ -8,7 +8,8 @@ from aruco_ring_localization import geometry as geo
 from aruco_ring_localization.camera import default_model_for_tests
 from aruco_ring_localization.errors import MeasurementError
 from aruco_ring_localization.markers import marker_corners
-from aruco_ring_localization.pnp import reprojection_errors, solve_marker_ippe, solve_points
+from aruco_ring_localization.pnp import (mirror_about_ray, reprojection_errors, solve_marker_ippe,
+                                         solve_marker_ippe_undistorted, solve_points, undistorted_rms)
 
 MODELS = ["plumb_bob", "rational_polynomial", "equidistant"]
 
@@ -103,3 +104,104 @@ def test_reprojection_error_behind_camera_is_infinite():
     err = reprojection_errors(np.eye(4), np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0]]),
                               np.array([[640.5, 480.5], [640.5, 480.5]]), model)
     assert np.isinf(err[0]) and err[1] < 1e-9, f"errors {err}"
+
+
+# --- the single-marker API that mapping, detection and localization share ----------------------
+
+PINHOLE = default_model_for_tests("plumb_bob", D=np.zeros(5))
+
+
+def test_far_face_on_marker_returns_both_ippe_solutions_in_every_mode():
+    # 0.2 m at 8 m, 2 deg off face-on, 0.3 px noise: the two poses of the planar ambiguity
+    # reproject within a fraction of a pixel of each other; every mode must keep both (measured:
+    # ratio 0.95, 27 deg apart, positions 3 mm apart).
+    model = default_model_for_tests()
+    rng = np.random.default_rng(21)
+    T = _marker_pose(8.0, 2.0, off=(0.3, 0.1))
+    px = model.project(geo.transform_points(T, marker_corners(0.2))) + rng.normal(0, 0.3, (4, 2))
+    xy = model.normalize(px)
+    for name, cand in [("plain", solve_marker_ippe(px, 0.2, model)),
+                       ("refined", solve_marker_ippe(px, 0.2, model, refine=True)),
+                       ("mirror", solve_marker_ippe(px, 0.2, model, mirror=True)),
+                       ("undistorted", solve_marker_ippe_undistorted(xy, 0.2, [model.fx, model.fy])),
+                       ("undistorted mirror", solve_marker_ippe_undistorted(xy, 0.2, [model.fx, model.fy],
+                                                                            mirror=True))]:
+        assert len(cand.poses) == 2, f"{name}: {len(cand.poses)} solution(s)"
+        assert cand.T_cam_marker_alt is cand.poses[1]
+        assert 0.3 < cand.ambiguity <= 1.0, f"{name}: ambiguity {cand.ambiguity:.3f} for a far face-on marker"
+        d, a = _pose_error(cand.poses[0], cand.poses[1])
+        assert d < 0.05 and a > 2.0, f"{name}: second solution {d:.3f} m, {a:.2f} deg from the first"
+
+
+def test_ambiguity_is_a_ratio_in_unit_interval_and_errors_are_sorted():
+    rng = np.random.default_rng(22)
+    model = default_model_for_tests("rational_polynomial")
+    for _ in range(60):
+        T = _marker_pose(rng.uniform(0.5, 10.0), rng.uniform(-70, 70), off=rng.uniform(-0.5, 0.5, 2))
+        px = model.project(geo.transform_points(T, marker_corners(0.2))) + rng.normal(0, 0.5, (4, 2))
+        for cand in (solve_marker_ippe(px, 0.2, model), solve_marker_ippe(px, 0.2, model, refine=True),
+                     solve_marker_ippe(px, 0.2, model, mirror=True)):
+            assert 0.0 <= cand.ambiguity <= 1.0, f"ambiguity {cand.ambiguity}"
+            assert list(cand.errors) == sorted(cand.errors)
+            if len(cand.poses) == 2:
+                assert cand.ambiguity == pytest.approx(cand.errors[0] / cand.errors[1])
+            else:
+                assert cand.ambiguity == 0.0 and cand.T_cam_marker_alt is None
+            for P in cand.poses:
+                geo.validate_transform(P)
+                assert P[2, 3] > 0.0, "a pose behind the camera"
+
+
+def test_undistorted_errors_equal_raw_errors_without_distortion():
+    # With no lens distortion (and no skew) undistorted and raw pixels are the same pixels.
+    rng = np.random.default_rng(23)
+    T = _marker_pose(3.0, 25.0)
+    px = PINHOLE.project(geo.transform_points(T, marker_corners(0.2))) + rng.normal(0, 0.4, (4, 2))
+    raw = solve_marker_ippe(px, 0.2, PINHOLE, mirror=True)
+    und = solve_marker_ippe_undistorted(PINHOLE.normalize(px), 0.2, [PINHOLE.fx, PINHOLE.fy], mirror=True)
+    assert len(raw.poses) == len(und.poses)
+    assert np.allclose(raw.errors, und.errors, rtol=1e-9, atol=1e-12), f"{raw.errors} vs {und.errors}"
+    for a, b in zip(raw.poses, und.poses):
+        assert np.abs(a - b).max() < 1e-12
+    obj = marker_corners(0.2)
+    assert undistorted_rms(T, obj, PINHOLE.normalize(px), [PINHOLE.fx, PINHOLE.fy]) == pytest.approx(
+        np.sqrt(np.mean(reprojection_errors(T, obj, px, PINHOLE) ** 2)), rel=1e-9)
+    behind = geo.make_transform(t=[0.0, 0.0, -3.0])
+    assert undistorted_rms(behind, obj, PINHOLE.normalize(px), [PINHOLE.fx, PINHOLE.fy]) == float("inf")
+
+
+def test_mirror_seeds_find_the_exact_pose_that_ippe_alone_misses():
+    # A small marker far off-axis, nearly face-on: OpenCV's IPPE lands tens of degrees off while
+    # reprojecting within 0.1 px; refined from the mirror seeds the exact pose is found.
+    model = default_model_for_tests()
+    T = geo.make_transform(np.diag([1.0, -1.0, -1.0]), [0.9, -0.3, 5.38])
+    px = model.project(geo.transform_points(T, marker_corners(0.2)))
+    plain = solve_marker_ippe(px, 0.2, model)
+    mirror = solve_marker_ippe(px, 0.2, model, mirror=True, min_separation=np.radians(1.0))
+    dp, dr = geo.pose_distance(mirror.T_cam_marker, T)
+    assert dp < 1e-6 and dr < 1e-6, f"mirror mode: best pose off by {dp:.2e} m, {np.degrees(dr):.2e} deg"
+    assert mirror.ambiguity < 0.01, f"ambiguity {mirror.ambiguity}"
+    assert _pose_error(plain.T_cam_marker, T)[1] > 1.0, "plain IPPE now finds it: the mirror test lost its point"
+
+
+def test_mirror_about_ray_reflects_the_normal_about_the_line_of_sight():
+    rng = np.random.default_rng(24)
+    for _ in range(50):
+        T = _marker_pose(rng.uniform(1, 6), rng.uniform(-60, 60), off=rng.uniform(-1, 1, 2))
+        R, t = T[:3, :3], T[:3, 3]
+        Rm = mirror_about_ray(R, t)
+        u = t / np.linalg.norm(t)
+        geo.validate_rotation(Rm)
+        # Same angle to the ray, the normal in the plane of the ray and the old normal.
+        assert Rm[:, 2] @ u == pytest.approx(R[:, 2] @ u, abs=1e-12)
+        assert abs(np.cross(R[:, 2], Rm[:, 2]) @ u) < 1e-12 or np.allclose(Rm[:, 2], R[:, 2])
+        assert np.abs(mirror_about_ray(Rm, t) - R).max() < 1e-9, "mirroring twice is not the identity"
+    face_on = geo.make_transform(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, 3.0])
+    assert mirror_about_ray(face_on[:3, :3], face_on[:3, 3]) is None
+
+
+def test_undistorted_solver_rejects_malformed_corners():
+    with pytest.raises(MeasurementError, match="xy"):
+        solve_marker_ippe_undistorted(np.zeros((3, 2)), 0.2, [800.0, 800.0])
+    with pytest.raises(MeasurementError, match="NaN"):
+        solve_marker_ippe_undistorted(np.full((4, 2), np.nan), 0.2, [800.0, 800.0])

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from aruco_ring_localization import geometry as geo
-from aruco_ring_localization.evaluation import map_error
+from aruco_ring_localization.evaluation.maps import map_error
 from aruco_ring_localization.importers import read_rig, read_tagslam_tags
 from aruco_ring_localization.localization import LocalizationParams, RingLocalizer
 from aruco_ring_localization.mapping import MapBuilder, MappingOptions
@@ -21,7 +21,6 @@ from aruco_ring_localization.marker_map import MarkerMap
 from aruco_ring_localization.ring import apply_refined_extrinsics
 
 pytest.importorskip("rosbag")
-from aruco_ring_localization.ros.apriltag import read_apriltag_bag  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 REC = REPO / "test" / "data" / "tagslam" / "test_8"
@@ -30,12 +29,12 @@ sys.path.insert(0, str(REPO / "bench"))
 
 @pytest.fixture(scope="module")
 def rec():
-    from tagslam_reference import read_tum_poses
+    from tagslam_reference import read_tum_poses, ring_frames
 
     rig = read_rig(str(REC / "cameras.yaml"), camera_poses=str(REC / "camera_poses.yaml"))
     ring = rig.ring()
     tags = read_tagslam_tags(str(REC / "tagslam.yaml"))
-    frames = list(read_apriltag_bag(str(REC / "tag_detections.bag"), ring, {c.topic: c.name for c in rig.cameras}))
+    frames = ring_frames(str(REC / "tag_detections.bag"), ring)
     stamps, poses = read_tum_poses(str(REC / "rig_poses.tum"))
     return dict(ring=ring, sizes=tags.marker_sizes(), frames=frames, truth=MarkerMap.load(str(REC / "tags.yaml")),
                 reference={int(round(t * 1e6)): T for t, T in zip(stamps, poses)})
@@ -103,7 +102,7 @@ def test_planar_stations_are_what_broke_this_recording(rec):
     thousands of pixels (measured 4,996 px against 1.50 px for the SE(3) initialisation): the
     failure users met on such a rig."""
     forced = MapBuilder(rec["ring"], rec["sizes"], method="paper",
-                        options=MappingOptions(frame="marker", planar_max_tilt=np.pi, planar_max_height_change=99.0))
+                        options=MappingOptions(frame="marker", planar_max_tilt_deg=180.0, planar_max_height_change=99.0))
     se3 = MapBuilder(rec["ring"], rec["sizes"], method="paper", options=MappingOptions(frame="marker", planar=False))
     for f in rec["frames"]:
         forced.add_frame(f)

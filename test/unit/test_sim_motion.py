@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from aruco_ring_localization import geometry as geo
 from aruco_ring_localization.simulation.laser import LaserScanner
@@ -29,16 +30,39 @@ def test_straight_motion_and_rotation():
     assert np.allclose(base.pose, (1.0, 2.19, np.pi / 2), atol=1e-9), base.pose
 
 
-def test_odometry_drifts_but_stays_close():
-    odo = WheelOdometry(seed=1)
-    base = HolonomicBase((0, 0, 0))
-    for _ in range(600):
-        body = base.step((0.3, 0.1, 0.2), 0.1)
-        odo.update(body, 0.1)
-    # Compare in the odom frame (both start at the origin).
-    err = np.hypot(*(odo.pose[:2] - base.pose[:2]))
-    assert 0.001 < err < 0.5, f"odometry error after 60 s: {err:.3f} m"
-    assert WheelOdometry(seed=1).scale.tolist() == odo.scale.tolist()
+def test_odometry_scale_error_is_exact_without_noise():
+    """With the per-step noise off, odometry is the true motion times its (seeded) scale errors:
+    10 m straight ahead reads 10 m x scale[0]; two turns on the spot read 4 pi x yaw_scale."""
+    odo = WheelOdometry(seed=3, noise_std=0.0)
+    for _ in range(100):
+        odo.update((0.1, 0.0, 0.0), 0.1)
+    assert odo.pose[0] == pytest.approx(10.0 * odo.scale[0], abs=1e-9), (odo.pose, odo.scale)
+    assert abs(odo.pose[1]) < 1e-12 and abs(odo.pose[2]) < 1e-12
+    turn = WheelOdometry(seed=3, noise_std=0.0)
+    for _ in range(400):
+        turn.update((0.0, 0.0, np.pi / 100), 0.1)
+    total = 4 * np.pi * turn.yaw_scale
+    assert geo.wrap_angle(turn.pose[2] - total) == pytest.approx(0.0, abs=1e-9)
+    assert np.hypot(*turn.pose[:2]) < 1e-9
+    assert WheelOdometry(seed=1).scale.tolist() == WheelOdometry(seed=1).scale.tolist() != \
+        WheelOdometry(seed=2).scale.tolist()
+
+
+def test_odometry_drift_has_the_documented_size():
+    """Over 200 seeded robots, the error after 10 m straight ahead has the std the model's
+    parameters give: scale_std x 10 m from the scale error, and noise_std x sqrt(per-step
+    distance) per step from the noise (100 steps of 0.1 m). The tolerance, +-20 %, is 4 standard
+    errors of a std estimated from 200 samples (1/sqrt(2 x 200) = 5 %)."""
+    scale_std, noise_std, steps, step = 0.01, 0.005, 100, 0.1
+    errs = []
+    for seed in range(200):
+        odo = WheelOdometry(seed=seed, scale_std=scale_std, noise_std=noise_std)
+        for _ in range(steps):
+            odo.update((step, 0.0, 0.0), 0.1)
+        errs.append(odo.pose[0] - steps * step)
+    expected = np.hypot(scale_std * steps * step, noise_std * np.sqrt(step) * np.sqrt(steps))
+    assert np.std(errs) == pytest.approx(expected, rel=0.2), (np.std(errs), expected)
+    assert abs(np.mean(errs)) < 4 * expected / np.sqrt(200), np.mean(errs)
 
 
 def test_waypoint_driver_visits_and_holds():

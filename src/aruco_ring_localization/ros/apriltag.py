@@ -19,22 +19,22 @@ and :func:`message_class` build the classes from the definitions a bag or a publ
 Both functions return ``{frame_id: [MarkerObservation]}`` (the message header's frame, without a
 leading ``/``); :func:`observations_from_message` picks the right one by ``msg._type``.
 
-:func:`read_apriltag_bag` is a small bag reader for the benchmarks and the tests; it is to be
-replaced by the package's bag source (``ros/bag_source.py``) once that registers these converters.
+The bag source (:data:`ros.bag_source.DETECTION_CONVERTERS`) and the relay node
+(:mod:`.apriltag_relay`) both convert through these functions.
 """
 from __future__ import annotations
 
 import logging
-from typing import Callable, Dict, Iterator, List, Mapping, Optional
+import threading
+from typing import Callable, Dict, List, Optional
 
 import numpy as np
 
 from .. import geometry as geo
 from ..camera import CameraModel
-from ..detections import MarkerObservation, RingFrame, RingFrameAssembler, RingInputCore
-from ..errors import ArucoRingError, ConfigError, GeometryError, MeasurementError
+from ..detections import MarkerObservation
+from ..errors import GeometryError, MeasurementError
 from ..markers import aruco_corners_from_apriltag, marker_corners
-from ..ring import CameraRing
 
 logger = logging.getLogger(__name__)
 
@@ -115,74 +115,34 @@ def observations_from_message(msg, model_for: Optional[Callable[[str], Optional[
     raise MeasurementError(f"message type {kind!r} is not an AprilTag detection type ({', '.join(MESSAGE_TYPES)})")
 
 
+def apriltag_ros_definition() -> str:
+    """The full definition text of ``apriltag_ros/AprilTagDetectionArray`` (AprilRobotics'), as a
+    publisher or a bag carries it: to publish or record such messages without that package."""
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from std_msgs.msg import Header
+
+    sep = "\n" + "=" * 80 + "\n"
+    return sep.join(["std_msgs/Header header\nAprilTagDetection[] detections\n",
+                     "MSG: std_msgs/Header\n" + Header._full_text,
+                     "MSG: apriltag_ros/AprilTagDetection\nint32[] id\nfloat64[] size\n"
+                     "geometry_msgs/PoseWithCovarianceStamped pose\n",
+                     "MSG: geometry_msgs/PoseWithCovarianceStamped\n" + PoseWithCovarianceStamped._full_text])
+
+
+#: genpy's code generator numbers its temporaries with a module-wide counter: two threads generating
+#: at once (the relay's first message on two cameras) produce code that uses a name it never set.
+_GENPY_LOCK = threading.Lock()
+
+
 def message_classes(type_name: str, definition: str) -> Dict[str, type]:
     """Every message class of a full definition text (``type_name`` and the types it embeds),
-    built as rosbag builds them: no package of that type needs to be installed."""
+    built as rosbag builds them: no package of that type needs to be installed. Thread-safe."""
     import genpy.dynamic
 
-    return genpy.dynamic.generate_dynamic(type_name, definition)
+    with _GENPY_LOCK:
+        return genpy.dynamic.generate_dynamic(type_name, definition)
 
 
 def message_class(type_name: str, definition: str):
     """The message class of ``type_name`` built from its full definition text (:func:`message_classes`)."""
     return message_classes(type_name, definition)[type_name]
-
-
-# --- a bag reader, to be replaced by ros/bag_source.py --------------------------------------------
-
-def read_apriltag_bag(path: str, ring: CameraRing, topics: Mapping[str, str], slop: float = 0.005,
-                      remap: Optional[Callable[[int, float], int]] = None,
-                      stats: Optional[Dict[str, int]] = None) -> Iterator[RingFrame]:
-    """Ring frames from a bag of AprilTag detections (TO BE REPLACED by the bag source).
-
-    Args:
-        path: the bag.
-        ring: the ring (intrinsics for apriltag_ros projections, extrinsics as given).
-        topics: detection topic -> ring camera name.
-        slop: stamp grouping tolerance, s (synchronized rigs: a few ms).
-        remap: optional (id, stamp) -> id (TagSLAM's ``tag_id_remap``).
-        stats: filled with counts (``messages``, ``bad_messages``).
-
-    Yields:
-        :class:`RingFrame` in stamp order, grouped as the nodes group them.
-    """
-    import rosbag
-
-    stats = stats if stats is not None else {}
-    stats.update(messages=0, bad_messages=0)
-    core = RingInputCore(ring, slop=slop, timeout=1e9, camera_info_fallback=True, extrinsics_from_ring=True)
-    core.assembler = RingFrameAssembler(core.camera_names, slop=slop, timeout=max(4 * slop, 0.1))
-    by_frame = {c.frame_id: c.model for c in ring.cameras}
-    try:
-        bag = rosbag.Bag(path)
-    except (OSError, rosbag.ROSBagException) as exc:
-        raise ConfigError(f"cannot open bag ({exc})", path=path) from None
-    wanted = {("/" + t.lstrip("/")): cam for t, cam in topics.items()}
-    with bag:
-        present = set(bag.get_type_and_topic_info().topics)
-        missing = [t for t in wanted if t not in present and t.lstrip("/") not in present]
-        if len(missing) == len(wanted):
-            raise ConfigError(f"none of the topics {sorted(wanted)} is in the bag", path=path)
-        read = [t for t in present if ("/" + t.lstrip("/")) in wanted]
-        for topic, msg, t in bag.read_messages(topics=read):
-            cam = wanted["/" + topic.lstrip("/")]
-            stats["messages"] += 1
-            stamp = float(msg.header.stamp.secs) + 1e-9 * float(msg.header.stamp.nsecs)
-            model = ring[cam].model
-            try:
-                per_frame = observations_from_message(msg, lambda f: by_frame.get(f, model))
-            except ArucoRingError as exc:
-                stats["bad_messages"] += 1
-                logger.warning("%s at %.3f: %s", topic, stamp, exc)
-                continue
-            obs = [o for v in per_frame.values() for o in v]
-            if remap is not None:
-                obs = [MarkerObservation(remap(o.marker_id, stamp), o.corners) for o in obs]
-            frames, _, _ = core.add_detections(cam, stamp, obs, t.to_sec())
-            yield from frames
-    yield from core.poll(float("inf"))
-
-
-def topics_for_ring(ring: CameraRing, suffix: str = "tags") -> Dict[str, str]:
-    """``/<ns>/<suffix>`` -> camera name for every ring camera."""
-    return {"/" + "/".join(p for p in (c.namespace.strip("/"), suffix) if p): c.name for c in ring.cameras}
