@@ -22,11 +22,13 @@ from ..ring import CameraRing
 from ..schemas import MapperConfig
 
 COMMAND = "build-map"
-HELP = "build a marker map from a bag of fiducial_vertices (or images) + camera_info (+ /tf_static)"
+HELP = ("build a marker map from a bag of fiducial_vertices (or AprilTag detections, or images) + camera_info "
+        "(+ /tf_static)")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("bag", help="rosbag with <ns>/fiducial_vertices (or images) and <ns>/camera_info")
+    parser.add_argument("bag", help="rosbag with <ns>/fiducial_vertices (or AprilTag detections, or images) and "
+                                    "<ns>/camera_info")
     parser.add_argument("--out", required=True, help="map YAML to write (atomically; old one kept as .bak)")
     parser.add_argument("--ring", help="ring YAML file (default: the config's ring_file, else config/ring.yaml)")
     parser.add_argument("--config", help="the mapper's parameter file (default: config/mapping.yaml)")

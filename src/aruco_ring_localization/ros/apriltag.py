@@ -62,7 +62,8 @@ def apriltag_msgs_to_observations(msg) -> Dict[str, List[MarkerObservation]]:
     return {_frame(msg.header): out}
 
 
-def apriltag_ros_to_observations(msg, model_for: Callable[[str], Optional[CameraModel]]) -> Dict[str, List[MarkerObservation]]:
+def apriltag_ros_to_observations(msg, model_for: Callable[[str], Optional[CameraModel]]
+                                 ) -> Dict[str, List[MarkerObservation]]:
     """``apriltag_ros/AprilTagDetectionArray`` -> ``{frame: observations}``, corners projected from the poses.
 
     Args:
