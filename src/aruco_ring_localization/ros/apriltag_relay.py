@@ -15,17 +15,15 @@ detection's stamp and the ring camera's ``frame_id`` (what the mapper and the lo
 extrinsics up for). A message that cannot be read is logged (throttled) and dropped; the node
 never dies on one.
 
-Parameters (private): ``ring_file`` (default the package's config/ring.yaml), ``cameras``
-(names, empty = all), ``input_topics`` (relative names under each camera's namespace),
-``ignore_fiducials`` ("1,4,9-12"), and the tag sizes the rest of the pipeline uses,
-``fiducial_len`` / ``fiducial_len_override`` or ``tagslam_file`` (a TagSLAM ``tagslam.yaml``):
-an apriltag_ros detection whose size differs from it is relayed with a warning (the mapper and
-the localizer would scale that tag wrongly).
+Parameters (private): :class:`aruco_ring_localization.schemas.ApriltagRelayConfig` (docs/parameters.md):
+``ring_file``, ``cameras``, ``input_topics``, ``ignore_fiducials``, and the tag sizes the rest of
+the pipeline uses, ``fiducial_len`` / ``fiducial_len_override`` or ``tagslam_file`` (a TagSLAM
+``tagslam.yaml``): an apriltag_ros detection whose size differs from it is relayed with a warning
+(the mapper and the localizer would scale that tag wrongly).
 """
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass, field
 from typing import Dict, Optional, Sequence, Tuple
 
 import rospy
@@ -37,27 +35,13 @@ from ..errors import ArucoRingError, ConfigError
 from ..importers.tagslam import marker_sizes_from
 from ..markers import MarkerSizes, parse_id_list
 from ..ring import CameraRing
+from ..schemas import ApriltagRelayConfig
 from .apriltag import APRILTAG_ROS_TYPE, message_class, observations_from_message
 from .conversions import camera_info_to_model, observations_to_fiducials
-from .params import read_params
+from .params import read_config
 from .ring_tf import default_ring_file
 
 WARN_PERIOD = 5.0
-
-
-@dataclass(frozen=True)
-class RelayParams:
-    """Private parameters (module docstring)."""
-
-    ring_file: str = field(default="", metadata={"doc": "ring YAML; empty = the package's config/ring.yaml"})
-    cameras: tuple = field(default=(), metadata={"doc": "ring camera names to relay; empty = all"})
-    input_topics: tuple = field(default=("tags", "tag_detections"),
-                                metadata={"doc": "detection topics, relative to each camera's namespace"})
-    ignore_fiducials: str = field(default="", metadata={"doc": "ids never relayed, '1,4,9-12'"})
-    fiducial_len: float = field(default=0.2, metadata={"doc": "marker side, m (size check of apriltag_ros input)"})
-    fiducial_len_override: str = field(default="", metadata={"doc": "per-id sizes '1-10: 0.05, 12: 0.06'"})
-    tagslam_file: str = field(default="", metadata={"doc": "TagSLAM tagslam.yaml with the tag sizes (the "
-                                                           "override string still wins)"})
 
 
 class ApriltagRelay:
@@ -143,7 +127,7 @@ class ApriltagRelay:
 def main(argv: Optional[Sequence[str]] = None) -> int:
     rospy.init_node("apriltag_relay", argv=list(argv) if argv is not None else None)
     try:
-        params = read_params(RelayParams)
+        params = read_config(ApriltagRelayConfig)
         ring = CameraRing.load(params.ring_file or default_ring_file())
         cameras = list(params.cameras) or ring.names
         unknown = [c for c in cameras if c not in ring.names]
