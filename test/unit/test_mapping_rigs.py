@@ -16,21 +16,10 @@ from aruco_ring_localization.evaluation.maps import map_error
 from aruco_ring_localization.mapping import MapBuilder, MappingOptions
 from aruco_ring_localization.marker_map import MarkerEntry, MarkerMap, check_map
 from aruco_ring_localization.markers import MarkerSizes, marker_corners
-from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.simulation.ring_sim import RingSimulator
 from aruco_ring_localization.simulation.scene import Scene
 
 REPO = Path(__file__).resolve().parents[2]
-
-
-@pytest.fixture(scope="module")
-def ring() -> CameraRing:
-    return CameraRing.load(str(REPO / "config" / "ring.yaml"))
-
-
-@pytest.fixture(scope="module")
-def scene() -> Scene:
-    return Scene.default()
 
 
 def _handheld_poses(scene: Scene, n: int, seed: int = 0):
