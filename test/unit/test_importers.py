@@ -79,20 +79,29 @@ def test_kalibr_chain_from_camera_0(tmp_path):
     np.testing.assert_allclose(ring["cam2"].T_base_cam, geo.inverse(T_c1_c0) @ geo.inverse(T_c2_c1), atol=1e-12)
     assert ring["cam2"].model.distortion_model == "plumb_bob"
     assert [c.namespace for c in ring.cameras] == ["rig/left", "rig/right", "c2"]
+    # A tag topic's namespace is its parent (/detector/tags/left: TagSLAM's test_22); two cameras
+    # in one namespace are refused, naming them.
+    one = _camchain(tmp_path, {"cam0": _cam(tagtopic="/detector/tags/left")})
+    assert read_rig(one, camera_poses=None).ring()["cam0"].namespace == "detector/tags"
+    two = _camchain(tmp_path, {"cam0": _cam(tagtopic="/detector/tags/left"),
+                               "cam1": _cam(tagtopic="/detector/tags/right")})
+    with pytest.raises(ConfigError, match=r"\['cam0', 'cam1'\] would share the namespace 'detector/tags'"):
+        read_rig(two, camera_poses=None)
     assert "cam0's optical frame" in rig.base_definition
 
 
 def test_kalibr_imu_frame_when_every_camera_has_T_cam_imu(tmp_path):
     T0 = _T([1.2, -1.2, 1.2], [0.05, 0.01, -0.02])
     T1 = _T([1.2, -1.1, 1.25], [-0.06, 0.01, -0.02])
-    rig = read_rig(_camchain(tmp_path, {"cam0": _cam(T_cam_imu=T0.tolist()), "cam1": _cam(T_cam_imu=T1.tolist())}))
+    rig = read_rig(_camchain(tmp_path, {"cam0": _cam(T_cam_imu=T0.tolist()),
+                                        "cam1": _cam(T_cam_imu=T1.tolist(), rostopic="/rig/right/image_raw")}))
     ring = rig.ring()
     np.testing.assert_allclose(ring["cam1"].T_base_cam, geo.inverse(T1), atol=1e-12)
     assert "IMU" in rig.base_definition
 
 
 def test_a_second_camera_without_T_cn_cnm1_is_reported(tmp_path):
-    rig = read_rig(_camchain(tmp_path, {"cam0": _cam(), "cam1": _cam()}))
+    rig = read_rig(_camchain(tmp_path, {"cam0": _cam(), "cam1": _cam(rostopic="/rig/right/image_raw")}))
     with pytest.raises(ConfigError, match="cam1"):
         rig.ring()
 

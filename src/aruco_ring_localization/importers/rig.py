@@ -125,11 +125,11 @@ def _camera_order(keys) -> List[str]:
 
 
 def _namespace(entry: Mapping[str, Any], name: str) -> str:
-    """The camera's namespace from its tag topic (``/ns/tags``) or its image topic (``/ns/image_raw``)."""
+    """The camera's namespace from its tag topic (``/ns/tags``, ``/ns/left``: the topic's parent) or its
+    image topic (``/ns/image_raw``)."""
     tag = str(entry.get("tagtopic") or "").strip("/")
     if tag:
-        parts = tag.split("/")
-        return "/".join(parts[:-1]) if len(parts) > 1 and parts[-1] == "tags" else tag
+        return tag.rpartition("/")[0]
     img = str(entry.get("rostopic") or "").strip("/")
     if img:
         parts = img.split("/")
@@ -247,6 +247,13 @@ def read_rig(path: str, camera_poses: Optional[str] = None, base_frame: str = "r
         frame = str(entry.get("frame_id") or f"{name}_optical_frame").strip("/").replace("/", "_")
         cams.append(ImportedCamera(name, _model(entry, name, path), None, _namespace(entry, name), frame,
                                    str(entry.get("tagtopic") or entry.get("rostopic") or "")))
+    shared = {ns: [c.name for c in cams if c.namespace == ns] for ns in {c.namespace for c in cams}}
+    shared = {ns: names_ for ns, names_ in shared.items() if len(names_) > 1}
+    if shared:
+        ns, names_ = sorted(shared.items())[0]
+        raise ConfigError(f"cameras {names_} would share the namespace '{ns}' (from their tagtopic / rostopic): the "
+                          f"nodes and the bag source find a camera's topics under its own namespace; give each "
+                          f"camera a topic of its own namespace (e.g. /{ns}/<camera>/tags)", path=path)
     sources = [path]
     notes: List[str] = []
     if camera_poses is not None:
