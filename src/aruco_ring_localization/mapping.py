@@ -48,7 +48,8 @@ from typing import Any, Dict, Hashable, List, Optional, Sequence, Tuple
 import numpy as np
 
 from . import geometry as geo
-from .bundle_adjustment import BAOptions, BAProblem, BAResult, bundle_adjust, marker_std_in_frame
+from .bundle_adjustment import (BAOptions, BAProblem, BAResult, bundle_adjust, camera_cov_in_optical_frames,
+                                marker_std_in_frame)
 from .errors import ArucoRingError, GeometryError, MeasurementError
 from .detections import RingFrame, sanitize_observations
 from .marker_map import MarkerEntry, MarkerMap, map_frame_from_reference
@@ -724,6 +725,9 @@ class MapBuilder:
             # ring's calibration error from every pose (ring_tf publishes them given the map file).
             out.ring_extrinsics = {c: res.T_base_cams[k] for k, c in enumerate(self.ring.names)}
             out.ring_base_frame = self.ring.base_frame
+            if res.camera_cov is not None:  # their uncertainty, for the localizer's noise model
+                out.ring_covariance_cameras = list(self.ring.names)
+                out.ring_extrinsics_covariance = camera_cov_in_optical_frames(res.camera_cov, res.T_base_cams)
         return out
 
     def save_map(self, path: str, method: Optional[str] = None) -> MarkerMap:
