@@ -7,7 +7,8 @@ benchmarks run for every ring frame (paper Algorithm 1, steps 2-5):
 2. the filter's prediction for the frame's stamp seeds :class:`RingLocalizer` (single-marker
    ambiguities, the joint estimator's start);
 3. the fused measurement goes through :class:`MotionGate` with the latest motion command /
-   odometry speed;
+   odometry speed, its full rotation (a flipped pose tilts) and whether the localizer found it
+   ambiguous (then it is not used);
 4. accepted: filter update with the estimator's covariance; re-initialisation: filter reset at
    the measurement; rejected or nothing seen: predict only.
 """
@@ -125,7 +126,8 @@ class RingTracker:
             if predicted is not None:
                 # Covariance of (z - prediction): the filter's predicted covariance + the measurement's.
                 gate_cov = self.filter.predicted_covariance(stamp) + self.filter.measurement_covariance(cov)
-            decision = self.gate.check(z, stamp, predicted, speed, yaw_rate, gate_cov)
+            decision = self.gate.check(z, stamp, predicted, speed, yaw_rate, gate_cov, rotation=loc.T_map_base[:3, :3],
+                                       ambiguous=loc.ambiguous)
             out.decision = decision
             if decision.reinitialize:
                 self.filter.reset(z, stamp, cov)
