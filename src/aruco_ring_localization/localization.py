@@ -6,7 +6,8 @@ Pipeline of :meth:`RingLocalizer.process` (paper §II-E, Algorithm 1, steps 2-3)
    matched (by id, a dict look-up: the cost grows with the markers in view, not the map size) to
    the map's 3D corners. With two or more markers one PnP over all their corners gives
    ``T_cam_map``; with a single marker both IPPE solutions are considered and the one consistent
-   with the prediction (or with the other cameras) is kept. Then
+   with the prediction (or with the other cameras) is kept when the image cannot tell them
+   apart (then the estimate is *ambiguous*), else the one the image prefers. Then
    ``T_map_base = T_map_cam · T_cam_base`` (paper eq. 3). Each estimate carries its RMS
    reprojection error (px), the mean distance to its markers (m) and the mean relative angle
    between the camera's optical axis and the markers' normals (rad; 0 = seen face-on).
@@ -17,11 +18,19 @@ Pipeline of :meth:`RingLocalizer.process` (paper §II-E, Algorithm 1, steps 2-3)
    distance of the positions) of it, the result is their Ac-weighted average (eq. 5), yaw
    averaged on the circle.
    ``fusion: joint`` (beyond the paper): one robot pose from every corner of every camera at
-   once through the known extrinsics (a generalised multi-camera PnP), minimising the pixel
+   once through the extrinsics (a generalised multi-camera PnP), minimising the pixel
    reprojection error with a Huber loss by iteratively reweighted Gauss-Newton on SE(3), from the
-   prediction or the best per-camera estimate (whichever reprojects better). Its covariance is
-   ``sigma^2 (J^T W J)^-1``. Under Gaussian pixel noise it is the maximum-likelihood estimate
-   and approaches the Cramér-Rao bound (:func:`crlb_covariance`).
+   prediction or the best per-camera estimate (whichever reprojects better), each camera's
+   residuals whitened by its pixel noise *and* its extrinsics' uncertainty (the ring file's
+   ``extrinsics_std``, or the covariance the mapping stored with the refined extrinsics):
+   :class:`JointProblem` explains the model. Its covariance is the inverse of that information
+   (plus the cameras' correlated errors). With exact extrinsics (declared exact) it is the
+   maximum-likelihood estimate under Gaussian pixel noise and reaches the Cramér-Rao bound
+   (:func:`crlb_covariance`). ``fusion: joint_exact_extrinsics``: the same, taking the
+   extrinsics as exact whatever the ring file says (the estimator before the model).
+   When every camera sees a single marker, the joint problem is solved from every IPPE pose and
+   the lowest cost wins; a rival within ``ambiguity_chi2`` makes the pose ambiguous (the gate
+   keeps ambiguous poses out of the filter).
 
 Why Gauss-Newton and not Levenberg-Marquardt or scipy's least_squares: the problem has 6 unknowns
 and 30-100 residuals, starts within centimetres of the optimum (the prediction or a per-camera
@@ -30,9 +39,9 @@ PnP) and converges in 2-4 iterations; a hand-written step with the analytic Jaco
 halved (a simple line search), which covers the rare far start.
 
 Residuals are in pixels: each observed corner is undistorted once (``CameraModel.normalize``) and
-the residual in normalised coordinates is mapped to pixels by the local 2x2 Jacobian of the
-camera's distortion + K at that point, so the estimator is exact to first order for all three
-distortion models without re-distorting at each iteration.
+the residual in normalised coordinates is mapped to pixels by ``K2`` (the pinhole scale), or for a
+fisheye lens by the local 2x2 Jacobian of its distortion + K at that corner, without
+re-distorting at each iteration (see :class:`JointProblem`).
 
 Frames: ``T_map_base`` is the robot in the marker map's frame. Covariances are 6x6 over
 (x, y, z, rotation about map x, y, z) in the map frame (REP-103 order for PoseWithCovariance),
