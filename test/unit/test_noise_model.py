@@ -125,5 +125,9 @@ def test_where_the_extrinsics_uncertainty_comes_from(lab):
     mm.ring_covariance_cameras = ring.names
     mm.ring_extrinsics_covariance = np.eye(6 * len(ring)) * 1e-8
     assert set(RingLocalizer(ring, mm).extrinsics_source.values()) == {"ring file"}
+    # The map's own extrinsics, as tf delivers them (translation + quaternion): the map's covariance.
+    via_tf = {c.name: geo.transform_from_translation_quaternion(T[:3, 3], geo.quaternion_from_matrix(T))
+              for c, T in ((c, mm.ring_extrinsics[c.name]) for c in ring.cameras)}
+    assert set(RingLocalizer(ring.with_extrinsics(via_tf), mm).extrinsics_source.values()) == {"map"}
     exact = ring.with_extrinsics_std(0.0, 0.0)
     assert np.allclose(exact.cameras[0].extrinsics_covariance, 0.0)
