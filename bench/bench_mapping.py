@@ -10,6 +10,10 @@ error of the reference marker's heading turns the whole map), and after a best-f
 alignment (the map's geometry: what the accuracy target is about). The frame's own error (yaw,
 mm at 5 m) is reported separately.
 
+Both drive :class:`pipeline.MappingPipeline` with the mapper's parameters (the schema's defaults =
+config/mapping.yaml), fed per camera as the node feeds it (stations found automatically, as the
+node finds them).
+
 Bundle-adjustment time: synthetic long halls with 10, 100 and 1,000 markers on both walls,
 stations every 1.5 m along the centre line.
 """
@@ -31,17 +35,24 @@ import numpy as np  # noqa: E402
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(os.path.dirname(HERE), "src"))
 
+from aruco_ring_localization.config import with_overrides  # noqa: E402
 from aruco_ring_localization.detection import Detector, DetectorParams  # noqa: E402
-from aruco_ring_localization.evaluation import map_error, map_frame_error  # noqa: E402
+from aruco_ring_localization.evaluation.maps import map_error, map_frame_error  # noqa: E402
 from aruco_ring_localization.detections import CameraFrame, RingFrame  # noqa: E402
-from aruco_ring_localization.mapping import MapBuilder  # noqa: E402
-from aruco_ring_localization.markers import MarkerSizes  # noqa: E402
+from aruco_ring_localization.pipeline import MappingPipeline, feed_ring_frame  # noqa: E402
 from aruco_ring_localization.ring import CameraRing  # noqa: E402
+from aruco_ring_localization.schemas import MapperConfig  # noqa: E402
 from aruco_ring_localization.simulation.ring_sim import RingSimulator, perturb_ring  # noqa: E402
 from aruco_ring_localization.simulation.scene import Plate, Room, Scene, SceneMarker, marker_pose  # noqa: E402
 
 RING_FILE = os.path.join(os.path.dirname(HERE), "config", "ring.yaml")
 PIXEL_NOISE = 0.3
+
+
+def _pipeline(ring: CameraRing) -> MappingPipeline:
+    """The mapper's pipeline with its default parameters, the ring file's calibration (no tf, no camera_info)."""
+    return MappingPipeline(with_overrides(MapperConfig(), {"input.use_tf": False, "input.camera_info_fallback": True}),
+                           ring)
 
 
 def _image_frame(sim: RingSimulator, detectors: Dict[str, Detector], T_world_base, stamp: float) -> RingFrame:
@@ -55,14 +66,14 @@ def _map_lab(ring: CameraRing, frames_per_station: int, image_mode: bool = True,
     scene = Scene.default()
     sim = RingSimulator(scene, perturb_ring(ring, seed=seed + 1), pixel_noise=PIXEL_NOISE, seed=seed)
     detectors = {name: Detector(DetectorParams(dictionary=scene.dictionary)) for name in ring.names}
-    b = MapBuilder(ring, MarkerSizes(0.2))
+    b = _pipeline(ring)
     t = 0.0
     t0 = time.perf_counter()
     for pose in scene.mapping_stations:
         T = Scene.T_world_base(pose)
         for _ in range(frames_per_station):
             frame = _image_frame(sim, detectors, T, t) if image_mode else sim.observe(T, stamp=t)
-            b.add_frame(frame)
+            feed_ring_frame(b, frame)
             t += 0.1
     out: Dict[str, float] = {"sim_seconds": time.perf_counter() - t0}
     truth = scene.truth_map()
@@ -106,10 +117,12 @@ def long_hall(n_markers: int) -> Scene:
 def _ba_time(ring: CameraRing, n_markers: int, frames_per_station: int = 2) -> Dict[str, float]:
     scene = long_hall(n_markers)
     sim = RingSimulator(scene, perturb_ring(ring, seed=3), pixel_noise=PIXEL_NOISE, seed=4, max_range=6.0)
-    b = MapBuilder(ring, MarkerSizes(0.2))
-    for s, pose in enumerate(scene.mapping_stations):
+    b = _pipeline(ring)
+    t = 0.0
+    for pose in scene.mapping_stations:
         for _ in range(frames_per_station):
-            b.add_frame(sim.observe(Scene.T_world_base(pose)), station=s)
+            feed_ring_frame(b, sim.observe(Scene.T_world_base(pose), stamp=t))
+            t += 0.1
     t0 = time.perf_counter()
     m = b.build("refined")
     total = time.perf_counter() - t0

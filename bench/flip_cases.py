@@ -2,7 +2,7 @@
 
 Shared by ``bench_localization.py`` (``flips_filtered``) and ``test/unit/test_flips.py``. Each case
 is a short seeded sequence of corners-mode ring frames with markers placed on purpose; it runs
-through :class:`RingTracker` (localizer, gate, filter) and counts
+through :class:`pipeline.LocalizationPipeline` (the node's: localizer, gate, filter) and counts
 
 * ``filtered_flips``: frames whose filtered (x, y, yaw) is more than 0.5 m or 10 deg from the
   truth (in a case that starts from a wrong pose, from the gate's re-initialisation on --
@@ -24,20 +24,22 @@ The cases (each on the lab's pinhole ring and on a seeded equidistant fisheye ri
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
 from aruco_ring_localization import geometry as geo
 from aruco_ring_localization.camera import CameraModel
+from aruco_ring_localization.config import with_overrides
 from aruco_ring_localization.detections import CameraFrame, MarkerObservation, RingFrame
 from aruco_ring_localization.localization import LocalizationParams
 from aruco_ring_localization.marker_map import MarkerEntry, MarkerMap
 from aruco_ring_localization.markers import marker_corners
+from aruco_ring_localization.pipeline import LocalizationPipeline, feed_ring_frame
 from aruco_ring_localization.ring import CameraRing, RingCamera
+from aruco_ring_localization.schemas import LocalizerConfig
 from aruco_ring_localization.simulation.scene import marker_pose
-from aruco_ring_localization.tracker import RingTracker
 
 SIZE = 0.2            # marker side, m
 FLIP_DISTANCE = 0.5   # m
@@ -84,7 +86,7 @@ class FlipCase:
     name: str
     markers: Dict[int, np.ndarray]
     truth: List[np.ndarray]              # T_map_base per frame
-    initial: Optional[Tuple[float, float, float]] = None   # tracker reset here first (x, y, yaw)
+    initial: Optional[Tuple[float, float, float]] = None   # track started here first (x, y, yaw)
     wrong_start: bool = False            # ``initial`` is wrong: count from the re-initialisation on
     noise: float = 0.3
 
@@ -122,20 +124,31 @@ def _wrong(T: np.ndarray, se2: Sequence[float]) -> bool:
                 or abs(geo.wrap_angle(se2[2] - t[2])) > FLIP_ANGLE)
 
 
+def pipeline(ring: CameraRing, marker_map: MarkerMap, params: Optional[LocalizationParams] = None
+             ) -> LocalizationPipeline:
+    """The node's pipeline (its defaults) on the ring file's calibration, estimator ``params``."""
+    config = with_overrides(LocalizerConfig(), {"input.use_tf": False, "input.camera_info_fallback": True})
+    return LocalizationPipeline(replace(config, estimator=params or LocalizationParams()), ring, marker_map)
+
+
 def run_case(case: FlipCase, ring: CameraRing, params: Optional[LocalizationParams] = None, seed: int = 0) -> dict:
-    """The case through a fresh tracker; counts as in the module doc."""
+    """The case through a fresh pipeline; counts as in the module doc."""
     marker_map = MarkerMap([MarkerEntry(i, T, SIZE) for i, T in case.markers.items()])
-    tracker = RingTracker(ring, marker_map, params or LocalizationParams())
+    pipe = pipeline(ring, marker_map, params)
     rng = np.random.default_rng(seed)
     if case.initial is not None:
-        tracker.reset(case.initial, 0.0)
+        pipe.on_initial_pose(case.initial, 0.0)
     stats = {"frames": len(case.truth), "outputs": 0, "filtered_flips": 0, "accepted_flips": 0, "ambiguous": 0,
              "step_excess": 0.0, "recovered_at": -1}
     settled = not case.wrong_start
     unsettled_wrong = 0
-    last = tracker.filter.pose.copy() if tracker.filter.initialized else None
+    last = pipe.filter.pose.copy() if pipe.filter.initialized else None
     for k, T in enumerate(case.truth):
-        out = tracker.process(observe(ring, case.markers, T, PERIOD * (k + 1), rng, case.noise))
+        stamp = PERIOD * (k + 1)
+        feed_ring_frame(pipe, observe(ring, case.markers, T, stamp, rng, case.noise))
+        out = pipe.last_track
+        if out is None or abs(out.stamp - stamp) > 1e-9:
+            raise RuntimeError(f"{case.name}: the pipeline tracked no ring frame at {stamp:.1f} s")
         loc = out.localization
         stats["ambiguous"] += int(loc.ambiguous)
         if loc.ok and out.decision is not None and out.decision.accepted and _wrong(T, loc.se2):

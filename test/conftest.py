@@ -1,6 +1,7 @@
 """pytest configuration shared by test/unit and test/integration.
 
-- Puts ``src/`` first on ``sys.path`` so the pure core imports without a built workspace.
+- Puts ``src/`` first on ``sys.path`` so the pure core imports without a built workspace, and
+  ``test/unit`` (the shared helpers) last.
 - Registers a Hypothesis profile without deadlines (a loaded CI machine must not turn slow
   examples into failures) and with derandomized example generation, so that runs are
   reproducible like everything else here; ``HYPOTHESIS_PROFILE=dev`` keeps random exploration.
@@ -19,6 +20,10 @@ REPO = Path(__file__).resolve().parents[1]
 SRC = str(REPO / "src")
 if SRC not in sys.path:
     sys.path.insert(0, SRC)
+# The shared helpers (helpers.py, fuzz_support.py) live in test/unit; integration tests use them too.
+UNIT = str(REPO / "test" / "unit")
+if UNIT not in sys.path:
+    sys.path.append(UNIT)
 
 try:
     from hypothesis import settings

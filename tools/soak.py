@@ -2,17 +2,16 @@
 """`make soak`: run the localizer on the simulated lab for a long simulated time and record
 memory (RSS of each node over time), dropped frames and the position error.
 
-Modes (``--mode``):
+The simulator node (owning ``/clock``, paced at ``--speed`` simulated seconds per wall second,
+driving the paper's 23 poses again and again, holding each 3 s; its parameters are written to
+``--out``/simulator.yaml) feeds the localizer; the error compares ``localizer/pose`` with
+``sim/ground_truth`` at the same stamp (the map is the scene's truth). Modes (``--mode``):
 
-* ``images`` — the simulator node in image mode (owning ``/clock``, paced at ``--speed``
-  simulated seconds per wall second, looping over the paper's 23 poses), 8 detector nodes and
-  the localizer; needs ``scripts/simulator`` and ``scripts/detector``. The error compares
-  ``localizer/pose`` with ``sim/ground_truth`` at the same stamp (the map is the scene's truth).
-* ``corners`` — the localizer fed by this process: :class:`FaultPlayer` (test/faults/) publishes
-  the ring's simulated detections (corners mode, pixel noise, a miscalibrated true rig) and
-  ``/clock``, so the error is exact and the run is paced at ``--speed`` simulated seconds per wall
-  second.
-* ``auto`` (default) — ``images`` when both nodes exist, else ``corners`` (said on stdout).
+* ``images`` — the simulator renders images for 8 detector nodes (lockstep: the clock waits for
+  them, so no frame is lost and the real-time ratio says how fast the chain runs);
+* ``corners`` — the simulator publishes the detections itself (pixel noise, a miscalibrated true
+  rig): the localizer alone, at ``--speed``;
+* ``auto`` (default) — ``images`` when the detector node exists, else ``corners`` (said on stdout).
 
 The nodes run under their own master on a free port (no clash with a running roscore), with
 ``use_sim_time``. Every ``--sample`` simulated seconds it records, per node, VmRSS from
@@ -43,7 +42,6 @@ from typing import Dict, List, Optional
 import numpy as np
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
-sys.path.insert(0, os.path.join(REPO, "test", "faults"))
 sys.path.insert(0, os.path.join(REPO, "src"))
 
 TRUTH_MAP = os.path.join(REPO, "test", "data", "lab_truth_map.yaml")
@@ -52,12 +50,6 @@ TRUTH_MAP = os.path.join(REPO, "test", "data", "lab_truth_map.yaml")
 WARMUP_FRACTION = 0.5
 #: Flat: the localizer's RSS grows less than this after warm-up (MB per simulated hour, fit).
 FLAT_MB_PER_H = 5.0
-
-
-def soak_path(t: float) -> np.ndarray:
-    """Robot pose (x, y, yaw) at simulated time t (s): slow loops over the whole plate."""
-    return np.array([5.5 + 1.3 * np.sin(0.05 * t), 4.5 + 0.8 * np.sin(0.07 * t + 0.5),
-                     float(np.arctan2(np.sin(0.1 * t), np.cos(0.1 * t)))])
 
 
 def free_port() -> int:
@@ -93,24 +85,24 @@ def node_pids(master_uri: str) -> Dict[str, int]:
     return out
 
 
-def launch_text(mode: str, speed: float = 1.0, rate: float = 10.0) -> str:
-    sim = ""
-    if mode == "images":
-        # The simulator owns /clock; it drives the paper's 23 poses (15 positions + 8
-        # orientations) again and again, holding each 3 s.
-        sim = f"""  <param name="simulator/loop" value="true"/>
-  <include file="$(find aruco_ring_localization)/launch/simulation.launch">
-    <arg name="mode" value="images"/>
-    <arg name="detectors" value="true"/>
-    <arg name="sim_time" value="true"/>
-    <arg name="speed" value="{speed}"/>
-    <arg name="rate" value="{rate}"/>
-    <arg name="waypoints" value="paper"/>
-  </include>
-"""
+def simulator_config(mode: str, speed: float, rate: float):
+    """The simulator's parameters for the soak: the paper's 23 poses in a loop, 3 s each."""
+    from aruco_ring_localization.config import with_overrides
+    from aruco_ring_localization.simulation.params import SimulatorConfig
+
+    return with_overrides(SimulatorConfig(), {"mode": mode, "rate": rate, "robot.waypoints": "paper",
+                                              "robot.loop": True, "robot.hold_time": 3.0,
+                                              "clock.publish": True, "clock.speed": speed})
+
+
+def launch_text(mode: str, sim_config: str) -> str:
     return f"""<launch>
-  <param name="use_sim_time" value="true"/>
-{sim}  <include file="$(find aruco_ring_localization)/launch/ring_tf.launch"/>
+  <include file="$(find aruco_ring_localization)/launch/simulation.launch">
+    <arg name="config" value="{sim_config}"/>
+    <arg name="detectors" value="{'true' if mode == 'images' else 'false'}"/>
+    <arg name="use_sim_time" value="true"/>
+  </include>
+  <include file="$(find aruco_ring_localization)/launch/ring_tf.launch"/>
   <node pkg="aruco_ring_localization" type="localizer" name="localizer" output="log">
     <rosparam command="load" file="$(find aruco_ring_localization)/config/localization.yaml"/>
     <param name="map_file" value="{TRUTH_MAP}"/>
@@ -123,7 +115,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--minutes", type=float, default=30.0, help="simulated minutes (default 30)")
     ap.add_argument("--rate", type=float, default=10.0, help="ring frames per simulated second (default 10)")
-    ap.add_argument("--speed", type=float, default=1.0, help="simulated s per wall s, corners mode (default 1)")
+    ap.add_argument("--speed", type=float, default=1.0, help="simulated s per wall s, at most (default 1)")
     ap.add_argument("--sample", type=float, default=30.0, help="sampling period, simulated s (default 30)")
     ap.add_argument("--mode", choices=("auto", "corners", "images"), default="auto")
     ap.add_argument("--out", default=os.path.join(REPO, "results", "soak"))
@@ -137,28 +129,34 @@ def main(argv=None) -> int:
         errors = [e / 100.0 for e in errors] if errors else []
         return report(saved, run_data["mode"], run_data["samples"], errors, run_data["frames"], run_data["wall_s"])
 
-    have_images = all(os.path.exists(os.path.join(REPO, "scripts", n)) for n in ("simulator", "detector")) and \
-        os.path.exists(os.path.join(REPO, "launch", "simulation.launch"))
+    have_images = os.path.exists(os.path.join(REPO, "scripts", "detector"))
     mode = args.mode if args.mode != "auto" else ("images" if have_images else "corners")
     if mode == "images" and not have_images:
-        print("soak: image mode needs scripts/simulator, scripts/detector and launch/simulation.launch")
+        print("soak: image mode needs scripts/detector")
         return 2
     if args.mode == "auto":
-        print(f"soak: mode {mode} (image mode needs the simulator and detector nodes)")
+        print(f"soak: mode {mode} (image mode needs the detector node)")
 
     port = free_port()
     master_uri = f"http://localhost:{port}"
     os.environ["ROS_MASTER_URI"] = master_uri
     os.environ.setdefault("ROS_HOSTNAME", "localhost")
     tmp = tempfile.mkdtemp(prefix="soak_")
+    os.makedirs(args.out, exist_ok=True)
+    sim_config = os.path.join(args.out, "simulator.yaml")
+    with open(sim_config, "w") as handle:
+        import yaml
+
+        from aruco_ring_localization.config import to_dict
+        yaml.safe_dump(to_dict(simulator_config(mode, args.speed, args.rate)), handle, sort_keys=False)
     launch_file = os.path.join(tmp, "soak.launch")
     with open(launch_file, "w") as handle:
-        handle.write(launch_text(mode, args.speed, args.rate))
+        handle.write(launch_text(mode, sim_config))
     log = open(os.path.join(tmp, "roslaunch.log"), "w")
     proc = subprocess.Popen(["roslaunch", "-p", str(port), launch_file], stdout=log, stderr=subprocess.STDOUT,
                             start_new_session=True)
     try:
-        return run_images(args, master_uri, proc) if mode == "images" else run(args, mode, master_uri, proc)
+        return run(args, mode, master_uri, proc)
     finally:
         try:
             os.killpg(proc.pid, signal.SIGINT)
@@ -173,63 +171,7 @@ def main(argv=None) -> int:
 
 
 def run(args, mode: str, master_uri: str, proc: subprocess.Popen) -> int:
-    for _ in range(100):  # wait for the master
-        try:
-            xmlrpc.client.ServerProxy(master_uri).getPid("/soak")
-            break
-        except OSError:
-            time.sleep(0.2)
-    import rospy  # after ROS_MASTER_URI is set
-
-    from fault_player import FaultPlayer
-    from faults import FaultSchedule
-
-    rospy.init_node("soak", disable_signals=True)
-    duration = args.minutes * 60.0
-    schedule = FaultSchedule()
-    schedule.add("soak", duration)
-    player = FaultPlayer(soak_path, schedule, os.path.join(REPO, "config", "ring.yaml"), rate_hz=args.rate, seed=3)
-    if not player.wait_for_subscribers(60.0):
-        print("soak: the localizer did not subscribe within 60 s")
-        return 1
-    t_wall0 = time.time()
-    samples: List[dict] = []
-    all_errors: List[float] = []
-    frames_total = 0
-    t = 0.0
-    print(f"soak: {args.minutes:g} simulated min at {args.rate:g} Hz, sampled every {args.sample:g} s", flush=True)
-    while t < duration - 1e-9:
-        t_next = min(t + args.sample, duration)
-        player.play(t, t_next, speed=args.speed)
-        frames_total += int(round((t_next - t) * args.rate))
-        rospy.rostime.wallsleep(0.3)
-        with player.lock:
-            poses, player.poses = player.poses, []
-            player.truth = {k: v for k, v in player.truth.items() if k >= player._key(player.t0 + t_next - 5)}
-            diag = player.diags[-1].values if player.diags else {}
-            player.diags = player.diags[-2:]
-            player.logs = player.logs[-50:]
-        errs = [r.error for r in poses if np.isfinite(r.error)]
-        all_errors += errs
-        rss = {name: rss_mb(pid) for name, pid in node_pids(master_uri).items()}
-        sample = {"t_sim_s": t_next, "t_wall_s": round(time.time() - t_wall0, 1), "poses": len(poses),
-                  "err_cm_median": round(100 * float(np.median(errs)), 2) if errs else None,
-                  "err_cm_max": round(100 * max(errs), 2) if errs else None,
-                  "rss_mb": {k: round(v, 1) for k, v in rss.items() if v is not None},
-                  "frames": diag.get("frames"), "dropped_stale": diag.get("dropped_stale"),
-                  "latency_ms_median": diag.get("latency_ms_median")}
-        samples.append(sample)
-        print(json.dumps(sample), flush=True)
-        t = t_next
-        if proc.poll() is not None:
-            print("soak: roslaunch exited early")
-            break
-    wall = time.time() - t_wall0
-    return report(args, mode, samples, all_errors, frames_total, wall)
-
-
-def run_images(args, master_uri: str, proc: subprocess.Popen) -> int:
-    """Image mode: the simulator (owning /clock) + 8 detectors + the localizer; this process only records."""
+    """The simulator (owning /clock) [+ 8 detectors] + the localizer; this process only records."""
     import threading
 
     for _ in range(100):
@@ -271,7 +213,8 @@ def run_images(args, master_uri: str, proc: subprocess.Popen) -> int:
     samples: List[dict] = []
     errors: List[float] = []
     frames_total = 0
-    print(f"soak: images mode, {args.minutes:g} simulated min, simulator speed {args.speed:g}", flush=True)
+    print(f"soak: {mode} mode, {args.minutes:g} simulated min at {args.rate:g} Hz, simulator speed {args.speed:g}, "
+          f"sampled every {args.sample:g} s", flush=True)
     t0 = None
     next_sample = args.sample
     while True:
@@ -308,7 +251,7 @@ def run_images(args, master_uri: str, proc: subprocess.Popen) -> int:
         if now - t0 >= duration:
             break
     frames_total += 20
-    return report(args, "images", samples, errors, frames_total, time.time() - t_wall0)
+    return report(args, mode, samples, errors, frames_total, time.time() - t_wall0)
 
 
 def error_line(err: np.ndarray, samples: List[dict]) -> str:

@@ -8,7 +8,7 @@ Unknowns (all in one frame W, the robot's base frame at the reference station):
 
 Measurements: every detected corner of every observation. A corner ``X`` (marker frame) is seen by
 camera ``c`` of station ``s`` at ``p_c = T_base_cam^-1 · T_W_base^-1 · T_W_marker · X``, and the
-residual is ``f · (p_c.xy / p_c.z - xy_obs) / pixel_sigma`` where ``xy_obs`` are the observed
+residual is ``f · (p_c.xy / p_c.z - xy_obs) / pixel_noise`` where ``xy_obs`` are the observed
 corners undistorted to normalised coordinates (``CameraModel.normalize``) and ``f`` the focal
 length in pixels: the pixel reprojection error of an ideal pinhole camera, in units of the
 expected corner noise. Undistorting once keeps the lens model out of the solver; near the
@@ -39,6 +39,7 @@ from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 
 from . import geometry as geo
+from .config import in_radians, param
 from .errors import GeometryError
 from .markers import marker_corners
 
@@ -79,37 +80,25 @@ class BAProblem:
 
 @dataclass(frozen=True)
 class BAOptions:
-    """Solver settings.
+    """Solver settings of the bundle adjustment (the mapper's ``mapping.ba`` section, config/mapping.yaml)."""
 
-    Attributes:
-        pixel_sigma: expected corner noise, px (residuals are divided by it).
-        loss: scipy robust loss (``huber``, ``soft_l1``, ``cauchy``, ``linear``).
-        robust_scale: where the loss turns robust, in units of pixel_sigma.
-        refine_extrinsics: also refine each camera's T_base_cam, with priors below.
-        extrinsics_trans_sigma: prior std of the calibrated translations, m.
-        extrinsics_rot_sigma: prior std of the calibrated rotations, rad.
-        max_nfev: solver iteration cap (function evaluations).
-        dense_max_params: up to this many unknowns the trust-region steps are solved densely
-            (``tr_solver='exact'``), above with LSMR on the sparse Jacobian.
-        ftol, xtol, gtol: solver tolerances.
-        lsmr_tol: LSMR's atol/btol for the sparse trust-region steps (looser is faster per
-            iteration, enough for quick adjustments of an initialisation).
-        covariance: compute per-marker covariances.
-    """
+    pixel_noise: float = param(0.5, "expected 1-sigma corner noise (the residuals are divided by it)", unit="px")
+    loss: str = param("huber", "scipy robust loss: huber, soft_l1, cauchy or linear")
+    robust_scale: float = param(3.0, "where the loss turns robust, in units of pixel_noise")
+    refine_extrinsics: bool = param(False, "also refine each camera's T_base_cam, with the priors below")
+    extrinsics_trans_sigma: float = param(0.005, "prior std of the calibrated camera translations", unit="m")
+    extrinsics_rot_sigma_deg: float = param(0.5, "prior std of the calibrated camera rotations", unit="deg")
+    max_nfev: int = param(200, "solver iteration cap (function evaluations)")
+    dense_max_params: int = param(300, "up to this many unknowns the trust-region steps are solved densely "
+                                       "(tr_solver exact), above with LSMR on the sparse Jacobian")
+    ftol: float = param(1e-8, "solver tolerance on the cost")
+    xtol: float = param(1e-10, "solver tolerance on the step")
+    gtol: float = param(1e-10, "solver tolerance on the gradient")
+    lsmr_tol: float = param(1e-10, "LSMR's atol/btol for the sparse trust-region steps (looser is faster per "
+                                   "iteration, enough for quick adjustments of an initialisation)")
+    covariance: bool = param(True, "compute per-marker covariances")
 
-    pixel_sigma: float = 0.5
-    loss: str = "huber"
-    robust_scale: float = 3.0
-    refine_extrinsics: bool = False
-    extrinsics_trans_sigma: float = 0.005
-    extrinsics_rot_sigma: float = np.radians(0.5)
-    max_nfev: int = 200
-    dense_max_params: int = 300
-    ftol: float = 1e-8
-    xtol: float = 1e-10
-    gtol: float = 1e-10
-    lsmr_tol: float = 1e-10
-    covariance: bool = True
+    extrinsics_rot_sigma = in_radians("extrinsics_rot_sigma_deg")
 
 
 @dataclass
@@ -124,7 +113,7 @@ class BAResult:
             in the base frame) when the extrinsics are refined and covariances computed, else None.
         rms_px_before, rms_px_after: RMS corner reprojection error (px, undistorted).
         per_obs_rms_px: (N,) RMS error per observation after the refinement, px.
-        variance_factor: residual variance / pixel_sigma^2 (≈ (true noise / pixel_sigma)^2).
+        variance_factor: residual variance / pixel_noise^2 (≈ (true noise / pixel_noise)^2).
         seconds: solver wall time (covariance included); nfev: evaluations; status: scipy's message.
     """
 
@@ -188,7 +177,7 @@ class _Model:
         # Corner coordinates in the marker frame, per observation: (N, 4, 3).
         unit = marker_corners(1.0)
         self.X = unit[None, :, :] * np.asarray(prob.sizes, dtype=float)[prob.obs_marker][:, None, None]
-        self.scale = prob.obs_focal / opts.pixel_sigma            # (N, 2)
+        self.scale = prob.obs_focal / opts.pixel_noise            # (N, 2)
         self.n_obs_res = 8 * N
         self.n_prior_res = 6 * C if opts.refine_extrinsics else 0
         self.n_res = self.n_obs_res + self.n_prior_res
@@ -381,7 +370,7 @@ def _bundle_adjust(prob: BAProblem, opts: Optional[BAOptions] = None) -> BAResul
             c = model.col_c[i]
             x0[c:c + 3] = Rotation.from_matrix(T[:3, :3] @ model.R_c0[i].T).as_rotvec()
             x0[c + 3:c + 6] = T[:3, 3] - model.t_c0[i]
-    r0 = model.residuals(x0)[: model.n_obs_res] * opts.pixel_sigma
+    r0 = model.residuals(x0)[: model.n_obs_res] * opts.pixel_noise
     rms0 = float(np.sqrt(np.mean(r0 ** 2)))
     if model.n_params == 0:
         res_x, nfev, status, J = x0, 0, "nothing to refine", None
@@ -412,7 +401,7 @@ def _bundle_adjust(prob: BAProblem, opts: Optional[BAOptions] = None) -> BAResul
         res = solve(x_start, opts.robust_scale, max(opts.max_nfev - nfev, 10))
         res_x, nfev, status, J = res.x, nfev + int(res.nfev), str(res.message), res.jac
     r = model.residuals(res_x)
-    r_obs = r[: model.n_obs_res] * opts.pixel_sigma
+    r_obs = r[: model.n_obs_res] * opts.pixel_noise
     per_obs = np.sqrt(np.mean(r_obs.reshape(model.N, 8) ** 2, axis=1))
     rms1 = float(np.sqrt(np.mean(r_obs ** 2)))
     # Variance factor from the inliers (beyond robust_scale sigmas the loss down-weights anyway).

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from typing import Any, Callable, Dict, Iterator, List, Mapping, Optional, Tuple, Type, TypeVar
 
 from .errors import ConfigError
@@ -43,10 +44,32 @@ def param(default: Any, doc: str = "", unit: str = "") -> Any:
     return dataclasses.field(default=default, metadata={"doc": doc, "unit": unit})
 
 
-def section(cls: Type[Any], doc: str = "") -> Any:
-    """A schema field holding a nested schema (a YAML mapping with its own keys)."""
-    return dataclasses.field(default_factory=cls, metadata={"doc": doc or (cls.__doc__ or "").strip().split("\n")[0],
-                                                            "section": True})
+def section(cls: Type[Any], doc: str = "", **defaults: Any) -> Any:
+    """A schema field holding a nested schema (a YAML mapping with its own keys).
+
+    ``defaults`` change some of the section's defaults for this use only (the mapper refines the
+    ring extrinsics by default, a bare bundle adjustment does not):
+    ``ba: BAOptions = section(BAOptions, refine_extrinsics=True)``; the docs, the YAML check and
+    :func:`load_config` all start from these values.
+    """
+    factory = (lambda: cls(**defaults)) if defaults else cls
+    return dataclasses.field(default_factory=factory, metadata={
+        "doc": doc or (cls.__doc__ or "").strip().split("\n")[0], "section": True})
+
+
+def in_radians(deg_field: str) -> property:
+    """A read-only property of a schema: its field ``deg_field`` (degrees, as people write them) in
+    radians (as the code uses them): ``base_angle = in_radians("base_angle_deg")``."""
+    return property(lambda self: math.radians(getattr(self, deg_field)), doc=f"``{deg_field}`` in rad.")
+
+
+def require_positive(config: Any, *names: str) -> None:
+    """Raise ConfigError naming the first of the fields ``names`` of ``config`` that is not > 0
+    (for a schema's ``__post_init__``; NaN is refused too)."""
+    for name in names:
+        value = getattr(config, name)
+        if not value > 0:
+            raise ConfigError(f"must be positive, got {value!r}", key=name)
 
 
 def _default_of(f: "dataclasses.Field[Any]") -> Any:
@@ -78,6 +101,11 @@ def coerce(key: str, value: Any, default: Any, source: str) -> Any:
     if isinstance(default, float):
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             return float(value)
+        if isinstance(value, str):
+            try:
+                return float(value)  # YAML 1.1 reads 1e-8 (no dot) as a string
+            except ValueError:
+                pass
         raise ConfigError(f"expected a number, got {value!r}", path=source, key=key)
     if isinstance(default, str):
         if isinstance(value, str):
@@ -100,14 +128,15 @@ def coerce(key: str, value: Any, default: Any, source: str) -> Any:
 
 def load_config(cls: Type[C], values: Optional[Mapping[str, Any]], source: str = "parameters",
                 warn: Optional[Callable[[str], None]] = None, prefix: str = "",
-                unknown: Optional[List[str]] = None) -> C:
+                unknown: Optional[List[str]] = None, base: Optional[C] = None) -> C:
     """Build the schema ``cls`` from a nested mapping; missing keys keep their defaults.
 
     Args:
         values: nested mapping (YAML document, ``rospy.get_param('~')``); None = all defaults.
         source: named in errors and warnings (a file path, ``parameters of /localizer``).
         warn: called once per unknown key with a message (default: ``logger.warning``).
-        prefix, unknown: internal (dotted path of the section; list collecting unknown keys).
+        prefix, unknown, base: internal (dotted path of the section; list collecting unknown
+            keys; the section's default instance, whose values missing keys keep).
 
     Raises:
         ConfigError: a value of the wrong type, a section that is not a mapping, or a value the
@@ -130,12 +159,14 @@ def load_config(cls: Type[C], values: Optional[Mapping[str, Any]], source: str =
         if f is None:
             unknown.append(key)
             continue
+        default = getattr(base, f.name) if base is not None else _default_of(f)
         if is_section(f):
-            kwargs[f.name] = load_config(type(_default_of(f)), value, source, warn, prefix=f"{key}.", unknown=unknown)
+            kwargs[f.name] = load_config(type(default), value, source, warn, prefix=f"{key}.", unknown=unknown,
+                                         base=default)
         else:
-            kwargs[f.name] = coerce(key, value, _default_of(f), source)
+            kwargs[f.name] = coerce(key, value, default, source)
     try:
-        out = cls(**kwargs)  # type: ignore[call-arg]
+        out = dataclasses.replace(base, **kwargs) if base is not None else cls(**kwargs)  # type: ignore[call-arg]
     except ConfigError as exc:
         # __post_init__ names its own field; say where it sits in the whole schema, and the source.
         key = f"{prefix}{exc.key}" if exc.key else (prefix.rstrip(".") or None)
@@ -148,13 +179,36 @@ def load_config(cls: Type[C], values: Optional[Mapping[str, Any]], source: str =
     return out
 
 
-def flatten(cls: Type[Any], prefix: str = "") -> Iterator[Tuple[str, Any, str, str]]:
-    """``(dotted key, default, doc, unit)`` of every plain field of the schema, sections expanded."""
+def flatten(cls: Type[Any], prefix: str = "", base: Any = None) -> Iterator[Tuple[str, Any, str, str]]:
+    """``(dotted key, default, doc, unit)`` of every plain field of the schema, sections expanded.
+
+    ``cls`` may also be an instance: its values are then the defaults listed.
+    """
+    if base is None and not isinstance(cls, type):
+        base = cls
+    for f in dataclasses.fields(cls):
+        default = getattr(base, f.name) if base is not None else _default_of(f)
+        if is_section(f):
+            yield from flatten(type(default), f"{prefix}{f.name}.", base=default)
+        else:
+            yield f"{prefix}{f.name}", default, str(f.metadata.get("doc", "")), str(f.metadata.get("unit", ""))
+
+
+def sections(cls: Type[Any], prefix: str = "") -> Iterator[Tuple[str, str]]:
+    """``(dotted key, doc)`` of every section of the schema, depth first (for the docs)."""
     for f in dataclasses.fields(cls):
         if is_section(f):
-            yield from flatten(type(_default_of(f)), f"{prefix}{f.name}.")
-        else:
-            yield f"{prefix}{f.name}", _default_of(f), str(f.metadata.get("doc", "")), str(f.metadata.get("unit", ""))
+            yield f"{prefix}{f.name}", str(f.metadata.get("doc", ""))
+            yield from sections(type(_default_of(f)), f"{prefix}{f.name}.")
+
+
+def default(cls: Type[Any], name: str) -> Any:
+    """The default of field ``name`` of schema ``cls``, for a schema that re-exports one value of
+    another under a name of its own (written once: in ``cls``)."""
+    for f in dataclasses.fields(cls):
+        if f.name == name:
+            return _default_of(f)
+    raise KeyError(f"{cls.__name__} has no field {name!r}")
 
 
 def to_dict(config: Any) -> Dict[str, Any]:
@@ -183,3 +237,25 @@ def with_overrides(config: C, overrides: Mapping[str, Any], source: str = "overr
                 raise ConfigError("is not a section", path=source, key=dotted)
         node[parts[-1]] = value
     return load_config(type(config), nested, source)
+
+
+def load_yaml_config(cls: Type[C], path: str, overrides: Optional[Mapping[str, Any]] = None,
+                     warn: Optional[Callable[[str], None]] = None) -> C:
+    """The schema ``cls`` from a node's YAML file (``config/localization.yaml``) plus dotted-key
+    ``overrides`` whose value is not None (command-line options left unset keep the file's value).
+
+    Raises:
+        ConfigError: the file cannot be read or parsed, or a value is refused (names the key).
+    """
+    import yaml
+
+    try:
+        with open(path, encoding="utf-8") as fh:
+            values = yaml.safe_load(fh)
+    except OSError as exc:
+        raise ConfigError(f"cannot read the parameter file ({exc.strerror or exc})", path=path) from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"not valid YAML: {exc}", path=path) from None
+    config = load_config(cls, values or {}, source=path, warn=warn)
+    given = {k: v for k, v in (overrides or {}).items() if v is not None}
+    return with_overrides(config, given, source=f"{path} + command-line options") if given else config

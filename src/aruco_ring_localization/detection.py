@@ -27,6 +27,7 @@ import numpy as np
 
 from . import geometry as geo
 from .camera import CameraModel
+from .config import param
 from .errors import ArucoRingError, ConfigError, MeasurementError
 from .detections import MarkerObservation
 from .markers import MarkerSizes
@@ -62,54 +63,35 @@ ENCODINGS = {
 
 @dataclass(frozen=True)
 class DetectorParams:
-    """Settings of the ArUco detector.
+    """Settings of the ArUco detector (:class:`Detector`)."""
 
-    Attributes:
-        dictionary: OpenCV predefined dictionary index, as aruco_detect's ``dictionary``
-            parameter (7 = DICT_5X5_1000, the default; 0 = DICT_4X4_50, 16 = DICT_ARUCO_ORIGINAL,
-            17..20 = AprilTag families).
-        corner_refinement: ``lines`` (default): OpenCV's SUBPIX, then each corner is re-placed at
-            the intersection of the two edge lines that meet there, fitted to sub-pixel edge
-            points along the outer half of both sides (:func:`refine_corners_lines`). On
-            rendered markers of 20-120 px this removes SUBPIX's inward bias (0.2-0.5 px -> 0.02-0.15
-            px). ``subpix``: cornerSubPix only, exactly what aruco_detect does with its default
-            ``doCornerRefinement``/``cornerRefinementSubpix`` (reproduces its published corners to
-            1e-4 px; use it for bit-compatibility). ``contour`` (OpenCV's line fit on the
-            contour pixels: robust to blur, less precise), ``apriltag`` (slow), or ``none``
-            (polygon corners; fastest, 0.4-1 px off).
-        corner_refinement_win_size: half window of the subpixel search, pixels.
-        corner_refinement_max_iterations: iteration cap of the refinement.
-        corner_refinement_min_accuracy: stop when a corner moves less than this, pixels
-            (aruco_detect uses 0.01; OpenCV's own default 0.1 leaves up to 0.03 px).
-        corner_refinement_relative_win_size: OpenCV 4.11 caps the SUBPIX window at this fraction
-            of the marker's module size (OpenCV default 0.3).
-        min_marker_perimeter_rate: smallest marker perimeter as a fraction of the image's larger
-            side (0.03 -> 38 px perimeter, about 10 px per side at 1280 px).
-        max_marker_perimeter_rate: largest perimeter, same unit.
-        adaptive_thresh_win_size_min, adaptive_thresh_win_size_max, adaptive_thresh_win_size_step:
-            window sizes (pixels) of the adaptive thresholds tried; more windows find markers in
-            harder light but cost time linearly.
-        adaptive_thresh_constant: subtracted from the local mean before thresholding.
-        error_correction_rate: fraction of the dictionary's correction capacity used (0..1).
-        min_distance_to_border: markers closer than this to the image border are rejected, px.
-        detect_inverted_marker: also accept white-on-black markers.
-    """
-
-    dictionary: int = 7
-    corner_refinement: str = "lines"
-    corner_refinement_win_size: int = 5
-    corner_refinement_max_iterations: int = 30
-    corner_refinement_min_accuracy: float = 0.01
-    corner_refinement_relative_win_size: float = 0.3
-    min_marker_perimeter_rate: float = 0.03
-    max_marker_perimeter_rate: float = 4.0
-    adaptive_thresh_win_size_min: int = 3
-    adaptive_thresh_win_size_max: int = 23
-    adaptive_thresh_win_size_step: int = 10
-    adaptive_thresh_constant: float = 7.0
-    error_correction_rate: float = 0.6
-    min_distance_to_border: int = 3
-    detect_inverted_marker: bool = False
+    dictionary: int = param(7, "OpenCV predefined dictionary index, as aruco_detect's dictionary parameter: 7 = "
+                               "DICT_5X5_1000 (aruco_detect's default and the simulated lab's), 0 = DICT_4X4_50, "
+                               "16 = DICT_ARUCO_ORIGINAL, 17..20 = AprilTag families")
+    corner_refinement: str = param("lines", "lines: OpenCV's subpixel refinement, then each corner is the "
+                                            "intersection of the two edge lines fitted next to it (unbiased; "
+                                            "0.02-0.15 px on sharp markers, where subpix is 0.2-0.5 px inside the "
+                                            "true corners of small markers); subpix: cornerSubPix only, exactly "
+                                            "aruco_detect's corners (to 1e-4 px on its test images); contour: "
+                                            "OpenCV's contour line fit (robust to blur, less precise); apriltag "
+                                            "(slow); none (polygon corners, 0.4-1 px off)")
+    corner_refinement_win_size: int = param(5, "half window of the subpixel search", unit="px")
+    corner_refinement_max_iterations: int = param(30, "iteration cap of the refinement")
+    corner_refinement_min_accuracy: float = param(0.01, "stop when a corner moves less than this (aruco_detect "
+                                                        "uses 0.01; OpenCV's 0.1 leaves up to 0.03 px)", unit="px")
+    corner_refinement_relative_win_size: float = param(0.3, "OpenCV 4.11 caps the subpixel window at this fraction "
+                                                            "of the marker's module size")
+    min_marker_perimeter_rate: float = param(0.03, "smallest marker perimeter as a fraction of the image's larger "
+                                                   "side (0.03: 38 px, about 10 px per side at 1280 px)")
+    max_marker_perimeter_rate: float = param(4.0, "largest perimeter, same unit")
+    adaptive_thresh_win_size_min: int = param(3, "smallest adaptive threshold window", unit="px")
+    adaptive_thresh_win_size_max: int = param(23, "largest adaptive threshold window", unit="px")
+    adaptive_thresh_win_size_step: int = param(10, "threshold window step: windows min, min+step, ... <= max are "
+                                                   "tried, each about 6 ms per 1280x960 image", unit="px")
+    adaptive_thresh_constant: float = param(7.0, "subtracted from the local mean before thresholding")
+    error_correction_rate: float = param(0.6, "fraction of the dictionary's correction capacity used (0..1)")
+    min_distance_to_border: int = param(3, "markers closer than this to the image border are rejected", unit="px")
+    detect_inverted_marker: bool = param(False, "also accept white-on-black markers")
 
     def __post_init__(self) -> None:
         if isinstance(self.dictionary, bool) or not isinstance(self.dictionary, (int, np.integer)) \

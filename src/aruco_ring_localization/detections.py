@@ -7,11 +7,8 @@
   stops publishing never stalls the others: a group goes out when every camera has reported or
   when it has waited ``timeout`` seconds (of the caller's clock), whichever comes first.
 * :func:`sanitize_observations` — drops what must never reach the estimators (NaN corners,
-  degenerate quads, duplicate ids in one image, ignored ids) and says why.
-
-* :class:`RingInputCore` — the calibration in force (camera_info, extrinsics) and the way in:
-  each camera's detections are checked (intrinsics and extrinsics known), sanitized once and
-  fed to the assembler.
+  degenerate quads, duplicate ids in one image, ignored ids) and says why. The pipelines
+  (:mod:`pipeline`) call it once, where detections enter; the estimators rely on it.
 
 These types are shared by the simulator, the detector, the mapper and the localizer.
 """
@@ -24,10 +21,8 @@ from typing import Collection, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from . import geometry as geo
 from .camera import CameraModel
-from .markers import quad_is_degenerate
-from .ring import CameraRing
+from .markers import quads_ok
 
 logger = logging.getLogger(__name__)
 
@@ -200,11 +195,13 @@ def sanitize_observations(observations: Sequence[MarkerObservation], ignore: Col
         (kept observations, counts of dropped ones by reason).
     """
     reasons: Dict[str, int] = {}
-    kept: List[MarkerObservation] = []
 
-    def drop(reason: str) -> None:
-        reasons[reason] = reasons.get(reason, 0) + 1
+    def drop(reason: str, n: int = 1) -> None:
+        if n:
+            reasons[reason] = reasons.get(reason, 0) + n
 
+    candidates: List[MarkerObservation] = []
+    arrays: List[np.ndarray] = []
     for obs in observations:
         if obs.marker_id in ignore:
             drop("ignored")
@@ -213,130 +210,22 @@ def sanitize_observations(observations: Sequence[MarkerObservation], ignore: Col
         if c.shape != (4, 2) or not np.all(np.isfinite(c)):
             drop("non-finite")
             continue
-        if width and height and (np.any(np.abs(c[:, 0] - width / 2) > 1.5 * width)
-                                 or np.any(np.abs(c[:, 1] - height / 2) > 1.5 * height)):
-            drop("outside image")
-            continue
-        if quad_is_degenerate(c, min_area_px):
-            drop("degenerate")
-            continue
-        kept.append(obs if c is obs.corners else MarkerObservation(int(obs.marker_id), c))
+        candidates.append(obs if c is obs.corners else MarkerObservation(int(obs.marker_id), c))
+        arrays.append(c)
+    if not candidates:
+        return [], reasons
+    q = np.stack(arrays)
+    ok = np.ones(len(candidates), dtype=bool)
+    if width and height:
+        size = np.array([width, height], dtype=np.float64)
+        ok = (np.abs(q - 0.5 * size) <= 1.5 * size).all(axis=(1, 2))
+        drop("outside image", int(np.count_nonzero(~ok)))
+    good = quads_ok(q, min_area_px)
+    drop("degenerate", int(np.count_nonzero(ok & ~good)))
+    kept = [o for o, k in zip(candidates, ok & good) if k]
     counts = Counter(o.marker_id for o in kept)
     dups = {i for i, n in counts.items() if n > 1}
     if dups:
         reasons["duplicate id"] = sum(counts[i] for i in dups)
         kept = [o for o in kept if o.marker_id not in dups]
     return kept, reasons
-
-
-# --- the way in: calibration in force, sanitizing, assembly -----------------------------------
-
-
-#: Reasons a whole camera frame is skipped (keys of :attr:`RingInputCore.skipped`).
-SKIP_NO_CAMERA_INFO = "no camera_info"
-SKIP_NO_EXTRINSICS = "no extrinsics"
-
-
-class RingInputCore:
-    """Assemble ring frames from per-camera detections.
-
-    Args:
-        ring: the calibrated ring (names, frames, fallback intrinsics and extrinsics).
-        camera_names: ring camera names to use (default: all of the ring's).
-        slop: stamps within this (s) belong to one ring frame.
-        timeout: an incomplete group goes out this long (s, caller's clock) after its first member.
-        ignore_ids: marker ids never passed on.
-        camera_info_fallback: use the ring file's intrinsics while no camera_info has arrived.
-        extrinsics_from_ring: use the ring file's extrinsics instead of waiting for
-            :meth:`set_extrinsics`.
-    """
-
-    def __init__(self, ring: CameraRing, camera_names: Optional[Sequence[str]] = None, slop: float = 0.03,
-                 timeout: float = 0.25, ignore_ids: Collection[int] = (), camera_info_fallback: bool = False,
-                 extrinsics_from_ring: bool = False):
-        names = list(camera_names) if camera_names else ring.names
-        unknown = [n for n in names if n not in ring.names]
-        if unknown:
-            raise ValueError(f"cameras {unknown} are not in the ring (known: {ring.names})")
-        self.calibrated_ring = ring
-        self.camera_names = names
-        self.ignore_ids = frozenset(int(i) for i in ignore_ids)
-        self.camera_info_fallback = bool(camera_info_fallback)
-        self.extrinsics_from_ring = bool(extrinsics_from_ring)
-        self.assembler = RingFrameAssembler(names, slop=slop, timeout=timeout)
-        self._models: Dict[str, CameraModel] = {}
-        self._extrinsics: Dict[str, np.ndarray] = (
-            {n: ring[n].T_base_cam for n in names} if extrinsics_from_ring else {})
-        self._ring = ring
-        #: camera -> {reason: count} of detections dropped by sanitize_observations.
-        self.rejected: Dict[str, Dict[str, int]] = {n: {} for n in names}
-        #: camera -> {reason: count} of whole camera frames skipped (no camera_info / no extrinsics).
-        self.skipped: Dict[str, Dict[str, int]] = {n: {} for n in names}
-        self.frames_in = 0
-        self.ring_frames_out = 0
-
-    # --- calibration in force ---------------------------------------------------------------
-
-    def set_camera_model(self, camera: str, model: CameraModel) -> None:
-        """The intrinsics from this camera's latest camera_info."""
-        self._models[camera] = model
-
-    def camera_model(self, camera: str) -> Optional[CameraModel]:
-        """Intrinsics in force for ``camera`` (camera_info, or the ring's with the fallback), or None."""
-        model = self._models.get(camera)
-        if model is None and self.camera_info_fallback:
-            model = self.calibrated_ring[camera].model
-        return model
-
-    def set_extrinsics(self, camera: str, T_base_cam: np.ndarray) -> None:
-        """``T_base_cam`` (4x4) of ``camera`` (from tf); updates :attr:`ring`."""
-        T = geo.validate_transform(T_base_cam, f"extrinsics of {camera}")
-        self._extrinsics[camera] = T
-        self._ring = self.calibrated_ring.with_extrinsics(self._extrinsics)
-
-    def has_extrinsics(self, camera: str) -> bool:
-        return camera in self._extrinsics
-
-    @property
-    def ring(self) -> CameraRing:
-        """The ring with the extrinsics in force (tf's where known, the file's for the others)."""
-        return self._ring
-
-    # --- data -------------------------------------------------------------------------------
-
-    def add_detections(self, camera: str, stamp: float, observations: Sequence[MarkerObservation],
-                       now: float) -> Tuple[List[RingFrame], Optional[str], Dict[str, int]]:
-        """Take one camera's detections at ``stamp`` (s); ``now`` is the caller's clock (s).
-
-        Returns:
-            (ring frames ready to go out, the reason the camera frame was skipped or None,
-            counts of the detections dropped in this frame by reason).
-        """
-        self.frames_in += 1
-        if camera not in self.skipped:
-            return self.poll(now), f"unknown camera {camera}", {}
-        model = self.camera_model(camera)
-        reason = None
-        if model is None:
-            reason = SKIP_NO_CAMERA_INFO
-        elif camera not in self._extrinsics:
-            reason = SKIP_NO_EXTRINSICS
-        if reason is not None:
-            self.skipped[camera][reason] = self.skipped[camera].get(reason, 0) + 1
-            return self.poll(now), reason, {}
-        kept, dropped = sanitize_observations(observations, self.ignore_ids, model.width, model.height)
-        for k, v in dropped.items():
-            self.rejected[camera][k] = self.rejected[camera].get(k, 0) + v
-        out = self.assembler.add(CameraFrame(camera, float(stamp), kept, model), now)
-        self.ring_frames_out += len(out)
-        return out, None, dropped
-
-    def poll(self, now: float) -> List[RingFrame]:
-        """Ring frames whose timeout has expired (call periodically)."""
-        out = self.assembler.poll(now)
-        self.ring_frames_out += len(out)
-        return out
-
-    def silent_cameras(self, now: float, silence: float = 1.0) -> List[str]:
-        """Cameras from which nothing usable has arrived for ``silence`` s (or ever)."""
-        return self.assembler.silent_cameras(now, silence)

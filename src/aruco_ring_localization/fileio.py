@@ -3,12 +3,15 @@
 :func:`atomic_write_text` writes to a temporary file in the same directory, flushes and fsyncs it,
 keeps the previous version as ``<name>.bak`` and renames the new one into place. A process killed
 at any instant leaves either the old file or the new one (and the ``.bak``), never half a file.
+A new file gets the mode an ``open()`` would give it (0666 less the umask: 0644 by default); a
+replaced file keeps its own mode.
 """
 from __future__ import annotations
 
 import logging
 import os
-import tempfile
+import secrets
+import stat
 
 from .errors import ConfigError
 
@@ -22,7 +25,7 @@ def atomic_write_text(path: str, text: str, keep_backup: bool = True) -> None:
     try:
         os.makedirs(directory, exist_ok=True)
         _remove_stale_temporaries(path)
-        fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", suffix=".tmp", dir=directory)
+        fd, tmp = _create_temporary(path)
     except OSError as exc:
         raise ConfigError(f"cannot create a file in {directory} ({exc})", path=path) from None
     try:
@@ -52,6 +55,28 @@ def atomic_write_text(path: str, text: str, keep_backup: bool = True) -> None:
         if isinstance(exc, OSError):
             raise ConfigError(f"cannot write file ({exc})", path=path) from None
         raise
+
+
+def _create_temporary(path: str):
+    """(fd, name) of a new temporary beside ``path``, with the mode the final file should have.
+
+    ``tempfile.mkstemp`` creates 0600 files, which the rename would hand on to every map and
+    result. Here the kernel applies the umask to 0666 itself (no process-wide ``os.umask`` call,
+    which would race with other threads); an existing file's mode is kept.
+    """
+    try:
+        mode = stat.S_IMODE(os.stat(path).st_mode)
+    except OSError:
+        mode = None
+    while True:
+        tmp = os.path.join(os.path.dirname(path), f".{os.path.basename(path)}.{secrets.token_hex(4)}.tmp")
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        except FileExistsError:
+            continue
+        if mode is not None:
+            os.fchmod(fd, mode)
+        return fd, tmp
 
 
 def _remove_stale_temporaries(path: str, older_than: float = 60.0) -> None:

@@ -37,6 +37,7 @@ from typing import List, Optional, Tuple
 import numpy as np
 
 from . import geometry as geo
+from .config import in_radians, param, require_positive
 from .errors import ConfigError
 
 logger = logging.getLogger(__name__)
@@ -51,45 +52,43 @@ REINITIALIZED = "reinitialized"
 
 @dataclass(frozen=True)
 class GateParams:
-    """Thresholds of :class:`MotionGate` (documented in config/localization.yaml).
+    """Thresholds of :class:`MotionGate` (the localizer's ``gate`` section, config/localization.yaml).
 
-    Attributes:
-        enabled: False accepts everything.
-        base_distance: allowed position jump at dt = 0 and rest, m (measurement noise, latency).
-        base_angle: allowed yaw jump at dt = 0 and rest, rad.
-        speed_margin: factor on the speed x dt term (commands are not followed exactly).
-        max_acceleration: m/s^2; max_angular_acceleration: rad/s^2 (unknown motion over dt).
-        recovery_count: consecutive mutually consistent rejections that re-initialise.
-        recovery_distance: m; recovery_angle: rad — how close consecutive rejected measurements
-            must be to count as consistent.
-        sigma_factor: standard deviations of (prediction + measurement) covariance added to the
-            thresholds when covariances are given (0 disables).
-        max_tilt_change: rad; a measurement whose up axis differs from the track's by more is
-            rejected (a flipped pose); checked when its rotation is given (0 disables). No
-            covariance widens it: a single far marker's tilt is uncertain by degrees, and that
-            is exactly when a flip is likely.
+    A measurement farther from the prediction than
+    ``base_distance + speed_margin*|v|*dt + 0.5*max_acceleration*dt^2`` (m), or turned more than
+    ``base_angle_deg + speed_margin*|w|*dt + 0.5*max_angular_acceleration*dt^2`` (deg), with
+    ``v, w`` from cmd_vel/odom and ``dt`` since the last accepted one, is rejected.
     """
 
-    enabled: bool = True
-    base_distance: float = 0.15
-    base_angle: float = float(np.radians(10.0))
-    speed_margin: float = 1.5
-    max_acceleration: float = 1.0
-    max_angular_acceleration: float = 2.0
-    recovery_count: int = 5
-    recovery_distance: float = 0.10
-    recovery_angle: float = float(np.radians(5.0))
-    sigma_factor: float = 3.0
-    max_tilt_change: float = float(np.radians(5.0))
+    enabled: bool = param(True, "false accepts every measurement")
+    base_distance: float = param(0.15, "allowed position jump at dt = 0 and rest (measurement noise, latency)",
+                                 unit="m")
+    base_angle_deg: float = param(10.0, "allowed yaw jump at dt = 0 and rest", unit="deg")
+    speed_margin: float = param(1.5, "factor on the speed x dt term (commands are not followed exactly)")
+    max_acceleration: float = param(1.0, "unknown linear acceleration allowed over dt", unit="m/s^2")
+    max_angular_acceleration: float = param(2.0, "unknown angular acceleration allowed over dt", unit="rad/s^2")
+    recovery_count: int = param(5, "this many consecutive rejected measurements that agree with each other "
+                                   "re-initialise the track (kidnapped robot, wrong initial pose): never a lock-out")
+    recovery_distance: float = param(0.10, "how close consecutive rejected measurements must be (plus the motion "
+                                           "allowed in between) to count as agreeing", unit="m")
+    recovery_angle_deg: float = param(5.0, "the same for their yaw", unit="deg")
+    sigma_factor: float = param(3.0, "both thresholds also grow by this many standard deviations of the prediction "
+                                     "and the measurement (filter + estimator covariance): after a stretch of poor "
+                                     "measurements (one camera left) good ones are not rejected; 0 disables")
+    max_tilt_change_deg: float = param(5.0, "a measurement whose up axis (roll, pitch) differs from the last accepted "
+                                            "one's by more is rejected: a flipped pose tilts, a ground robot does "
+                                            "not; no covariance widens it; 0 disables", unit="deg")
+
+    base_angle = in_radians("base_angle_deg")
+    recovery_angle = in_radians("recovery_angle_deg")
+    max_tilt_change = in_radians("max_tilt_change_deg")
 
     def __post_init__(self) -> None:
-        for name in ("base_distance", "base_angle", "recovery_distance", "recovery_angle"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"must be positive, got {getattr(self, name)!r}", key=name)
+        require_positive(self, "base_distance", "base_angle_deg", "recovery_distance", "recovery_angle_deg")
         if self.recovery_count < 1:
             raise ConfigError(f"must be >= 1, got {self.recovery_count!r}", key="recovery_count")
-        if self.max_tilt_change < 0:
-            raise ConfigError(f"must be >= 0, got {self.max_tilt_change!r}", key="max_tilt_change")
+        if not self.max_tilt_change_deg >= 0:
+            raise ConfigError(f"must be >= 0, got {self.max_tilt_change_deg!r}", key="max_tilt_change_deg")
 
 
 @dataclass

@@ -43,7 +43,7 @@ from filterpy.kalman import KalmanFilter
 from scipy.linalg import block_diag
 
 from . import geometry as geo
-from .errors import ConfigError
+from .config import param, require_positive
 
 logger = logging.getLogger(__name__)
 
@@ -54,37 +54,27 @@ _AXES = ((IX, IVX, IAX), (IY, IVY, IAY), (IPHI, IW, IALPHA))
 
 @dataclass(frozen=True)
 class FilterParams:
-    """Noise parameters of :class:`PoseFilter` (documented in config/localization.yaml).
+    """Noise parameters of :class:`PoseFilter` (the localizer's ``filter`` section, config/localization.yaml)."""
 
-    Attributes:
-        jerk_noise_xy: spectral density of the white jerk driving x and y, m^2/s^5.
-        jerk_noise_yaw: same for the yaw, rad^2/s^5.
-        measurement_std_xy: position measurement std when the estimator gives no covariance, m.
-        measurement_std_yaw: yaw measurement std when the estimator gives none, rad.
-        min_measurement_std_xy, min_measurement_std_yaw: floors applied to any measurement
-            covariance (the estimator's covariance ignores map and calibration errors), m, rad.
-        initial_std_velocity: initial std of the velocities, m/s and rad/s.
-        initial_std_acceleration: initial std of the accelerations, m/s^2 and rad/s^2.
-        time_jump_tolerance: a stamp this much (s) earlier than the last one resets the filter.
-        max_dt: predictions longer than this (s) are clamped (a long gap; covariance still grows).
-    """
-
-    jerk_noise_xy: float = 0.1
-    jerk_noise_yaw: float = 0.1
-    measurement_std_xy: float = 0.02
-    measurement_std_yaw: float = 0.01
-    min_measurement_std_xy: float = 0.003
-    min_measurement_std_yaw: float = 0.002
-    initial_std_velocity: float = 0.5
-    initial_std_acceleration: float = 1.0
-    time_jump_tolerance: float = 0.5
-    max_dt: float = 5.0
+    jerk_noise_xy: float = param(0.1, "spectral density of the white jerk driving x and y (constant-acceleration "
+                                      "model): larger follows faster, smaller smooths more", unit="m^2/s^5")
+    jerk_noise_yaw: float = param(0.1, "the same for the yaw", unit="rad^2/s^5")
+    measurement_std_xy: float = param(0.02, "position measurement std when the estimator gives no covariance",
+                                      unit="m")
+    measurement_std_yaw: float = param(0.01, "yaw measurement std when the estimator gives none", unit="rad")
+    min_measurement_std_xy: float = param(0.003, "floor added to the estimator's position covariance (it only "
+                                                 "knows the pixel noise, not map or calibration errors)", unit="m")
+    min_measurement_std_yaw: float = param(0.002, "the same for the yaw", unit="rad")
+    initial_std_velocity: float = param(0.5, "initial std of the velocities (m/s and rad/s)")
+    initial_std_acceleration: float = param(1.0, "initial std of the accelerations (m/s^2 and rad/s^2)")
+    time_jump_tolerance: float = param(0.5, "a stamp this much earlier than the last one (a bag loop, a clock "
+                                            "reset) resets the filter", unit="s")
+    max_dt: float = param(5.0, "predictions longer than this are clamped (a long gap; the covariance still grows)",
+                          unit="s")
 
     def __post_init__(self) -> None:
-        for name in ("jerk_noise_xy", "jerk_noise_yaw", "measurement_std_xy", "measurement_std_yaw",
-                     "initial_std_velocity", "initial_std_acceleration", "max_dt"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"must be positive, got {getattr(self, name)!r}", key=name)
+        require_positive(self, "jerk_noise_xy", "jerk_noise_yaw", "measurement_std_xy", "measurement_std_yaw",
+                         "initial_std_velocity", "initial_std_acceleration", "max_dt")
 
 
 def transition_matrix(dt: float) -> np.ndarray:

@@ -59,6 +59,7 @@ from scipy.spatial.transform import Rotation
 
 from . import geometry as geo
 from .camera import CameraModel
+from .config import in_radians, param, require_positive
 from .errors import ConfigError, MeasurementError
 from .detections import RingFrame
 from .marker_map import MarkerMap
@@ -79,65 +80,53 @@ REJECT_NO_MODEL = "no camera model"
 
 @dataclass(frozen=True)
 class LocalizationParams:
-    """Parameters of :class:`RingLocalizer` (documented in config/localization.yaml).
+    """Parameters of :class:`RingLocalizer` (the localizer's ``estimator`` section, config/localization.yaml)."""
 
-    Attributes:
-        fusion: ``paper`` (per-camera estimates, accuracy-weighted fusion) or ``joint``.
-        max_reprojection_error: per-camera RMS reprojection error (px) above which an estimate
-            is discarded (paper); in ``joint`` also the per-marker RMS above which a marker is
-            dropped as an outlier and the pose re-solved.
-        th_distance: TH_d, m (paper: 5 m).
-        th_orientation: TH_or, rad (paper: 60 deg).
-        fusion_gap: estimates whose positions lie within this (m) of the best one are averaged.
-        pixel_noise: 1-sigma corner noise, px, used for covariances (the residual RMS is used
-            instead when it is larger).
-        robust_scale: Huber loss threshold of the joint estimator, px. Above the residuals that
-            the extrinsic calibration error alone leaves (0.2 deg ~ 3-5 px): with a smaller
-            threshold most corners are down-weighted, IRLS converges only linearly (8+
-            iterations instead of 2-3) and nothing is gained; gross outliers (tens of px) are
-            still down-weighted, and whole misfit markers are dropped (joint_outlier_threshold).
-        max_iterations: Gauss-Newton iterations of the joint estimator.
-        ambiguity_gate: a single-marker IPPE pose is only trusted without a reference when its
-            ambiguity ratio (err_best / err_second) is below this (and the chi^2 of the two
-            differ by ``ambiguity_chi2`` or more).
-        ignore_ids: marker ids never used.
-        min_markers_joint: fewer markers than this in the whole ring -> the joint estimator falls
-            back to the per-camera fusion (a single marker's pose is ambiguous).
-        joint_outlier_threshold: in ``joint``, a marker whose RMS residual exceeds this (px) is
-            dropped and the pose re-solved; a final RMS above it rejects the joint solution.
-            Larger than ``max_reprojection_error`` because the joint residuals also carry the
-            extrinsic calibration error (0.2 deg is ~3 px), which per-camera PnP absorbs.
-        ambiguity_chi2: two distinct poses whose chi^2 (pixel residuals over ``pixel_noise``,
-            whitened by the calibration model in ``joint``) differ by less than this are
-            ambiguous (a likelihood ratio below e^4.5 ~ 90 for 9): a marker's two IPPE poses,
-            and, when every camera sees a single marker, the joint problem's solutions from
-            every IPPE pose.
-        max_joint_starts: at most this many distinct starts are solved in that case.
-    """
-
-    fusion: str = "joint"
-    max_reprojection_error: float = 3.0
-    th_distance: float = 5.0
-    th_orientation: float = float(np.radians(60.0))
-    fusion_gap: float = 0.10
-    pixel_noise: float = 0.5
-    robust_scale: float = 8.0
-    max_iterations: int = 8
-    ambiguity_gate: float = 0.3
-    ignore_ids: Tuple[int, ...] = ()
-    min_markers_joint: int = 2
-    joint_outlier_threshold: float = 10.0
-    ambiguity_chi2: float = 9.0
-    max_joint_starts: int = 4
+    fusion: str = param("joint", "paper: per-camera PnP and the accuracy-weighted fusion, exactly the paper; "
+                                 "joint: one multi-camera PnP over every corner, each camera weighed by its "
+                                 "pixel noise and its extrinsics' uncertainty (the ring file's extrinsics_std, "
+                                 "or the map's covariance of the refined extrinsics), with the covariance of "
+                                 "both (measured better); joint_exact_extrinsics: the same taking the "
+                                 "extrinsics as exact (the joint estimate before the noise model, for the "
+                                 "ablation)")
+    max_reprojection_error: float = param(3.0, "per-camera RMS reprojection error above which a camera's estimate "
+                                               "is discarded (paper; it gives no value)", unit="px")
+    th_distance: float = param(5.0, "TH_d: Ac_d = (TH_d - dist)/TH_d, 0 beyond (paper: 5 m)", unit="m")
+    th_orientation_deg: float = param(60.0, "TH_or: Ac_or = (TH_or - angle)/TH_or, 0 beyond (paper: 60 deg)",
+                                      unit="deg")
+    fusion_gap: float = param(0.10, "per-camera estimates within this distance of the best one are Ac-averaged",
+                              unit="m")
+    pixel_noise: float = param(0.5, "1-sigma corner noise used for covariances (the residuals' own RMS when "
+                                    "larger); about 0.3-0.5 px for aruco_detect with subpixel refinement", unit="px")
+    robust_scale: float = param(8.0, "Huber threshold of the joint estimator: above the 3-5 px that a 0.2 deg "
+                                     "calibration error leaves (a smaller one down-weights most corners and IRLS "
+                                     "converges only linearly); gross outliers are still down-weighted", unit="px")
+    max_iterations: int = param(8, "Gauss-Newton iterations of the joint estimator")
+    ambiguity_gate: float = param(0.3, "a single-marker IPPE pose is trusted without a reference only when its "
+                                       "ambiguity ratio (err_best / err_second) is below this (and the chi^2 of its "
+                                       "two poses differ by ambiguity_chi2 or more)")
+    ambiguity_chi2: float = param(9.0, "two distinct poses whose chi^2 (pixel residuals over pixel_noise, whitened "
+                                       "by the calibration model in joint) differ by less than this are ambiguous "
+                                       "(a likelihood ratio below e^4.5 ~ 90): a marker's two IPPE poses, and, when "
+                                       "every camera sees a single marker, the joint solutions from every IPPE pose; "
+                                       "an ambiguous pose never enters the filter")
+    min_markers_joint: int = param(2, "with fewer markers in the whole ring the joint estimator falls back to the "
+                                      "per-camera fusion (a single marker's pose is ambiguous)")
+    joint_outlier_threshold: float = param(10.0, "a marker whose RMS residual in the joint solution exceeds this "
+                                                 "is dropped (moved or mis-mapped marker) and the pose re-solved; a "
+                                                 "final RMS above it rejects the joint solution. Larger than "
+                                                 "max_reprojection_error: the joint residuals also carry the "
+                                                 "extrinsic calibration error (0.2 deg ~ 3 px)", unit="px")
 
     def __post_init__(self) -> None:
         if self.fusion not in FUSION_METHODS:
             raise ConfigError(f"expected one of {FUSION_METHODS}, got {self.fusion!r}", key="fusion")
-        for name in ("max_reprojection_error", "th_distance", "th_orientation", "pixel_noise", "robust_scale"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"must be positive, got {getattr(self, name)!r}", key=name)
+        require_positive(self, "max_reprojection_error", "th_distance", "th_orientation_deg", "pixel_noise",
+                         "robust_scale")
         if self.fusion_gap < 0:
             raise ConfigError(f"must be >= 0, got {self.fusion_gap!r}", key="fusion_gap")
+
+    th_orientation = in_radians("th_orientation_deg")
 
 
 @dataclass
@@ -397,6 +386,8 @@ class JointFit:
         cost: what the line search compares: ``chi2`` with a calibration model, else the Huber
             cost of the raw residual norms (the estimator as it was before the model).
         H_cam: (C, 6, 6) per-camera information (``H`` is their sum), or None without a model.
+        G_cam, b_cam: (C, 6, 6) ``J_c^T D_c J_c`` and (C, 6) ``J_c^T D_c r_c`` per camera (the
+            unmarginalised normal equations, for each camera's own step), or None without a model.
     """
 
     r: np.ndarray
@@ -407,6 +398,8 @@ class JointFit:
     chi2: float
     cost: float
     H_cam: Optional[np.ndarray] = None
+    G_cam: Optional[np.ndarray] = None
+    b_cam: Optional[np.ndarray] = None
 
 
 class JointProblem:
@@ -533,17 +526,17 @@ class JointProblem:
         r, J = self.residuals(T_base_map)
         huber, w = self._huber(r, scale)
         rr = np.where(np.isfinite(r), r, 0.0)
-        Jw = J * w[:, None, None]
         s2 = self.sigma ** 2
         if self.extrinsics_cov is None:
+            Jw = J * w[:, None, None]
             H = np.einsum("nia,nib->ab", Jw, J) / s2
             g = np.einsum("nia,ni->a", Jw, rr) / s2
             chi2 = float(np.sum(w * np.sum(rr * rr, axis=1))) / s2
             return JointFit(r, J, w, H, g, chi2, huber)
-        starts = self.offsets[:-1]
-        G = np.add.reduceat(np.einsum("nia,nib->nab", Jw, J), starts, axis=0)   # J_c^T D_c J_c
-        b = np.add.reduceat(np.einsum("nia,ni->na", Jw, rr), starts, axis=0)     # J_c^T D_c r_c
-        q = np.add.reduceat(w * np.sum(rr * rr, axis=1), starts)                  # r_c^T D_c r_c
+        # Per camera, [J_c r_c]^T D_c [J_c r_c] in one pass: J_c^T D_c J_c, J_c^T D_c r_c, r_c^T D_c r_c.
+        Ja = np.concatenate([J, rr[:, :, None]], axis=2)
+        A7 = np.add.reduceat(np.einsum("nia,nib->nab", Ja * w[:, None, None], Ja), self.offsets[:-1], axis=0)
+        G, b, q = A7[:, :6, :6], A7[:, :6, 6], A7[:, 6, 6]
         # With Sigma_c = L_c L_c^T: G Sigma (s2 I + G Sigma)^-1 = G L (s2 I + L^T G L)^-1 L^T, an SPD solve.
         L = self.extrinsics_factor
         Lt = np.transpose(L, (0, 2, 1))
@@ -557,7 +550,7 @@ class JointProblem:
         chi2 = float(np.sum(q - np.einsum("ca,ca->c", Ltb, X[:, :, 6]))) / s2
         if not np.isfinite(huber):
             chi2 = np.inf
-        return JointFit(r, J, w, H_cam.sum(axis=0), g.sum(axis=0), chi2, chi2, H_cam)
+        return JointFit(r, J, w, H_cam.sum(axis=0), g.sum(axis=0), chi2, chi2, H_cam, G, b)
 
     def cost(self, T_base_map: np.ndarray, scale: float) -> float:
         """What the solver minimises at ``T_base_map``: the whitened chi^2 with a calibration
@@ -593,8 +586,9 @@ class JointProblem:
                 break  # converged: the step would change nothing measurable
             if norm < last_step and it > 1:
                 T = _perturb(T, delta)
+                b_cam = None if fit.b_cam is None else fit.b_cam + fit.G_cam @ delta
                 fit = JointFit(fit.r + np.einsum("nia,a->ni", fit.J, delta), fit.J, fit.w, fit.H, fit.g * 0.0,
-                               fit.chi2, fit.cost, fit.H_cam)
+                               fit.chi2, fit.cost, fit.H_cam, fit.G_cam, b_cam)
                 break
             step = 1.0
             for _ in range(8):
@@ -715,20 +709,6 @@ def crlb_covariance(T_map_base: np.ndarray, blocks: Sequence[Tuple[np.ndarray, C
 
 # --- the localizer --------------------------------------------------------------------------
 
-def _quads_ok(c: np.ndarray, min_area_px: float = 4.0) -> np.ndarray:
-    """Vectorised :func:`markers.quad_is_degenerate` negation for (k, 4, 2) corners -> (k,) bool."""
-    finite = np.isfinite(c).all(axis=(1, 2))
-    c = np.where(np.isfinite(c), c, 0.0)
-    nxt = [1, 2, 3, 0]
-    cn = c[:, nxt]
-    e = cn - c
-    en = e[:, nxt]
-    cross = e[:, :, 0] * en[:, :, 1] - e[:, :, 1] * en[:, :, 0]
-    convex = (cross > 0).all(axis=1) | (cross < 0).all(axis=1)
-    area = 0.5 * np.abs(np.sum(c[:, :, 0] * cn[:, :, 1] - cn[:, :, 0] * c[:, :, 1], axis=1))
-    return finite & convex & (area >= min_area_px)
-
-
 @dataclass
 class _JointSolution:
     problem: JointProblem
@@ -762,7 +742,6 @@ class RingLocalizer:
     def __init__(self, ring: CameraRing, marker_map: MarkerMap, params: Optional[LocalizationParams] = None):
         self.params = params or LocalizationParams()
         self.marker_map = marker_map
-        self.ignore = frozenset(int(i) for i in self.params.ignore_ids)
         self._axes_cache: Dict[int, np.ndarray] = {}
         self.set_ring(ring)
 
@@ -833,67 +812,30 @@ class RingLocalizer:
     # --- input ------------------------------------------------------------------------------
 
     def _gather(self, ring_frame: RingFrame, rejected: Dict[str, int]) -> Dict[str, CameraView]:
-        """Per camera, the usable detections of mapped markers (malformed ones counted and dropped)."""
+        """Per camera, the detections of mapped markers (others counted as ``unknown id``).
+
+        The detections must be sanitized already (:func:`detections.sanitize_observations`:
+        finite, convex, unique ids, not ignored): the pipeline does it once, where they enter.
+        """
         mm = self.marker_map
-
-        def count(reason: str, n: int = 1) -> None:
-            rejected[reason] = rejected.get(reason, 0) + n
-
-        cams = []  # (name, model, ids, first index into quads)
-        quads: List[np.ndarray] = []
+        views: Dict[str, CameraView] = {}
         for name, cf in ring_frame.cameras.items():
             if not cf.observations:
                 continue
             if name not in self._T_cam_base:
-                count(REJECT_NO_MODEL, len(cf.observations))
+                rejected[REJECT_NO_MODEL] = rejected.get(REJECT_NO_MODEL, 0) + len(cf.observations)
                 continue
-            model = cf.model if cf.model is not None else self.ring[name].model
-            ids = []
-            first = len(quads)
-            for obs in cf.observations:
-                mid = int(obs.marker_id)
-                if mid in self.ignore:
-                    count("ignored")
-                elif mid not in mm:
-                    count(REJECT_UNKNOWN_ID)
-                else:
-                    c = np.asarray(obs.corners, dtype=np.float64)
-                    if c.shape != (4, 2):
-                        count("non-finite")
-                        continue
-                    ids.append(mid)
-                    quads.append(c)
-            if ids:
-                cams.append((name, model, ids, first))
-        views: Dict[str, CameraView] = {}
-        if not quads:
-            return views
-        q_all = np.stack(quads)
-        ok_all = _quads_ok(q_all)
-        # Corners far outside the image (more than one image size away): corrupted messages.
-        sizes = np.repeat(np.array([[m.width, m.height] for _, m, ids, _ in cams], dtype=np.float64),
-                          [len(ids) for _, _, ids, _ in cams], axis=0)[:, None, :]
-        with np.errstate(invalid="ignore"):
-            ok_all &= (np.abs(q_all - 0.5 * sizes) <= 1.5 * sizes).all(axis=(1, 2))
-        bad = int(ok_all.size - np.count_nonzero(ok_all))
-        if bad:
-            count("degenerate", bad)
-        for name, model, ids, first in cams:
-            ok = ok_all[first:first + len(ids)]
-            if len(set(ids)) != len(ids):
-                dup = np.array([ids.count(i) > 1 for i in ids])
-                count("duplicate id", int(dup.sum()))
-                ok = ok & ~dup
-            q = q_all[first:first + len(ids)]
-            if ok.all():
-                keep_ids, px = ids, q.reshape(-1, 2)
-            else:
-                keep = np.flatnonzero(ok)
-                if keep.size == 0:
-                    continue
-                keep_ids, px = [ids[k] for k in keep], q[keep].reshape(-1, 2)
-            views[name] = CameraView(name=name, T_cam_base=self._T_cam_base[name], model=model, ids=keep_ids,
-                                     px=px, X=np.concatenate([mm.corners(i) for i in keep_ids]),
+            obs = [o for o in cf.observations if int(o.marker_id) in mm]
+            unknown = len(cf.observations) - len(obs)
+            if unknown:
+                rejected[REJECT_UNKNOWN_ID] = rejected.get(REJECT_UNKNOWN_ID, 0) + unknown
+            if not obs:
+                continue
+            ids = [int(o.marker_id) for o in obs]
+            views[name] = CameraView(name=name, T_cam_base=self._T_cam_base[name],
+                                     model=cf.model if cf.model is not None else self.ring[name].model, ids=ids,
+                                     px=np.concatenate([np.asarray(o.corners, dtype=np.float64) for o in obs]),
+                                     X=np.concatenate([mm.corners(i) for i in ids]),
                                      T_base_cam=self._T_base_cam[name], extrinsics_cov=self._ext_cov[name],
                                      extrinsics_factor=self._ext_factor[name])
         return views
@@ -1106,7 +1048,7 @@ class RingLocalizer:
         costs = np.array([problem.cost(geo.inverse(T), p.robust_scale) for T in starts])
         picked: List[np.ndarray] = []
         for k in np.argsort(costs):
-            if not np.isfinite(costs[k]) or len(picked) >= p.max_joint_starts:
+            if not np.isfinite(costs[k]) or len(picked) >= _MAX_JOINT_STARTS:
                 break
             if all(_pose_gap(starts[k], T) > _SAME_POSE for T in picked):
                 picked.append(starts[k])
@@ -1211,10 +1153,11 @@ class RingLocalizer:
         prob = sol.problem
         p = self.params
         starts = prob.offsets[:-1]
-        Hn = np.einsum("nia,nib->nab", sol.J, sol.J)
-        gn = np.einsum("nia,ni->na", sol.J, sol.r)
-        Hc = np.add.reduceat(Hn, starts, axis=0) + 1e-9 * np.eye(6)
-        gc = np.add.reduceat(gn, starts, axis=0)
+        if sol.fit.G_cam is not None:  # the joint fit's own per-camera blocks (Huber-weighted)
+            Hc, gc = sol.fit.G_cam + 1e-9 * np.eye(6), sol.fit.b_cam
+        else:
+            Hc = np.add.reduceat(np.einsum("nia,nib->nab", sol.J, sol.J), starts, axis=0) + 1e-9 * np.eye(6)
+            gc = np.add.reduceat(np.einsum("nia,ni->na", sol.J, sol.r), starts, axis=0)
         try:
             deltas = -_solve_spd_batch(Hc, gc[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:
@@ -1251,6 +1194,9 @@ class RingLocalizer:
 
 
 _SAME_POSE = 0.02  # two candidate poses closer than this (m + rad, _pose_gap) are one
+# At most this many distinct starts are solved when every camera sees a single marker (two IPPE
+# poses each, the per-camera estimates, the prediction: the lowest-cost few hold the minima).
+_MAX_JOINT_STARTS = 4
 
 
 def _same_pose(T_a: np.ndarray, T_b: Optional[np.ndarray], tol: float = 1e-6) -> bool:

@@ -40,18 +40,20 @@ until :meth:`build` expresses them in the map frame.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections import defaultdict
 from dataclasses import dataclass, field
-from typing import Any, Dict, Hashable, List, Optional, Sequence, Tuple
+from typing import Any, Dict, Hashable, List, Optional, Tuple
 
 import numpy as np
 
 from . import geometry as geo
+from .config import in_radians, param, section
 from .bundle_adjustment import (BAOptions, BAProblem, BAResult, bundle_adjust, camera_cov_in_optical_frames,
                                 marker_std_in_frame)
 from .errors import ArucoRingError, GeometryError, MeasurementError
-from .detections import RingFrame, sanitize_observations
+from .detections import RingFrame
 from .marker_map import MarkerEntry, MarkerMap, map_frame_from_reference
 from .markers import MarkerSizes
 from .camera import CameraModel
@@ -65,52 +67,39 @@ METHODS = ("paper", "refined")
 
 @dataclass(frozen=True)
 class MappingOptions:
-    """Settings of :class:`MapBuilder` (documented in config/mapping.yaml).
+    """Settings of :class:`MapBuilder` (the mapper's ``mapping`` section, config/mapping.yaml)."""
 
-    Attributes:
-        max_ambiguity: IPPE ambiguity ratio above which a detection does not initialise poses.
-        max_reprojection_px: detections whose best IPPE pose reprojects worse than this (RMS px)
-            are rejected as bad detections.
-        max_distance: detections of markers farther than this (m) are ignored.
-        still_px: automatic stations: a frame whose common detections moved less than this
-            (median of the largest corner motion, px) continues the previous station.
-        max_frames_per_station: frames kept per station (more add little and cost time).
-        min_views_for_consensus: distinct (station, camera) views needed to resolve a marker
-            seen only ambiguously.
-        consensus_angle, consensus_distance: agreement tolerance of that consensus (rad, m).
-        max_marker_spread: reject a marker whose per-station positions disagree by more (m).
-        refine_passes: alternating marker/station re-averaging passes in multi-station maps.
-        refined_reference: in ``refined`` maps without a user ``reference_marker``, fix the frame
-            to the marker whose heading the adjustment determines best (see
-            :meth:`MapBuilder._refined_reference`) instead of the paper's reference.
-        refined_reference_min_stations: ... among markers seen from at least this many stations.
-        init_window_stations: with more stations than this (a hall mapped along a chain of
-            stations), the initialisation adjusts as it grows: the ring extrinsics once
-            ``init_calibrate_after`` stations are linked (when ``ba.refine_extrinsics``) and again
-            each time the linked set doubles, up to ``init_calibrate_max`` stations (all linked
-            stations adjusted), and in between the last ``init_window_stations`` stations every
-            ``init_ba_every`` new ones.
-        ba: bundle adjustment settings (method ``refined``); by default the ring extrinsics are
-            refined too, with priors around the calibration (several stations make them observable).
-    """
+    max_ambiguity: float = param(0.6, "IPPE ambiguity ratio (best/second reprojection error) above which a detection "
+                                      "does not initialise a pose (a flipped pose would corrupt the average)")
+    max_reprojection_px: float = param(3.0, "detections whose best single-marker pose reprojects worse (RMS) are "
+                                            "rejected as bad detections", unit="px")
+    max_distance: float = param(12.0, "detections of markers farther than this are ignored", unit="m")
+    still_px: float = param(1.5, "automatic stations: consecutive frames whose common detections moved less than "
+                                 "this (median of the largest corner motion) belong to one robot placement", unit="px")
+    max_frames_per_station: int = param(30, "frames kept per station (more add little and cost time)")
+    min_views_for_consensus: int = param(2, "distinct (station, camera) views needed to resolve a marker seen only "
+                                            "ambiguously")
+    consensus_angle_deg: float = param(10.0, "agreement tolerance of that consensus, rotation", unit="deg")
+    consensus_distance: float = param(0.10, "agreement tolerance of that consensus, position", unit="m")
+    max_marker_spread: float = param(0.25, "a marker whose per-station positions disagree by more is rejected (a "
+                                           "wrong fiducial_len_override, a moved marker, an id printed twice)",
+                                     unit="m")
+    refine_passes: int = param(3, "alternating marker/station re-averaging passes in multi-station maps")
+    refined_reference: bool = param(True, "refined maps without a reference_marker: fix the frame to the marker "
+                                          "whose heading the adjustment determines best, not the paper's reference")
+    refined_reference_min_stations: int = param(2, "... among markers seen from at least this many stations")
+    init_window_stations: int = param(12, "with more stations than this (a hall mapped along a chain of stations) "
+                                          "the initialisation adjusts the last this-many stations as it grows")
+    init_ba_every: int = param(4, "... every this-many new stations")
+    init_calibrate_after: int = param(6, "the ring extrinsics are adjusted during the growth once this many "
+                                         "stations are linked (with ba.refine_extrinsics), again each time the "
+                                         "linked set doubles")
+    init_calibrate_max: int = param(96, "... up to this many stations (all linked stations adjusted)")
+    ba: BAOptions = section(BAOptions, "bundle adjustment of method refined; the ring extrinsics are refined too, "
+                                       "with priors around the calibration (several stations make them observable)",
+                            refine_extrinsics=True)
 
-    max_ambiguity: float = 0.6
-    max_reprojection_px: float = 3.0
-    max_distance: float = 12.0
-    still_px: float = 1.5
-    max_frames_per_station: int = 30
-    min_views_for_consensus: int = 2
-    consensus_angle: float = np.radians(10.0)
-    consensus_distance: float = 0.10
-    max_marker_spread: float = 0.25
-    refine_passes: int = 3
-    refined_reference: bool = True
-    refined_reference_min_stations: int = 2
-    init_window_stations: int = 12
-    init_ba_every: int = 4
-    init_calibrate_after: int = 6
-    init_calibrate_max: int = 96
-    ba: BAOptions = field(default_factory=lambda: BAOptions(refine_extrinsics=True))
+    consensus_angle = in_radians("consensus_angle_deg")
 
 
 @dataclass
@@ -197,19 +186,21 @@ class MapBuilder:
     """Build a marker map from ring frames (see the module docstring).
 
     Args:
-        ring: the calibrated ring (extrinsics used for chaining; intrinsics when a camera frame
-            carries no model). May be replaced (:attr:`ring`) when tf extrinsics arrive.
+        ring: the calibrated ring (extrinsics used for chaining and as the adjustment's priors;
+            intrinsics when a camera frame carries no model); :meth:`set_ring` when tf's arrive.
         sizes: marker side per id.
         method: ``paper`` or ``refined`` (default of :meth:`build`).
         reference_marker: id that fixes the map frame, or None for the paper's rule.
         options: :class:`MappingOptions`.
         frame_id: name of the map frame in the built map.
-        ignore_ids: marker ids never mapped.
+
+    Ring frames must hold sanitized detections (:func:`detections.sanitize_observations`, ignored
+    ids removed): :class:`pipeline.MappingPipeline` does it once where they enter.
     """
 
     def __init__(self, ring: CameraRing, sizes: MarkerSizes, method: str = "refined",
                  reference_marker: Optional[int] = None, options: Optional[MappingOptions] = None,
-                 frame_id: str = "map", ignore_ids: Sequence[int] = ()):
+                 frame_id: str = "map"):
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         self.ring = ring
@@ -218,8 +209,12 @@ class MapBuilder:
         self.reference_marker = reference_marker
         self.options = options or MappingOptions()
         self.frame_id = frame_id
-        self.ignore_ids = frozenset(int(i) for i in ignore_ids)
         self.clear()
+
+    def set_ring(self, ring: CameraRing) -> None:
+        """The ring with the extrinsics in force (tf's): used for the frames added from now on and
+        as the bundle adjustment's priors."""
+        self.ring = ring
 
     # --- input ------------------------------------------------------------------------------
 
@@ -265,10 +260,7 @@ class MapBuilder:
                 self._reject("unknown camera", name)
                 continue
             model = cam_frame.model or rc.model
-            kept, reasons = sanitize_observations(cam_frame.observations, self.ignore_ids, model.width, model.height)
-            for reason, n in reasons.items():
-                self._reject(reason, name, n)
-            for o in kept:
+            for o in cam_frame.observations:
                 self.seen[o.marker_id] += 1
                 detections.append((name, o, model, rc.T_base_cam))
         if not detections:
@@ -525,13 +517,11 @@ class MapBuilder:
             fixed_station=0,
             T_base_cams_start=np.stack([current[c] for c in cams]),
         )
-        o = self.options.ba
-        res = bundle_adjust(prob, BAOptions(pixel_sigma=o.pixel_sigma, loss=o.loss, robust_scale=o.robust_scale,
-                                            refine_extrinsics=refine_extrinsics,
-                                            extrinsics_trans_sigma=o.extrinsics_trans_sigma,
-                                            extrinsics_rot_sigma=o.extrinsics_rot_sigma, max_nfev=30,
-                                            ftol=1e-5, xtol=1e-8, gtol=1e-8, lsmr_tol=1e-6,
-                                            covariance=False))
+        # A quick adjustment of the growing initialisation: the user's noise, loss and priors,
+        # loose tolerances, no covariance.
+        res = bundle_adjust(prob, dataclasses.replace(self.options.ba, refine_extrinsics=refine_extrinsics,
+                                                      max_nfev=30, ftol=1e-5, xtol=1e-8, gtol=1e-8, lsmr_tol=1e-6,
+                                                      covariance=False))
         for k, m in enumerate(mids):
             T_W_m[m] = res.T_W_markers[k]
         for k, s in enumerate(sts):

@@ -111,18 +111,29 @@ class MarkerSizes:
         return marker_corners(self(marker_id))
 
 
-def quad_is_degenerate(corners_px, min_area_px: float = 4.0) -> bool:
-    """True when four image corners do not form a usable convex quadrilateral.
+def quads_ok(corners_px: np.ndarray, min_area_px: float = 4.0) -> np.ndarray:
+    """(k,) bool for (k, 4, 2) image corners: True where the four corners form a usable quad.
 
-    Rejects non-finite values, self-intersecting or non-convex quads and quads smaller than
-    ``min_area_px`` square pixels. These come from bad detections or corrupted messages.
+    Usable: finite, convex (not self-intersecting) and at least ``min_area_px`` square pixels.
+    Bad detections and corrupted messages give the others.
     """
+    c = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    finite = np.isfinite(c).all(axis=(1, 2))
+    c = np.where(np.isfinite(c), c, 0.0)
+    nxt = [1, 2, 3, 0]
+    cn = c[:, nxt]
+    with np.errstate(over="ignore", invalid="ignore"):
+        e = cn - c
+        en = e[:, nxt]
+        cross = e[:, :, 0] * en[:, :, 1] - e[:, :, 1] * en[:, :, 0]
+        convex = (cross > 0).all(axis=1) | (cross < 0).all(axis=1)
+        area = 0.5 * np.abs(np.sum(c[:, :, 0] * cn[:, :, 1] - cn[:, :, 0] * c[:, :, 1], axis=1))
+        return finite & convex & (area >= min_area_px)
+
+
+def quad_is_degenerate(corners_px, min_area_px: float = 4.0) -> bool:
+    """True when four image corners do not form a usable convex quadrilateral (see :func:`quads_ok`)."""
     c = np.asarray(corners_px, dtype=np.float64)
-    if c.shape != (4, 2) or not np.all(np.isfinite(c)):
+    if c.shape != (4, 2):
         return True
-    e = np.roll(c, -1, axis=0) - c
-    cross = e[:, 0] * np.roll(e, -1, axis=0)[:, 1] - e[:, 1] * np.roll(e, -1, axis=0)[:, 0]
-    if not (np.all(cross > 0) or np.all(cross < 0)):
-        return True
-    area = 0.5 * abs(np.sum(c[:, 0] * np.roll(c[:, 1], -1) - np.roll(c[:, 0], -1) * c[:, 1]))
-    return bool(area < min_area_px)
+    return not bool(quads_ok(c[None], min_area_px)[0])

@@ -1,16 +1,19 @@
-"""Fault injection for the ring's detections (used by test/integration/faults_*_rostest.py and tools/soak.py).
+"""Fault injection for the ring's detections (used by test/integration/faults_*_rostest.py).
 
-Pure functions on :class:`frames.RingFrame` (no rospy), each seeded through the caller's
+Pure functions on :class:`detections.RingFrame` (no rospy), each seeded through the caller's
 ``numpy.random.Generator``:
 
 * :func:`silence` — drop cameras from a frame (a camera unplugged: no message at all).
 * :func:`corrupt` — replace a fraction of detections by wrong ones: an id swapped to another
   mapped id, the corners of the other IPPE solution (the mirror pose that explains the same
   square almost as well), or a random quad carrying a mapped id. Returns what it did, per kind.
-* :class:`FaultSchedule` — which fault is active at a given (simulated) time.
+* :class:`FaultSchedule` — which faults are active at a given time of the run.
 
-The rostest drivers publish the (faulty) frames themselves, so every fault is exactly timed in
-simulated time; the same functions can sit in a topic relay for a live system.
+Message faults (silence, corruption, a missing camera_info, a frame_id without tf) are applied
+by :class:`fault_relay.FaultRelay` to the simulator node's messages in flight, by stamp, so each
+is exactly timed in simulated time; physical events (a kidnap, the clock jumping back) are the
+simulator node's hooks (``sim/teleport``, ``sim/time_jump``), triggered by
+:class:`fault_session.FaultSession` when the phase that names them starts.
 """
 from __future__ import annotations
 
@@ -95,7 +98,14 @@ def corrupt(frame: RingFrame, ring: CameraRing, mapped_ids: Sequence[int], sizes
 
 @dataclass
 class Phase:
-    """One phase of a fault schedule: from ``start`` (s) for ``duration`` (s)."""
+    """One phase of a fault schedule: from ``start`` (s of the run) for ``duration`` (s).
+
+    Message faults hold for the whole phase: cameras ``silent`` (nothing published), a fraction
+    ``corrupt_rate`` of detections replaced by wrong ones, cameras with ``no_camera_info``, cameras
+    whose detections carry a frame_id with no tf (``wrong_frame``). Events happen once, when the
+    phase starts: ``kidnap`` (dx, dy, dyaw) carries the robot that far (world frame), and
+    ``time_jump`` (s) moves the simulated clock (negative: back, as when a bag loops).
+    """
 
     name: str
     start: float
@@ -104,8 +114,8 @@ class Phase:
     corrupt_rate: float = 0.0
     no_camera_info: Tuple[str, ...] = ()
     wrong_frame: Tuple[str, ...] = ()
-    teleport: Optional[Tuple[float, float, float]] = None  # (dx, dy, dyaw) added to the path from start
-    time_offset: float = 0.0  # added to stamps (negative: time jumps back)
+    kidnap: Optional[Tuple[float, float, float]] = None
+    time_jump: float = 0.0
 
     @property
     def end(self) -> float:
@@ -129,7 +139,20 @@ class FaultSchedule:
         return self.phases[-1].end if self.phases else 0.0
 
     def at(self, t: float) -> Phase:
+        """The phase at time ``t``: the first before the run starts, the last after it ends."""
         for p in self.phases:
             if p.start <= t < p.end:
                 return p
-        return self.phases[-1]
+        return self.phases[0] if t < self.phases[0].start else self.phases[-1]
+
+    def phase(self, name: str) -> Phase:
+        return next(p for p in self.phases if p.name == name)
+
+    def move_start(self, name: str, start: float) -> None:
+        """Start phase ``name`` at ``start`` instead (the previous phase ends there): where its
+        event really happened, one frame after it was asked for at the earliest."""
+        k = next(i for i, p in enumerate(self.phases) if p.name == name)
+        p = self.phases[k]
+        if k > 0:
+            self.phases[k - 1].duration = start - self.phases[k - 1].start
+        p.duration, p.start = p.end - start, start

@@ -26,7 +26,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker
 
 from aruco_ring_localization import geometry as geo
-from aruco_ring_localization import trajectory as tr
+from aruco_ring_localization.evaluation.trajectories import apply_se2
 from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.ros.conversions import (make_transform_stamped, model_to_camera_info, msg_to_transform,
                                                      observations_to_fiducials)
@@ -102,7 +102,7 @@ class ComparisonSimTest(unittest.TestCase):
                 rospy.rostime.wallsleep(0.1)
                 continue
             pose = path(t - t0)
-            gm = tr.apply_se2(T_GMAP_WORLD, pose[None])[0]
+            gm = apply_se2(T_GMAP_WORLD, pose[None])[0]
             cls.tf_pub.sendTransform(make_transform_stamped(geo.transform_from_se2(*gm), "map", "base_link", stamp))
             frame = cls.sim.observe(cls.scene.T_world_base(pose), t)
             for name, (fv, ci) in cls.pubs.items():

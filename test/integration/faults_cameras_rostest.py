@@ -1,9 +1,11 @@
 #!/usr/bin/env python3
 """rostest node for faults_cameras.test: cameras dying, all cameras silent, missing calibration.
 
-Plays one fault schedule (test/faults/faults.py) through :class:`FaultPlayer` in setUpClass,
-then each test asserts one behaviour on what the localizer published. Named ``*_rostest.py``
-so pytest does not collect it.
+The simulator node (corners mode, namespace ``lab``) plays the lab; in setUpClass a
+:class:`FaultSession` (test/faults/) drives the robot along :func:`path`, relays the simulator's
+detections to the localizer with the faults of :func:`schedule` and records what the localizer
+publishes; then each test asserts one behaviour on it. Named ``*_rostest.py`` so pytest does not
+collect it.
 """
 from __future__ import annotations
 
@@ -18,7 +20,7 @@ import rostest
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "faults"))
 
-from fault_player import FaultPlayer  # noqa: E402
+from fault_session import FaultSession  # noqa: E402
 from faults import FaultSchedule  # noqa: E402
 
 PKG = "aruco_ring_localization"
@@ -29,10 +31,12 @@ TOL_M = 0.05          # position error with several cameras
 TOL_ONE_CAM_M = 0.10  # one camera (cam3 sees markers 64 and 17 on this path)
 SURVIVOR = "cam3"   # the camera left when 7 of 8 are silent
 RATE = 10.0
+T0 = 100.0            # the simulator's clock.start_time (faults_cameras.test)
 
 
 def path(t: float) -> np.ndarray:
-    """True robot pose (x, y, yaw) at player time t: a slow drift and turn on the plate."""
+    """Robot pose (x, y, yaw) at time t of the run: a slow drift and turn on the plate (the
+    simulator starts at path(0): robot/start_pose in faults_cameras.test)."""
     return np.array([4.8 + 0.3 * np.sin(0.15 * t), 4.4 + 0.2 * np.sin(0.1 * t), 0.3 + 0.05 * t])
 
 
@@ -55,11 +59,14 @@ class FaultsCamerasTest(unittest.TestCase):
     def setUpClass(cls):
         rospy.init_node("faults_cameras_rostest")
         root = rospkg.RosPack().get_path(PKG)
-        cls.p = FaultPlayer(path, schedule(), f"{root}/config/ring.yaml", rate_hz=RATE, seed=7)
-        assert cls.p.wait_for_subscribers(), "the localizer did not subscribe"
-        cls.p.play()
+        cls.p = FaultSession(path, schedule(), f"{root}/config/ring.yaml", t0=T0, rate_hz=RATE, seed=9)
+        assert cls.p.wait_connected(), "the simulator's detections never reached the relay"
+        cls.p.run()
         rospy.rostime.wallsleep(1.5)  # last diagnostics
         cls.root = root
+        first = cls.p.truth[min(cls.p.truth)]
+        assert np.hypot(*(first[:2] - path(0)[:2])) < 0.01 and abs(first[2] - path(0)[2]) < 0.01, \
+            f"the simulator started at {first}, not at path(0) = {path(0)}: robot/start_pose in the .test file"
 
     @classmethod
     def tearDownClass(cls):

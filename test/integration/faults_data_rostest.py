@@ -1,9 +1,12 @@
 #!/usr/bin/env python3
 """rostest node for faults_data.test: wrong detections, a kidnapped robot, time jumping back.
 
-Plays one fault schedule (test/faults/faults.py) through :class:`FaultPlayer` in setUpClass,
-then each test asserts one behaviour on what the localizer published. Named ``*_rostest.py``
-so pytest does not collect it.
+The simulator node (corners mode, namespace ``lab``) plays the lab; in setUpClass a
+:class:`FaultSession` (test/faults/) drives the robot along :func:`path`, relays the simulator's
+detections to the localizer corrupting 10 % of them in the ``corrupt`` phase, kidnaps the robot
+(the simulator's ``sim/teleport``) and makes the clock jump back (``sim/time_jump``) when those
+phases start, and records what the localizer publishes; then each test asserts one behaviour on
+it. Named ``*_rostest.py`` so pytest does not collect it.
 """
 from __future__ import annotations
 
@@ -18,13 +21,14 @@ import rostest
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "faults"))
 
-from fault_player import FaultPlayer  # noqa: E402
+from fault_session import FaultSession  # noqa: E402
 from faults import FaultSchedule  # noqa: E402
 
 from aruco_ring_localization import geometry as geo  # noqa: E402
 
 PKG = "aruco_ring_localization"
 RATE = 10.0
+T0 = 100.0            # the simulator's clock.start_time (faults_data.test)
 TOL_M = 0.05
 TOL_CORRUPT_M = 0.10   # issue 7: no position error above 10 cm with 10% wrong detections
 KIDNAP = (2.4, 1.8, np.pi / 2)   # 3.0 m and 90 deg
@@ -33,7 +37,8 @@ JUMP_S = -30.0
 
 
 def path(t: float) -> np.ndarray:
-    """True robot pose at player time t: slow drift around (4.3, 3.8) on the plate."""
+    """Robot pose at time t of the run: slow drift around (4.3, 3.8) on the plate (the simulator
+    starts at path(0): robot/start_pose in faults_data.test; the kidnap offsets the rest)."""
     return np.array([4.3 + 0.2 * np.sin(0.2 * t), 3.8 + 0.15 * np.sin(0.15 * t), 0.2 + 0.03 * t])
 
 
@@ -42,9 +47,9 @@ def schedule() -> FaultSchedule:
     s.add("warmup", 2.0)
     s.add("corrupt", 8.0, corrupt_rate=0.10)
     s.add("clean", 1.5)
-    s.add("kidnapped", 4.0, teleport=KIDNAP)
-    s.add("before_jump", 1.5, teleport=KIDNAP)
-    s.add("time_jump", 4.0, teleport=KIDNAP, time_offset=JUMP_S)
+    s.add("kidnapped", 4.0, kidnap=KIDNAP)
+    s.add("before_jump", 1.5)
+    s.add("time_jump", 4.0, time_jump=JUMP_S)
     return s
 
 
@@ -53,11 +58,14 @@ class FaultsDataTest(unittest.TestCase):
     def setUpClass(cls):
         rospy.init_node("faults_data_rostest")
         root = rospkg.RosPack().get_path(PKG)
-        cls.p = FaultPlayer(path, schedule(), f"{root}/config/ring.yaml", rate_hz=RATE, seed=11)
-        assert cls.p.wait_for_subscribers(), "the localizer did not subscribe"
-        cls.p.play()
+        cls.p = FaultSession(path, schedule(), f"{root}/config/ring.yaml", t0=T0, rate_hz=RATE, seed=13)
+        assert cls.p.wait_connected(), "the simulator's detections never reached the relay"
+        cls.p.run()
         rospy.rostime.wallsleep(1.5)
         cls.root = root
+        first = cls.p.truth[min(k for k in cls.p.truth if k >= 1000 * T0)]
+        assert np.hypot(*(first[:2] - path(0)[:2])) < 0.01 and abs(first[2] - path(0)[2]) < 0.01, \
+            f"the simulator started at {first}, not at path(0) = {path(0)}: robot/start_pose in the .test file"
 
     @classmethod
     def tearDownClass(cls):

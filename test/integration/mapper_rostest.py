@@ -1,44 +1,40 @@
 #!/usr/bin/env python3
 """rostest node for mapper.test: maps the simulated lab through the mapper node.
 
-The robot stands at each of the lab's mapping stations for 2 s while :class:`FaultPlayer`
-(test/faults, no fault scheduled) publishes ``ring/camK/camera_info`` and
-``ring/camK/fiducial_vertices`` from the simulator (corners mode, 0.3 px noise, true rig = the
-ring file with a seeded 2 mm / 0.2 deg calibration error) and ``/clock``. Then ``~save_map`` is
-called and the written map file, the static tf ``map -> marker_<id>`` and ``~markers`` are
+The simulator node (mapper.test: corners mode, 0.3 px noise, true rig = the ring file with a
+seeded 2 mm / 0.2 deg calibration error, owning ``/clock``) jumps the robot to each of the lab's
+mapping stations and holds it there 2 s, publishing ``ring/camK/camera_info`` and
+``ring/camK/fiducial_vertices``; once it has held the last one (``sim/at_waypoint``), ``~save_map``
+is called and the written map file, the static tf ``map -> marker_<id>`` and ``~markers`` are
 checked. Named ``*_rostest.py`` so pytest does not collect it (it needs rostest's master).
 """
 from __future__ import annotations
 
 import os
 import shutil
-import sys
 import threading
+import time
 import unittest
 
-import numpy as np
 import rospkg
 import rospy
 import rostest
 import tf2_ros
-from rosgraph_msgs.msg import Clock
+from std_msgs.msg import Int32
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "faults"))
-
-from aruco_ring_localization import geometry as geo  # noqa: E402
-from aruco_ring_localization.evaluation import format_map_error, map_error  # noqa: E402
-from aruco_ring_localization.marker_map import MarkerMap  # noqa: E402
-from aruco_ring_localization.ros.conversions import msg_to_transform, pose_msg_to_transform  # noqa: E402
-from aruco_ring_localization.simulation.scene import Scene  # noqa: E402
-
-from fault_player import FaultPlayer  # noqa: E402
-from faults import FaultSchedule  # noqa: E402
+from aruco_ring_localization import geometry as geo
+from aruco_ring_localization.config import load_config
+from aruco_ring_localization.evaluation.maps import format_map_error, map_error
+from aruco_ring_localization.marker_map import MarkerMap
+from aruco_ring_localization.ring import CameraRing
+from aruco_ring_localization.ros.conversions import msg_to_transform, pose_msg_to_transform
+from aruco_ring_localization.simulation.params import SimulatorConfig
+from aruco_ring_localization.simulation.scene import Scene
+from aruco_ring_localization.simulation.simulator import SimulatorCore
 
 PKG = "aruco_ring_localization"
-SECONDS_PER_STATION = 2.0
-RATE_HZ = 5.0
 TOL_FIT_MAX_MM = 10.0        # best-fit (the map's geometry): measured ~1-2 mm
 TOL_OWN_RMS_MM = 60.0        # in the map's own frame (adds the frame's heading error): sanity bound
 TOL_TF = 1e-6
@@ -51,29 +47,34 @@ class MapperSimTest(unittest.TestCase):
         root = rospkg.RosPack().get_path(PKG)
         cls.map_file = rospy.get_param("/mapper/map_file")
         shutil.rmtree(os.path.dirname(cls.map_file), ignore_errors=True)
-        stations = Scene.default().mapping_stations
-
-        def path(t: float) -> np.ndarray:
-            return np.array(stations[min(int(t // SECONDS_PER_STATION), len(stations) - 1)], dtype=float) * \
-                np.array([1.0, 1.0, np.pi / 180.0])
-
-        cls.stations = [path(k * SECONDS_PER_STATION) for k in range(len(stations))]
-        schedule = FaultSchedule()
-        schedule.add("mapping", SECONDS_PER_STATION * len(stations))
+        # The simulator's own parameters: the same true rig and stations as the node's.
+        config = load_config(SimulatorConfig, rospy.get_param("/simulator"), source="/simulator")
+        cls.core = SimulatorCore(config, Scene.default(), CameraRing.load(f"{root}/config/ring.yaml"))
+        cls.stations = cls.core.waypoints()
         cls.lock = threading.Lock()
         cls.marker_arrays = []
+        cls.held = []
         rospy.Subscriber("/mapper/markers", MarkerArray, cls._on_markers, queue_size=5)
-        cls.player = FaultPlayer(path, schedule, f"{root}/config/ring.yaml", rate_hz=RATE_HZ, seed=3, node="/mapper")
-        assert cls.player.wait_for_subscribers(30.0), "the mapper never subscribed to the detections"
-        cls.player.play()
-        # let the last frames through the assembler (wall-time timeout)
-        for k in range(1, 6):
-            cls.player.clock_pub.publish(Clock(clock=rospy.Time.from_sec(cls.player.t0 + schedule.duration + 0.1 * k)))
-            rospy.rostime.wallsleep(0.1)
+        rospy.Subscriber("/sim/at_waypoint", Int32, cls._on_waypoint, queue_size=100)
+        last = len(cls.stations) - 1
+        deadline = time.monotonic() + 90.0
+        while time.monotonic() < deadline and not rospy.is_shutdown():
+            with cls.lock:
+                if cls.held[-2:] == [last, -1]:   # held the last station, then finished
+                    break
+            rospy.rostime.wallsleep(0.05)
+        else:
+            raise AssertionError(f"the simulator did not go through the {len(cls.stations)} stations: {cls.held}")
         rospy.wait_for_service("/mapper/save_map", timeout=30.0)
         cls.response = rospy.ServiceProxy("/mapper/save_map", Trigger)()
         cls.tf_buffer = tf2_ros.Buffer()
         cls.tf_listener = tf2_ros.TransformListener(cls.tf_buffer)
+
+    @classmethod
+    def _on_waypoint(cls, msg):
+        with cls.lock:
+            if not cls.held or cls.held[-1] != msg.data:
+                cls.held.append(msg.data)
 
     @classmethod
     def _on_markers(cls, msg):
@@ -82,10 +83,10 @@ class MapperSimTest(unittest.TestCase):
 
     def _visible_truth(self) -> MarkerMap:
         """The truth restricted to the markers some camera sees from some station."""
-        sim = self.player.sim
+        sim = self.core.sim
         seen = {mid for st in self.stations for views in sim.visible(Scene.T_world_base(st)).values()
                 for mid, _ in views}
-        truth = self.player.scene.truth_map()
+        truth = self.core.scene.truth_map()
         for mid in list(truth.ids):
             if mid not in seen:
                 truth.remove(mid)

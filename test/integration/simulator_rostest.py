@@ -237,8 +237,8 @@ class SimulatorTest(unittest.TestCase):
         self._wait_for(lambda: self._get("sim/waypoints"), "the latched sim/waypoints")
         poses = [geo.se2_from_transform(pose_msg_to_transform(p)) for p in self._get("sim/waypoints")[-1].poses]
         self.assertTrue(np.allclose(poses, self.scene.test_positions, atol=1e-9), "sim/waypoints vs test_positions")
-        param = rospy.get_param("simulator/waypoint_poses")
-        self.assertTrue(np.allclose(param, self.scene.test_positions), "~waypoint_poses vs test_positions")
+        param = rospy.get_param("sim/waypoint_poses")
+        self.assertTrue(np.allclose(param, self.scene.test_positions), "sim/waypoint_poses vs test_positions")
         # Kidnap the image-mode robot (holding the mapping pose) and see its ground truth follow.
         pub = rospy.Publisher("img/sim/teleport", Pose2D, queue_size=1, latch=True)
         pub.publish(Pose2D(x=4.3, y=3.8, theta=1.0))

@@ -1,17 +1,15 @@
-"""``aruco_ring build-map`` on a bag of simulated detections from several stations (needs rosbag)."""
+"""``aruco_ring build-map`` on a bag of simulated detections from several stations (needs rosbag: fails without)."""
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
+import fiducial_msgs.msg as fiducial_msgs
 import pytest
+import rosbag
+import rospy
 
-rosbag = pytest.importorskip("rosbag")
-fiducial_msgs = pytest.importorskip("fiducial_msgs.msg")
-rospy = pytest.importorskip("rospy")
-
-from aruco_ring_localization.cli import build_map  # noqa: E402
-from aruco_ring_localization.evaluation import map_error  # noqa: E402
+from aruco_ring_localization.cli import main  # noqa: E402
+from aruco_ring_localization.evaluation.maps import map_error  # noqa: E402
 from aruco_ring_localization.marker_map import MarkerMap  # noqa: E402
 from aruco_ring_localization.ring import CameraRing  # noqa: E402
 from aruco_ring_localization.ros.conversions import model_to_camera_info, observations_to_fiducials  # noqa: E402
@@ -20,12 +18,6 @@ from aruco_ring_localization.simulation.scene import Scene  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 RING = str(REPO / "config" / "ring.yaml")
-
-
-def _args(bag: Path, out: Path, method: str) -> argparse.Namespace:
-    return argparse.Namespace(bag=str(bag), ring=RING, out=str(out), method=method, reference_marker=None,
-                              fiducial_len=0.2, fiducial_len_override="", ignore_fiducials="", slop=0.03,
-                              map_frame="map")
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +50,7 @@ def bag_path(tmp_path_factory) -> Path:
 @pytest.mark.parametrize("method, max_rms_mm", [("paper", 40.0), ("refined", 6.0)])
 def test_build_map_from_bag(bag_path, tmp_path, method, max_rms_mm):
     out = tmp_path / "map.yaml"
-    assert build_map.run(_args(bag_path, out, method)) == 0
+    assert main(["build-map", str(bag_path), "--ring", RING, "--out", str(out), "--method", method]) == 0
     m = MarkerMap.load(str(out))
     truth = Scene.default().truth_map()
     assert sorted(m.ids) == sorted(truth.ids), f"mapped {m.ids}, expected {truth.ids}"
@@ -73,7 +65,7 @@ def test_build_map_without_ring_topics_is_an_error(tmp_path, capsys):
     empty = tmp_path / "empty.bag"
     with rosbag.Bag(str(empty), "w"):
         pass
-    assert main(["build-map", str(empty), "--ring", RING, "--out", str(tmp_path / "map.yaml")]) == 1
+    assert main(["build-map", str(empty), "--out", str(tmp_path / "map.yaml")]) == 1
     err = capsys.readouterr().err
     assert "empty.bag" in err and "fiducial_vertices" in err, err
     assert not (tmp_path / "map.yaml").exists()

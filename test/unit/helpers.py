@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 REPO = Path(__file__).resolve().parents[2]
 CONFIG = REPO / "config"
@@ -70,3 +71,50 @@ def assert_config_error_names(exc_info, path, key: Optional[str]) -> None:
     assert str(path) in msg, f"error message does not name the file {path}: {msg!r}"
     if key is not None:
         assert key in msg, f"error message does not name the key {key!r}: {msg!r}"
+
+
+# --- trajectories for the evaluation tests -------------------------------------------------
+def stop_and_go(rng: np.random.Generator, n_stops: int = 5, hold: float = 4.0, move: float = 2.0, rate: float = 20.0):
+    """A reference that visits ``n_stops`` random poses, holding each for ``hold`` s (seeded).
+
+    Returns stamps, (N, 3) poses, the targets and the (start, end) time of every hold.
+    """
+    targets = np.column_stack([rng.uniform(-2, 2, n_stops), rng.uniform(-1.5, 1.5, n_stops),
+                               rng.uniform(-np.pi, np.pi, n_stops)])
+    stamps, poses, holds = [], [], []
+    t, prev = 0.0, targets[0]
+    for k, goal in enumerate(targets):
+        if k:
+            for a in np.arange(0, move, 1 / rate):
+                f = a / move
+                stamps.append(t)
+                poses.append([prev[0] + f * (goal[0] - prev[0]), prev[1] + f * (goal[1] - prev[1]),
+                              prev[2] + f * np.angle(np.exp(1j * (goal[2] - prev[2])))])
+                t += 1 / rate
+        start = t
+        for _ in np.arange(0, hold, 1 / rate):
+            stamps.append(t)
+            poses.append(goal.copy())
+            t += 1 / rate
+        holds.append((start, t - 1 / rate))
+        prev = goal
+    poses = np.array(poses)
+    poses[:, 2] = np.angle(np.exp(1j * poses[:, 2]))
+    return np.array(stamps), poses, targets, holds
+
+
+def tilted_path(stamps: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) poses of a handheld rig: a 3D loop (z varies) with roll and pitch that change."""
+    poses = []
+    for t in stamps:
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("ZYX", [0.4 * t, 0.15 * np.cos(0.5 * t), 0.2 * np.sin(0.7 * t)]).as_matrix()
+        T[:3, 3] = (2.0 * np.cos(0.3 * t), 1.5 * np.sin(0.3 * t), 0.8 + 0.3 * np.sin(0.9 * t))
+        poses.append(T)
+    return np.stack(poses)
+
+
+def moved(traj_poses: np.ndarray, T_ref_est: np.ndarray) -> np.ndarray:
+    """The poses expressed in a frame ``est`` with ``T_ref_est`` (what an estimate in another frame holds)."""
+    T_est_ref = np.linalg.inv(T_ref_est)
+    return np.stack([T_est_ref @ P for P in traj_poses])

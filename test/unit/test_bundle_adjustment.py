@@ -72,7 +72,7 @@ def test_covariance_matches_monte_carlo_spread():
         prob, (T_mk, _, _) = _problem(seed=0, noise=0.5, per=150)
         rng = np.random.default_rng(100 + seed)
         prob.obs_xy = prob.obs_xy + rng.normal(0, 0.5 / 800.0, prob.obs_xy.shape)
-        res = bundle_adjust(prob, BAOptions(pixel_sigma=0.5, covariance=seed == 0))
+        res = bundle_adjust(prob, BAOptions(pixel_noise=0.5, covariance=seed == 0))
         if seed == 0:
             cov = res.marker_cov
         pos.append(res.T_W_markers[:, :3, 3])
@@ -119,7 +119,7 @@ def test_camera_covariance_keeps_the_prior_only_direction_at_its_prior():
         prob, _ = _problem(seed=0, per=200)
         rng = np.random.default_rng(7)
         prob.obs_xy = prob.obs_xy + rng.normal(0, noise / 800.0, prob.obs_xy.shape)
-        res = bundle_adjust(prob, BAOptions(pixel_sigma=0.5, refine_extrinsics=True))
+        res = bundle_adjust(prob, BAOptions(pixel_noise=0.5, refine_extrinsics=True))
         C = res.camera_cov
         assert C.shape == (18, 18) and np.linalg.eigvalsh(0.5 * (C + C.T))[0] > 0, "not a covariance"
         # The common turn about base z, in the adjustment's (w, dt) per camera: w = e_z, dt = e_z x t0.

@@ -102,3 +102,22 @@ def test_temporaries_of_an_interrupted_save_are_removed_by_the_next_save(tmp_pat
     assert not old.exists(), "stale temporary of map.yaml left behind"
     assert fresh.exists(), "a recent temporary (a save in progress) was removed"
     assert other.exists(), "another file's temporary was removed"
+
+
+def test_new_files_get_the_umask_mode_and_replaced_files_keep_theirs(tmp_path):
+    # tempfile.mkstemp would leave every map and result 0600; open() semantics are 0666 - umask.
+    path = tmp_path / "result.json"
+    old_umask = os.umask(0o022)
+    try:
+        fileio.atomic_write_text(str(path), "{}\n")
+        assert oct(os.stat(path).st_mode & 0o777) == oct(0o644)
+        os.umask(0o077)
+        fileio.atomic_write_text(str(tmp_path / "private.json"), "{}\n")
+        assert oct(os.stat(tmp_path / "private.json").st_mode & 0o777) == oct(0o600)
+        os.chmod(path, 0o640)
+        fileio.atomic_write_text(str(path), "{\"a\": 1}\n")  # umask 077 now: the file keeps its 0640
+        assert oct(os.stat(path).st_mode & 0o777) == oct(0o640)
+        assert oct(os.stat(str(path) + ".bak").st_mode & 0o777) == oct(0o640)
+    finally:
+        os.umask(old_umask)
+    assert _leftovers(tmp_path) == []

@@ -1,5 +1,5 @@
 """No pose flips: the lab cases of bench/flip_cases.py, on the pinhole ring and on a seeded fisheye
-(equidistant) ring, through the whole tracker (localizer, gate, filter).
+(equidistant) ring, through the whole localization pipeline (localizer, gate, filter).
 
 Every case flipped before the calibration-aware estimator and the flip-aware gate (measured on
 main 8d5b1c8 with the same cases, 3 seeds: far face-on marker 99-140 flipped filtered frames of 180,

@@ -106,7 +106,7 @@ def _tilted(deg: float, axis=(1.0, 0.0, 0.0)) -> np.ndarray:
 
 def test_a_tilted_measurement_is_rejected_even_when_x_y_yaw_fit():
     """A flipped pose whose (x, y, yaw) lands next to the prediction still tilts: rejected."""
-    gate = MotionGate(GateParams(max_tilt_change=np.radians(5.0)))
+    gate = MotionGate(GateParams(max_tilt_change_deg=5.0))
     gate.check([1.0, 1.0, 0.0], 0.0, rotation=np.eye(3))
     level = gate.check([1.01, 1.0, 0.0], 0.1, predicted=[1.0, 1.0, 0.0], rotation=_tilted(0.5))
     assert level.accepted and level.tilt == pytest.approx(np.radians(0.5), abs=1e-9), f"{level}"
@@ -150,4 +150,4 @@ def test_tilted_consistent_measurements_must_agree_in_tilt_to_recover():
 
 def test_bad_tilt_param():
     with pytest.raises(ConfigError, match="max_tilt_change"):
-        GateParams(max_tilt_change=-0.1)
+        GateParams(max_tilt_change_deg=-0.1)

@@ -166,22 +166,30 @@ def test_single_marker_ambiguity_resolved_by_prediction(lab):
 
 
 def test_rejections_are_counted(lab):
+    """Malformed and ignored detections are dropped (and counted) where they enter the pipeline;
+    the estimator counts the unmapped ids and localizes from the rest."""
+    from aruco_ring_localization.config import with_overrides
+    from aruco_ring_localization.pipeline import LocalizationPipeline, feed_ring_frame
+    from aruco_ring_localization.schemas import LocalizerConfig
+
     scene, ring, truth = lab
     sim = RingSimulator(scene, ring, pixel_noise=0.3, seed=1)
-    params = LocalizationParams(fusion="joint", ignore_ids=(truth.ids[0],))
-    loc = RingLocalizer(ring, truth, params)
+    config = with_overrides(LocalizerConfig(), {"input.use_tf": False, "input.camera_info_fallback": True,
+                                                "input.ignore_fiducials": str(truth.ids[0])})
+    p = LocalizationPipeline(config, ring, truth)
     T = scene.T_world_base(scene.test_positions[0])
     frame = sim.observe(T)
-    cam = next(iter(frame.cameras.values()))
+    name, cam = next(iter(frame.cameras.items()))
     cam.observations.append(MarkerObservation(999, np.array([[10, 10], [50, 10], [50, 50], [10, 50]], float)))
     cam.observations.append(MarkerObservation(truth.ids[1], np.full((4, 2), np.nan)))
     cam.observations.append(MarkerObservation(truth.ids[2], np.array([[0, 0], [10, 10], [0, 10], [10, 0]], float)))
     cam.observations.append(MarkerObservation(truth.ids[0], np.array([[10, 10], [50, 10], [50, 50], [10, 50]], float)))
-    res = loc.process(frame)
-    assert res.rejected.get("unknown id") == 1, res.rejected
-    assert res.rejected.get("degenerate", 0) >= 2, res.rejected
-    assert res.rejected.get("ignored", 0) >= 1, res.rejected
-    assert res.ok and _pose_err(res.T_map_base, T)[0] < 0.01
+    (out,) = feed_ring_frame(p, frame)
+    assert out.track.localization.rejected.get("unknown id") == 1, out.track.localization.rejected
+    dropped = p.input.rejected[name]
+    assert dropped.get("non-finite") == 1 and dropped.get("degenerate") == 1, dropped
+    assert dropped.get("ignored", 0) >= 1, dropped
+    assert out.track.localization.ok and _pose_err(out.track.localization.T_map_base, T)[0] < 0.01
 
 
 def test_moved_marker_is_dropped_by_joint(lab):

@@ -1,14 +1,13 @@
-"""MapBuilder: the paper's mode, the reference rule, multi-station linking, malformed inputs."""
+"""MapBuilder: the paper's mode, the reference rule, multi-station linking (malformed inputs: test_pipeline.py)."""
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from aruco_ring_localization import geometry as geo
-from aruco_ring_localization.evaluation import map_error
+from aruco_ring_localization.evaluation.maps import map_error
 from aruco_ring_localization.detections import CameraFrame, MarkerObservation, RingFrame
 from aruco_ring_localization.mapping import MapBuilder
 from aruco_ring_localization.pnp import solve_marker_ippe_undistorted
@@ -124,24 +123,6 @@ def test_disconnected_marker_is_reported(ring, scene):
     assert b.unlinked_markers() == [999], f"unlinked {b.unlinked_markers()}"
     assert 999 not in b.build("paper")
     assert 999 in b.summary()["unlinked"]
-
-
-def test_malformed_inputs_rejected_with_warning(ring, scene, caplog):
-    sim = RingSimulator(scene, ring, pixel_noise=0.0, seed=0)
-    frame = sim.observe(Scene.T_world_base(scene.mapping_pose))
-    cam, cf = next((n, f) for n, f in frame.cameras.items() if len(f.observations) >= 1)
-    good = cf.observations[0]
-    nan = good.corners.copy()
-    nan[1, 1] = np.nan
-    cf.observations = [MarkerObservation(good.marker_id, nan), MarkerObservation(4000, good.corners),
-                       MarkerObservation(4000, good.corners + 50.0)] + cf.observations[1:]
-    b = MapBuilder(ring, MarkerSizes(0.2))
-    with caplog.at_level(logging.WARNING, logger="aruco_ring_localization.mapping"):
-        b.add_frame(frame)
-    assert b.rejected_detections["non-finite"] == 1, dict(b.rejected_detections)
-    assert b.rejected_detections["duplicate id"] == 2, dict(b.rejected_detections)
-    assert "non-finite" in caplog.text and "duplicate id" in caplog.text, caplog.text
-    assert 4000 not in b.build("paper")
 
 
 def test_marker_with_wrong_size_rejected(ring, scene):

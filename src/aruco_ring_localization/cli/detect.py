@@ -21,9 +21,11 @@ import cv2
 import numpy as np
 
 from ..camera import CameraModel
+from ..config import default
 from ..detection import Detector, DetectorParams, CORNER_REFINEMENT, dictionary_name, image_to_gray, marker_poses
 from ..errors import ArucoRingError
 from ..markers import MarkerSizes
+from ..schemas import DetectorConfig
 
 COMMAND = "detect"
 HELP = "detect ArUco markers in an image file (ids, corners, marker poses)"
@@ -33,10 +35,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("image", help="image file (PNG, JPEG, ...; colour images are converted to grey)")
     parser.add_argument("--camera-info", required=True,
                         help="camera intrinsics YAML (camera_calibration_parsers format, e.g. config/camera_info/cam0.yaml)")
-    parser.add_argument("--dictionary", type=int, default=7, help="OpenCV predefined dictionary index (default 7 = DICT_5X5_1000)")
-    parser.add_argument("--fiducial-len", type=float, default=0.14, help="marker side (black square), m (default 0.14)")
+    parser.add_argument("--dictionary", type=int, default=default(DetectorConfig, "dictionary"),
+                        help="OpenCV predefined dictionary index (default %(default)s = DICT_5X5_1000)")
+    parser.add_argument("--fiducial-len", type=float, default=default(DetectorConfig, "fiducial_len"),
+                        help="marker side (black square), m (default %(default)s, as the detector node)")
     parser.add_argument("--fiducial-len-override", default="", help="per-id sides, e.g. '1-10: 0.05, 12: 0.06'")
-    parser.add_argument("--corner-refinement", default="lines", choices=sorted(CORNER_REFINEMENT),
+    parser.add_argument("--corner-refinement", default=default(DetectorConfig, "corner_refinement"),
+                        choices=sorted(CORNER_REFINEMENT),
                         help="corner refinement (default lines; subpix = aruco_detect's)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
 

@@ -1,136 +1,126 @@
-"""``aruco_ring localize``: run the localization pipeline on a recorded bag, write a TUM trajectory.
+"""``aruco_ring localize``: the localizer node's pipeline on a recorded bag, to a TUM trajectory.
 
-Reads each ring camera's ``<namespace>/fiducial_vertices`` (fiducial_msgs/FiducialArray) from the
-bag (and ``<namespace>/camera_info`` when recorded; the ring file's intrinsics otherwise), plus
-``cmd_vel`` / ``odom`` for the gate, assembles ring frames by stamp exactly as the node does
-(extrinsics from the ring file), runs :class:`tracker.RingTracker` and writes the filtered pose
-per ring frame as ``t x y z qx qy qz qw`` (evo reads it). ``--csv`` adds per-frame diagnostics.
-rosbag (Debian's python3-rosbag) is imported only inside this command.
+The pipeline is :class:`pipeline.LocalizationPipeline` built from the node's own parameters
+(``config/localization.yaml``, or ``--config FILE``; the options below override single keys), so
+the poses are the ones the node would have published (a rostest checks it to 1e-9). The bag is
+read by ``ros/bag_source.py`` (each camera's ``fiducial_vertices``, or images through the
+detector; ``camera_info``; ``cmd_vel`` / ``odom``; extrinsics from ``/tf_static``, else the ring
+file's). Output: one TUM line ``t x y z qx qy qz qw`` (evo reads it) per pose:
+
+* ``--output filtered`` (default): the filtered pose, as ``~pose`` (x, y, yaw at the measured
+  height; with ``--6dof`` the last accepted measurement's roll and pitch too);
+* ``--output measurement``: the estimator's per-frame pose (planar; ``--6dof``: the full pose).
+
+``--csv`` adds per-frame diagnostics (full precision).
 """
 from __future__ import annotations
 
 import argparse
 import csv
 import sys
-from typing import Dict, List
+from typing import List
 
 import numpy as np
 
-from ..errors import ArucoRingError, ConfigError
-from ..evaluation import write_tum
-from ..localization import LocalizationParams
+from .. import geometry as geo
+from ..config import load_yaml_config
+from ..errors import ConfigError
+from ..evaluation.trajectories import trajectory, write_tum
+from ..fileio import atomic_write_text
 from ..marker_map import MarkerMap
+from ..pipeline import LocalizationPipeline, PoseOutput
 from ..ring import CameraRing
-from ..detections import RingInputCore
-from ..tracker import RingTracker
+from ..schemas import LocalizerConfig
 
 COMMAND = "localize"
-HELP = "run the localizer on a bag of detections and write a TUM trajectory"
+HELP = "run the localizer's pipeline on a bag of detections (or images) and write a TUM trajectory"
 
 CSV_FIELDS = ["stamp", "x", "y", "yaw", "std_x", "std_y", "std_yaw", "meas_x", "meas_y", "meas_yaw", "method",
-              "cameras", "markers", "residual_px", "gate", "time_jump"]
+              "cameras", "markers", "residual_px", "gate", "time_jump", "z", "predicted_only"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("bag", help="rosbag with <ns>/fiducial_vertices per camera")
-    parser.add_argument("--ring", required=True, help="ring YAML file (config/ring.yaml)")
+    parser.add_argument("bag", help="rosbag with <ns>/fiducial_vertices (or images) per camera")
     parser.add_argument("--map", dest="map_file", required=True, help="marker map YAML")
     parser.add_argument("--out", required=True, help="output TUM trajectory")
-    parser.add_argument("--fusion", choices=["paper", "joint"], default="joint")
+    parser.add_argument("--ring", help="ring YAML file (default: the config's ring_file, else config/ring.yaml)")
+    parser.add_argument("--config", help="the localizer's parameter file (default: config/localization.yaml)")
+    parser.add_argument("--fusion", choices=["paper", "joint"], help="estimator/fusion (default: the config's)")
+    parser.add_argument("--slop", type=float, help="input/slop: ring frame grouping slop, s (default: the config's)")
+    parser.add_argument("--ignore-fiducials", help='input/ignore_fiducials: ids never used, "1,4,9-12"')
+    parser.add_argument("--output", choices=["filtered", "measurement"], default="filtered",
+                        help="filtered poses (as ~pose) or the estimator's per-frame poses")
+    parser.add_argument("--6dof", dest="six_dof", action="store_true",
+                        help="full poses (z, roll, pitch from the estimator) instead of planar ones")
     parser.add_argument("--csv", help="per-frame diagnostics CSV")
-    parser.add_argument("--slop", type=float, default=0.03, help="ring frame grouping slop, s")
+    parser.add_argument("--progress", action="store_true", help="progress bar on stderr even when it is not a terminal")
+
+
+def load_config(args: argparse.Namespace) -> LocalizerConfig:
+    """The node's parameters from ``--config`` (or the package's file) with the options applied."""
+    from ..ros.bag_source import package_file
+
+    path = args.config or package_file("config", "localization.yaml")
+    return load_yaml_config(LocalizerConfig, path, {
+        "map_file": args.map_file, "estimator.fusion": args.fusion, "input.slop": args.slop,
+        "input.ignore_fiducials": args.ignore_fiducials})
 
 
 def run(args: argparse.Namespace) -> int:
     try:
-        import rosbag  # noqa: F401  (Debian python3-rosbag)
-    except ImportError:
-        sys.stderr.write("localize: needs the rosbag Python module (apt install python3-rosbag, "
-                         "then source .ws/env.sh)\n")
+        from ..ros.bag_source import BagSource, package_file
+    except ImportError as exc:
+        sys.stderr.write(f"localize: needs the ROS Python packages (rosbag; source .ws/env.sh): {exc}\n")
         return 2
     try:
-        ring = CameraRing.load(args.ring)
+        config = load_config(args)
+        ring = CameraRing.load(args.ring or config.ring_file or package_file("config", "ring.yaml"))
         marker_map = MarkerMap.load(args.map_file)
+        pipeline = LocalizationPipeline(config, ring, marker_map)
+        with BagSource(args.bag, ring, progress=args.progress or None) as source:
+            outputs: List[PoseOutput] = source.run(pipeline, command="localize")
     except ConfigError as exc:
         sys.stderr.write(f"localize: {exc}\n")
         return 1
-    tracker = RingTracker(ring, marker_map, LocalizationParams(fusion=args.fusion))
-    core = RingInputCore(ring, slop=args.slop, timeout=0.25, camera_info_fallback=True, extrinsics_from_ring=True)
-    topics: Dict[str, tuple] = {}
-    for cam in ring.cameras:
-        ns = cam.namespace.strip("/")
-        prefix = f"{ns}/" if ns else ""
-        for variant in (prefix, "/" + prefix):
-            topics[f"{variant}fiducial_vertices"] = ("fv", cam.name)
-            topics[f"{variant}camera_info"] = ("ci", cam.name)
-    for t in ("cmd_vel", "/cmd_vel", "odom", "/odom"):
-        topics[t] = ("motion", t.strip("/"))
-    stamps: List[float] = []
-    poses: List[np.ndarray] = []
-    rows: List[dict] = []
-
-    def handle(frames) -> None:
-        for frame in frames:
-            try:
-                out = tracker.process(frame)
-            except ArucoRingError as exc:
-                sys.stderr.write(f"localize: frame {frame.stamp:.3f}: {exc}\n")
-                continue
-            if out.pose is None:
-                continue
+    stamps, poses = [], []
+    for out in outputs:
+        if args.output == "filtered":
             stamps.append(out.stamp)
-            poses.append(out.pose)
-            loc = out.localization
-            meas = loc.se2 if loc.ok else (np.nan, np.nan, np.nan)
-            std = np.sqrt(np.diag(out.covariance))
-            rows.append({"stamp": f"{out.stamp:.6f}", "x": out.pose[0], "y": out.pose[1], "yaw": out.pose[2],
-                         "std_x": std[0], "std_y": std[1], "std_yaw": std[2], "meas_x": meas[0], "meas_y": meas[1],
-                         "meas_yaw": meas[2], "method": loc.method, "cameras": len(loc.used_cameras),
-                         "markers": len(loc.marker_ids), "residual_px": loc.residual_rms,
-                         "gate": out.decision.reason if out.decision else "", "time_jump": int(out.time_jump)})
-
-    from ..ros.conversions import camera_info_to_model, fiducial_array_to_observations, stamp_to_sec
-
-    import rosbag
-    n_msgs = 0
-    try:
-        bag = rosbag.Bag(args.bag)
-    except (OSError, rosbag.ROSBagException) as exc:
-        sys.stderr.write(f"localize: cannot open {args.bag}: {exc}\n")
+            poses.append(out.T_map_base_6dof if args.six_dof else out.T_map_base)
+        elif out.track.localization.ok and not out.predicted_only:
+            T = out.track.localization.T_map_base
+            stamps.append(out.stamp)
+            poses.append(T if args.six_dof else geo.transform_from_se2(*geo.se2_from_transform(T), z=T[2, 3]))
+    if not stamps:
+        sys.stderr.write(f"localize: no pose from {args.bag} (no mapped marker seen?); {args.out} not written\n")
         return 1
-    with bag:
-        wanted = [t for t in bag.get_type_and_topic_info().topics if t in topics]
-        if not any(topics[t][0] == "fv" for t in wanted):
-            sys.stderr.write(f"localize: {args.bag} has no <ns>/fiducial_vertices topic of the ring's cameras\n")
-            return 1
-        for topic, msg, t in bag.read_messages(topics=wanted):
-            kind, name = topics[topic]
-            now = t.to_sec()
-            try:
-                if kind == "fv":
-                    n_msgs += 1
-                    frames, _, _ = core.add_detections(name, stamp_to_sec(msg.header.stamp),
-                                                       fiducial_array_to_observations(msg), now)
-                    handle(frames)
-                elif kind == "ci":
-                    core.set_camera_model(name, camera_info_to_model(msg, name=name))
-                elif name == "cmd_vel":
-                    tracker.set_motion("cmd_vel", float(np.hypot(msg.linear.x, msg.linear.y)), msg.angular.z, now)
-                else:
-                    tw = msg.twist.twist
-                    tracker.set_motion("odom", float(np.hypot(tw.linear.x, tw.linear.y)), tw.angular.z,
-                                       stamp_to_sec(msg.header.stamp))
-            except ArucoRingError as exc:
-                sys.stderr.write(f"localize: {topic} at {now:.3f}: {exc}\n")
-            handle(core.poll(now))
-        handle(core.poll(float("inf")))
-    write_tum(args.out, stamps, poses)
+    write_tum(args.out, trajectory(stamps, poses))
     if args.csv:
-        with open(args.csv, "w", newline="", encoding="utf-8") as fh:
-            w = csv.DictWriter(fh, fieldnames=CSV_FIELDS)
-            w.writeheader()
-            w.writerows(rows)
-    sys.stdout.write(f"localize: {n_msgs} detection messages -> {len(stamps)} poses written to {args.out}"
-                     f" ({tracker.time_jumps} time jumps, {tracker.gate.reinitializations} re-initialisations, "
-                     f"rejected {tracker.rejected_counts})\n")
+        _write_csv(args.csv, outputs)
+    sys.stdout.write(f"localize: {pipeline.input.frames_in} detection messages -> {pipeline.frames} ring frames -> "
+                     f"{len(stamps)} poses ({args.output}{', 6 dof' if args.six_dof else ''}) written to {args.out} "
+                     f"({pipeline.dropped_stale} stale frames dropped, {pipeline.time_jumps} time jumps, "
+                     f"{pipeline.gate.reinitializations} re-initialisations, rejected {pipeline.rejected_counts})\n")
     return 0
+
+
+def _write_csv(path: str, outputs: List[PoseOutput]) -> None:
+    import io
+
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=CSV_FIELDS, lineterminator="\n")
+    w.writeheader()
+    for out in outputs:
+        loc = out.track.localization
+        x, y, yaw = out.track.pose
+        meas = loc.se2 if loc.ok else (np.nan, np.nan, np.nan)
+        std = np.sqrt(np.diag(out.track.covariance))
+        # repr-exact floats: the rostest compares these with the node's poses to 1e-9.
+        w.writerow({"stamp": repr(float(out.stamp)), "x": repr(float(x)), "y": repr(float(y)),
+                    "yaw": repr(float(yaw)), "std_x": std[0], "std_y": std[1], "std_yaw": std[2],
+                    "meas_x": meas[0], "meas_y": meas[1], "meas_yaw": meas[2], "method": loc.method,
+                    "cameras": len(loc.used_cameras), "markers": len(loc.marker_ids),
+                    "residual_px": loc.residual_rms, "gate": out.track.decision.reason if out.track.decision else "",
+                    "time_jump": int(out.track.time_jump), "z": repr(float(out.T_map_base[2, 3])),
+                    "predicted_only": int(out.predicted_only)})
+    atomic_write_text(path, buf.getvalue())

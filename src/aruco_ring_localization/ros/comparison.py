@@ -4,7 +4,7 @@ Reads both robot poses from tf, pairs them in time (our pose's stamp; the refere
 at that stamp), estimates the fixed SE(2) transform between the two map frames (or takes it from
 ``~alignment``) and publishes it as tf ``<reference_frame> -> <estimate_frame>`` (gmapping's
 ``map -> aruco_map``), so rviz shows both robots in gmapping's map. Logic:
-:class:`aruco_ring_localization.comparison.ComparisonCore`.
+:class:`aruco_ring_localization.evaluation.comparison.ComparisonCore`.
 
 Publications:
     ``~errors`` (std_msgs/Float64MultiArray): ``[dx m, dy m, euclidean m, dyaw rad, stamp s]``,
@@ -15,14 +15,13 @@ Publications:
 Services:
     ``~record_stop`` (std_srvs/Trigger): record a stop from the last ``~record_window`` s.
     ``~write_tables`` (std_srvs/Trigger): write Table I/II (markdown + CSV) now.
-At shutdown the tables are written to ``~output_dir``. Parameters: :class:`ComparisonParams`
-(documented in config/comparison.yaml and docs/parameters.md).
+At shutdown the tables are written to ``~output_dir``. Parameters:
+:class:`aruco_ring_localization.schemas.ComparisonConfig` (config/comparison.yaml, docs/parameters.md).
 """
 from __future__ import annotations
 
 import os
 import threading
-from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
@@ -33,54 +32,20 @@ from std_srvs.srv import Trigger, TriggerResponse
 from visualization_msgs.msg import Marker
 
 from .. import geometry as geo
-from ..comparison import ComparisonConfig, ComparisonCore
+from ..evaluation.comparison import ComparisonCore
 from ..errors import ArucoRingError, ConfigError
+from ..schemas import ComparisonConfig
 from .conversions import make_transform_stamped, msg_to_transform, stamp_to_sec
-from .params import read_params
+from .params import read_config
 
 WARN_PERIOD = 10.0
 ERRORS_LAYOUT = ("dx_m", "dy_m", "euclidean_m", "dyaw_rad", "stamp_s")
 
 
-@dataclass(frozen=True)
-class ComparisonParams:
-    reference_frame: str = field(default="map", metadata={"doc": "reference map frame (gmapping's map)"})
-    reference_child: str = field(default="base_link", metadata={"doc": "reference robot frame"})
-    estimate_frame: str = field(default="aruco_map", metadata={"doc": "our map frame"})
-    estimate_child: str = field(default="aruco_base_link", metadata={"doc": "our robot frame"})
-    alignment: tuple = field(default=(), metadata={"doc": "[x, y, yaw_deg] of estimate_frame in reference_frame; "
-                                                          "empty: least-squares estimate"})
-    publish_tf: bool = field(default=True, metadata={"doc": "publish reference_frame -> estimate_frame"})
-    rate: float = field(default=10.0, metadata={"doc": "Hz at which poses are paired"})
-    lookup_timeout: float = field(default=0.2, metadata={"doc": "s to wait for the reference at our stamp"})
-    min_pairs: int = 10
-    max_pairs: int = 2000
-    still_time: float = field(default=3.0, metadata={"doc": "s still before a stop is recorded (<= 0: never)"})
-    still_position_tolerance: float = 0.01
-    still_yaw_tolerance_deg: float = 0.5
-    settle: float = 1.0
-    record_window: float = 1.0
-    output_dir: str = field(default="", metadata={"doc": "where tables go ($ROS_HOME/comparison if empty)"})
-    reference_name: str = field(default="gmapping", metadata={"doc": "name of the reference in the tables"})
-    text_height: float = field(default=1.5, metadata={"doc": "m above the reference robot for the rviz text"})
-
-    def core_config(self) -> ComparisonConfig:
-        alignment = None
-        if self.alignment:
-            if len(self.alignment) != 3:
-                raise ConfigError(f"expected [x, y, yaw_deg], got {list(self.alignment)!r}", key="alignment")
-            x, y, yaw = (float(v) for v in self.alignment)
-            alignment = (x, y, float(np.radians(yaw)))
-        return ComparisonConfig(alignment=alignment, min_pairs=self.min_pairs, max_pairs=self.max_pairs,
-                                still_time=self.still_time, still_position_tolerance=self.still_position_tolerance,
-                                still_yaw_tolerance=float(np.radians(self.still_yaw_tolerance_deg)),
-                                settle=self.settle, record_window=self.record_window)
-
-
 class ComparisonNode:
     """tf in, errors/text/tf out; the core does the maths."""
 
-    def __init__(self, params: ComparisonParams):
+    def __init__(self, params: ComparisonConfig):
         self.p = params
         self.core = ComparisonCore(params.core_config())
         self.lock = threading.Lock()
@@ -210,8 +175,7 @@ class ComparisonNode:
 def main() -> None:
     rospy.init_node("comparison")
     try:
-        params = read_params(ComparisonParams)
-        params.core_config()
+        params = read_config(ComparisonConfig)
     except ConfigError as exc:
         rospy.logfatal("comparison: %s", exc)
         raise SystemExit(1)

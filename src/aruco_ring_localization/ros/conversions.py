@@ -7,8 +7,9 @@ node callbacks catch it, log it throttled and go on.
 from __future__ import annotations
 
 import math
-from typing import Iterable, List, Optional, Sequence
+from typing import Iterable, List
 
+import cv2
 import numpy as np
 from fiducial_msgs.msg import Fiducial, FiducialArray
 from geometry_msgs.msg import Pose, Quaternion, Transform, TransformStamped, Vector3
@@ -16,8 +17,10 @@ from sensor_msgs.msg import CameraInfo
 
 from .. import geometry as geo
 from ..camera import CameraModel
+from ..detection import image_to_gray
+from ..detections import MarkerObservation
 from ..errors import GeometryError, MeasurementError
-from ..detections import CameraFrame, MarkerObservation
+from ..pipeline import pose_covariance_from_se2
 
 
 def stamp_to_sec(stamp) -> float:
@@ -28,21 +31,14 @@ def stamp_to_sec(stamp) -> float:
 def fiducial_array_to_observations(msg: FiducialArray) -> List[MarkerObservation]:
     """FiducialArray -> observations (raw pixel corners in aruco_detect order).
 
-    Values are copied as they are; use :func:`frames.sanitize_observations` to drop NaN or
-    degenerate ones (so the count of rejected detections can be reported).
+    Values are copied as they are; the pipeline sanitizes them (:func:`detections.sanitize_observations`)
+    and counts what it drops (so the count of rejected detections can be reported).
     """
     out = []
     for f in msg.fiducials:
         corners = np.array([[f.x0, f.y0], [f.x1, f.y1], [f.x2, f.y2], [f.x3, f.y3]], dtype=np.float64)
         out.append(MarkerObservation(int(f.fiducial_id), corners))
     return out
-
-
-def fiducial_array_to_camera_frame(msg: FiducialArray, camera: str,
-                                   model: Optional[CameraModel] = None) -> CameraFrame:
-    """FiducialArray -> :class:`CameraFrame` of ring camera ``camera``."""
-    return CameraFrame(camera=camera, stamp=stamp_to_sec(msg.header.stamp),
-                       observations=fiducial_array_to_observations(msg), model=model)
 
 
 def observations_to_fiducials(observations: Iterable[MarkerObservation]) -> List[Fiducial]:
@@ -136,25 +132,45 @@ def make_transform_stamped(T: np.ndarray, parent: str, child: str, stamp) -> Tra
 
 
 def se2_covariance_to_pose_covariance(cov3: np.ndarray, z_var: float = 1e6, rp_var: float = 1e6) -> List[float]:
-    """(x, y, yaw) 3x3 covariance -> the 36 values of PoseWithCovariance (x y z roll pitch yaw order).
+    """(x, y, yaw) 3x3 covariance -> the 36 values of PoseWithCovariance (x y z roll pitch yaw order);
+    z, roll and pitch get a large variance (:func:`pipeline.pose_covariance_from_se2`)."""
+    return [float(v) for v in pose_covariance_from_se2(cov3, z_var, rp_var).ravel()]
 
-    z, roll and pitch are not estimated: they get a large variance so robot_localization ignores them
-    (its ``two_d_mode`` users configure them out anyway).
+
+def image_msg_to_gray(msg) -> np.ndarray:
+    """``sensor_msgs/Image`` or ``sensor_msgs/CompressedImage`` -> (height, width) mono8 array.
+
+    The one image decoder of the package (the detector node and the bag source use it).
+
+    * Image: :func:`detection.image_to_gray` (mono8/8UC1, mono16/16UC1 scaled by 1/256, bgr8, rgb8,
+      bgra8, rgba8; padding, byte order and short buffers checked, errors name the field).
+    * CompressedImage (``format`` "jpeg", "png", "mono8; jpeg compressed bgr8", ...):
+      ``cv2.imdecode``, then the same grey conversion as the raw encodings (a PNG gives exactly
+      the raw image's pixels).
+
+    Why not Debian's cv_bridge (python3-cv-bridge): it does load with the venv's NumPy 1.26.4 and
+    gives the same pixels for mono8, bgr8 and compressed png/jpeg (mono16 within one grey level),
+    but ``compressed_imgmsg_to_cv2(msg, "mono8")`` fails on single-channel compressed images (it
+    converts BGR to grey whatever was decoded), its errors do not name the bad field, and it would
+    pull 142 Debian packages (a second OpenCV, GDAL, ffmpeg) into every install for what
+    ``np.frombuffer`` and ``cv2.imdecode`` do here.
+
+    Raises:
+        MeasurementError: naming the field (``encoding``, ``width/height``, ``step``, ``data``).
     """
-    C = np.zeros((6, 6))
-    idx = [0, 1, 5]
-    for a, i in enumerate(idx):
-        for b, j in enumerate(idx):
-            C[i, j] = cov3[a, b]
-    C[2, 2] = z_var
-    C[3, 3] = C[4, 4] = rp_var
-    return [float(v) for v in C.ravel()]
-
-
-def names_from_param(value, default: Sequence[str]) -> List[str]:
-    """A list parameter given as a YAML list or as a comma/space separated string."""
-    if value is None or value == "":
-        return list(default)
-    if isinstance(value, str):
-        return [v for v in value.replace(",", " ").split() if v]
-    return [str(v) for v in value]
+    if not hasattr(msg, "encoding"):  # sensor_msgs/CompressedImage: header, format, data
+        data = msg.data
+        buf = data.reshape(-1).view(np.uint8) if isinstance(data, np.ndarray) else np.frombuffer(bytes(data), np.uint8)
+        if buf.size == 0:
+            raise MeasurementError("data: empty compressed image")
+        img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+        if img is None or img.size == 0:
+            raise MeasurementError(f"data: cannot decode the compressed image (format {msg.format!r})")
+        # The same grey as the raw encodings' (cv2.IMREAD_GRAYSCALE's own conversion differs by a level).
+        if img.dtype == np.uint16:
+            img = (img >> 8).astype(np.uint8)
+        if img.ndim == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+        return np.ascontiguousarray(img)
+    return image_to_gray(msg.encoding, msg.width, msg.height, msg.step, msg.data,
+                         is_bigendian=bool(getattr(msg, "is_bigendian", 0)))

@@ -1,8 +1,10 @@
 """``detector`` node: ArUco detection on one camera, a drop-in for UbiquityRobotics' aruco_detect.
 
 Subscribes (relative names, so one node per camera namespace, e.g. ``ring/cam0``):
-    ``image`` (sensor_msgs/Image; mono8, mono16, bgr8, rgb8, bgra8, rgba8): queue_size 1 and a
-        large socket buffer, so a detector that falls behind drops old images, never queues them;
+    ``image`` (sensor_msgs/Image; mono8, mono16, bgr8, rgb8, bgra8, rgba8), or with
+        ``~image_transport: compressed`` ``image/compressed`` (sensor_msgs/CompressedImage, JPEG or
+        PNG; image_transport's name): queue_size 1 and a large socket buffer, so a detector that
+        falls behind drops old images, never queues them;
     ``camera_info`` (sensor_msgs/CameraInfo): intrinsics for the poses (latest valid one wins).
 Publishes:
     ``fiducial_vertices`` (fiducial_msgs/FiducialArray): one per usable image, header = the
@@ -15,35 +17,32 @@ Publishes:
         (:class:`aruco_ring_localization.detection.MarkerPose`).
     ``fiducial_images`` (sensor_msgs/Image bgr8, when ``publish_images``): annotated image.
 
-Parameters (private, read once; aruco_detect's names; documented in config/detector.yaml):
-    ~dictionary (int, 7 = DICT_5X5_1000), ~fiducial_len (float m, 0.14 as aruco_detect),
-    ~fiducial_len_override (str, "1-10: 0.05, 12: 0.06"), ~ignore_fiducials (str, "1,4,9-12"),
-    ~publish_images (bool, false), ~do_pose_estimation (bool, true),
-    ~corner_refinement (str: lines | subpix | contour | apriltag | none; default lines),
-    ~max_image_age (float s, 0 = off): images older than this on arrival are dropped;
-    ~adaptiveThreshWinSizeMin/Max/Step (int px, 3/23/10): the threshold windows tried (aruco_detect's
-    dynamic-reconfigure names); 5/21/16 (two windows) is about a third faster.
+Parameters (private, read once; aruco_detect's names): :class:`aruco_ring_localization.schemas.DetectorConfig`
+(config/detector.yaml, docs/parameters.md).
 
 Bad input never stops the node: an unusable image (unsupported encoding, zero size, wrong step
 or data length) or camera_info (missing, all-zero K, bad D) gives ONE warning per problem per
 ``WARN_PERIOD`` seconds naming the field, and the next good message is processed normally.
-The logic is in :class:`DetectorCore` (no rospy; messages are duck-typed), tested without a master.
+The logic is in :class:`DetectorCore` (no rospy; messages are duck-typed); the bag source
+(:mod:`ros.bag_source`) runs it on recorded images.
 """
 from __future__ import annotations
 
 import copy
 import logging
 import time
-from dataclasses import dataclass, field
-from typing import Callable, Dict, List, Optional, Sequence
+from dataclasses import dataclass
+from typing import Callable, List, Optional, Sequence
 
 import numpy as np
 
 from ..camera import CameraModel
-from ..detection import Detector, DetectorParams, MarkerPose, annotate, image_to_gray, marker_poses
-from ..errors import ArucoRingError, ConfigError, MeasurementError
+from ..detection import Detector, MarkerPose, annotate, marker_poses
 from ..detections import MarkerObservation
-from ..markers import MarkerSizes, parse_id_list
+from ..errors import ArucoRingError, ConfigError, MeasurementError
+from ..schemas import DetectorConfig
+from ..throttle import ThrottledWarnings
+from .conversions import image_msg_to_gray
 
 logger = logging.getLogger(__name__)
 
@@ -52,39 +51,6 @@ WARN_PERIOD = 10.0
 #: Socket buffer of the image subscription: several 1280x960 bgr8 images, so rospy never reads a
 #: frame in pieces (a small buff_size makes rospy fall behind and deliver stale images).
 IMAGE_BUFF_SIZE = 1 << 26
-
-
-@dataclass(frozen=True)
-class DetectorNodeParams:
-    """The node's parameters (aruco_detect's names where they exist)."""
-
-    dictionary: int = field(default=7, metadata={"doc": "OpenCV predefined dictionary index (7 = DICT_5X5_1000)"})
-    fiducial_len: float = field(default=0.14, metadata={"doc": "marker side (black square), m"})
-    fiducial_len_override: str = field(default="", metadata={"doc": "per-id sides: '1-10: 0.05, 12: 0.06'"})
-    ignore_fiducials: str = field(default="", metadata={"doc": "ids never published: '1,4,9-12'"})
-    publish_images: bool = field(default=False, metadata={"doc": "publish the annotated image on fiducial_images"})
-    do_pose_estimation: bool = field(default=True, metadata={"doc": "publish fiducial_transforms"})
-    corner_refinement: str = field(default="lines", metadata={"doc": "lines | subpix | contour | apriltag | none"})
-    max_image_age: float = field(default=0.0, metadata={"doc": "drop images older than this on arrival, s (0: off)"})
-    # aruco_detect's dynamic-reconfigure names (OpenCV's): the adaptive threshold windows tried, px.
-    adaptiveThreshWinSizeMin: int = field(default=3, metadata={"doc": "smallest threshold window, px"})
-    adaptiveThreshWinSizeMax: int = field(default=23, metadata={"doc": "largest threshold window, px"})
-    adaptiveThreshWinSizeStep: int = field(default=10, metadata={"doc": "window step, px (fewer windows: faster)"})
-
-    def detector_params(self) -> DetectorParams:
-        """The core detector's settings (raises ConfigError naming the key)."""
-        return DetectorParams(dictionary=self.dictionary, corner_refinement=self.corner_refinement,
-                              adaptive_thresh_win_size_min=self.adaptiveThreshWinSizeMin,
-                              adaptive_thresh_win_size_max=self.adaptiveThreshWinSizeMax,
-                              adaptive_thresh_win_size_step=self.adaptiveThreshWinSizeStep)
-
-    def sizes(self) -> MarkerSizes:
-        """Marker sides per id (raises ConfigError naming fiducial_len / fiducial_len_override)."""
-        return MarkerSizes.parse(self.fiducial_len, self.fiducial_len_override)
-
-    def ignored(self):
-        """Ids never published (raises ConfigError naming ignore_fiducials)."""
-        return parse_id_list(self.ignore_fiducials, key="ignore_fiducials")
 
 
 @dataclass
@@ -104,32 +70,6 @@ class Detections:
     annotated: Optional[np.ndarray] = None
 
 
-class ThrottledWarnings:
-    """One warning per problem key per ``period`` seconds, through ``sink`` (e.g. rospy.logwarn).
-
-    Keys are the problem (``image.encoding``, ``camera_info.K``, ...), so one bad field never
-    hides another, and a stream of bad messages gives one line per period, not one per message.
-    """
-
-    def __init__(self, sink: Callable[[str], None], period: float = WARN_PERIOD,
-                 clock: Callable[[], float] = time.monotonic):
-        self.sink = sink
-        self.period = float(period)
-        self.clock = clock
-        self._last: Dict[str, float] = {}
-        self.counts: Dict[str, int] = {}
-
-    def __call__(self, key: str, message: str) -> None:
-        self.counts[key] = self.counts.get(key, 0) + 1
-        now = self.clock()
-        last = self._last.get(key)
-        if last is not None and now - last < self.period:
-            return
-        self._last[key] = now
-        n = self.counts[key]
-        self.sink(message if n == 1 else f"{message} ({n} times so far)")
-
-
 def _field_key(exc: MeasurementError) -> str:
     """``encoding`` from ``"encoding: unsupported ..."`` (the field the error names)."""
     head = str(exc).split(":", 1)[0].strip()
@@ -146,14 +86,14 @@ class DetectorCore:
         clock: monotonic seconds for the throttling.
     """
 
-    def __init__(self, params: DetectorNodeParams, warn: Optional[Callable[[str], None]] = None,
+    def __init__(self, params: DetectorConfig, warn: Optional[Callable[[str], None]] = None,
                  name: str = "detector", clock: Callable[[], float] = time.monotonic):
         self.params = params
         self.detector = Detector(params.detector_params())
         self.sizes = params.sizes()
         self.ignored = params.ignored()
         self.name = name
-        self.warnings = ThrottledWarnings(warn if warn is not None else logger.warning, clock=clock)
+        self.warnings = ThrottledWarnings(warn if warn is not None else logger.warning, WARN_PERIOD, clock=clock)
         self.model: Optional[CameraModel] = None
         self.camera_frame_id = ""
         self._info_key: Optional[tuple] = None
@@ -184,10 +124,11 @@ class DetectorCore:
     # --- image ---------------------------------------------------------------------------------
 
     def on_image(self, msg, now: Optional[float] = None) -> Optional[Detections]:
-        """Detect markers in a ``sensor_msgs/Image``.
+        """Detect markers in a ``sensor_msgs/Image`` or ``sensor_msgs/CompressedImage``.
 
         Args:
-            msg: the image message (header, encoding, width, height, step, data, is_bigendian).
+            msg: the image message (header, encoding, width, height, step, data, is_bigendian; or
+                header, format, data).
             now: current ROS time, s (only for ``max_image_age``).
 
         Returns:
@@ -203,8 +144,7 @@ class DetectorCore:
                                              f"({age:.2f} s old > max_image_age {self.params.max_image_age} s)")
                 return None
         try:
-            gray = image_to_gray(msg.encoding, msg.width, msg.height, msg.step, msg.data,
-                                 is_bigendian=bool(getattr(msg, "is_bigendian", 0)))
+            gray = image_msg_to_gray(msg)
             observations = self.detector.detect(gray)
         except MeasurementError as exc:
             self.rejected_images += 1
@@ -285,10 +225,10 @@ def image_msg(bgr: np.ndarray, header):
 class DetectorNode:
     """Publishers/subscribers around a :class:`DetectorCore` (needs ``rospy.init_node`` first)."""
 
-    def __init__(self, params: DetectorNodeParams):
+    def __init__(self, params: DetectorConfig):
         import rospy
         from fiducial_msgs.msg import FiducialArray, FiducialTransformArray
-        from sensor_msgs.msg import CameraInfo, Image
+        from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
         self.rospy = rospy
         self.core = DetectorCore(params, warn=rospy.logwarn, name=rospy.get_namespace().rstrip("/") or "detector")
@@ -297,7 +237,10 @@ class DetectorNode:
                                if params.do_pose_estimation else None)
         self.image_pub = rospy.Publisher("fiducial_images", Image, queue_size=1) if params.publish_images else None
         self.info_sub = rospy.Subscriber("camera_info", CameraInfo, self.core.on_camera_info, queue_size=1)
-        self.image_sub = rospy.Subscriber("image", Image, self.on_image, queue_size=1, buff_size=IMAGE_BUFF_SIZE,
+        # image_transport's naming: the compressed stream of <image> is <image>/compressed.
+        topic, msg_type = ("image/compressed", CompressedImage) if params.image_transport == "compressed" \
+            else ("image", Image)
+        self.image_sub = rospy.Subscriber(topic, msg_type, self.on_image, queue_size=1, buff_size=IMAGE_BUFF_SIZE,
                                           tcp_nodelay=True)
 
     def on_image(self, msg) -> None:
@@ -321,17 +264,20 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     """Run the node until shutdown; 1 on a bad parameter (fatal log naming it)."""
     import rospy
 
-    from .params import read_params
+    from . import log_bridge
+    from .params import read_config
 
     rospy.init_node("detector", argv=list(argv) if argv is not None else None)
+    log_bridge.install()
     try:
-        params = read_params(DetectorNodeParams)
+        params = read_config(DetectorConfig)
         node = DetectorNode(params)
     except ConfigError as exc:
         rospy.logfatal("detector: bad parameter: %s", exc)
         return 1
     p = node.core.params
-    rospy.loginfo("detector: dictionary %d, fiducial_len %.3f m, corner refinement %s, pose estimation %s",
-                  p.dictionary, p.fiducial_len, p.corner_refinement, "on" if p.do_pose_estimation else "off")
+    rospy.loginfo("detector: dictionary %d, fiducial_len %.3f m, corner refinement %s, pose estimation %s, "
+                  "image transport %s", p.dictionary, p.fiducial_len, p.corner_refinement,
+                  "on" if p.do_pose_estimation else "off", p.image_transport)
     rospy.spin()
     return 0

@@ -1,6 +1,9 @@
 """``mapper`` node: builds the marker map from the ring's detections.
 
-Subscribes (through :class:`ros.ring_input.RingInput`): ``<ns>/fiducial_vertices`` and
+Thin: it converts messages, calls :class:`aruco_ring_localization.pipeline.MappingPipeline` and
+publishes; ``aruco_ring build-map`` drives the same pipeline from a bag (config/mapping.yaml).
+
+Subscribes (through :class:`ros.ring_input.RingSubscriber`): ``<ns>/fiducial_vertices`` and
 ``<ns>/camera_info`` of every ring camera; extrinsics from tf (or the ring file).
 
 Publishes:
@@ -17,15 +20,14 @@ Services:
     ``~clear`` (std_srvs/Trigger): forgets every observation.
 
 Progress (markers mapped, observations per marker, markers seen but not linked, silent cameras)
-goes to the log every ``progress_period`` seconds. With ``save_on_shutdown`` the map is saved
-when the node stops. Parameters: :class:`MapperParams` (documented in config/mapping.yaml).
+goes to the log every ``output/progress_period`` seconds. With ``map/save_on_shutdown`` the map is
+saved when the node stops. Parameters: :class:`aruco_ring_localization.schemas.MapperConfig`
+(config/mapping.yaml, docs/parameters.md).
 """
 from __future__ import annotations
 
 import os
 import sys
-import threading
-from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import numpy as np
@@ -36,48 +38,18 @@ from std_srvs.srv import Trigger, TriggerResponse
 from visualization_msgs.msg import Marker, MarkerArray
 
 from .. import geometry as geo
-from ..bundle_adjustment import BAOptions
 from ..errors import ArucoRingError, ConfigError
-from ..detections import RingFrame
-from ..mapping import MapBuilder, MappingOptions
 from ..marker_map import MarkerMap
-from ..markers import MarkerSizes, parse_id_list
+from ..pipeline import MappingPipeline
 from ..ring import CameraRing
+from ..schemas import MapperConfig
+from . import log_bridge
 from .conversions import make_transform_stamped, pose_to_msg
-from .params import read_params
-from .ring_input import RingInput
+from .params import read_config
+from .ring_input import RingSubscriber
 from .ring_tf import default_ring_file
 
 WARN_PERIOD = 5.0
-
-
-@dataclass(frozen=True)
-class MapperParams:
-    """Private parameters (prose in config/mapping.yaml)."""
-
-    ring_file: str = ""
-    cameras: tuple = ()
-    map_file: str = ""
-    method: str = "refined"
-    reference_marker: int = -1
-    map_frame: str = "map"
-    fiducial_len: float = 0.2
-    fiducial_len_override: str = ""
-    ignore_fiducials: str = ""
-    slop: float = 0.03
-    timeout: float = 0.25
-    extrinsics: str = "tf"
-    camera_info_fallback: str = "none"
-    save_on_shutdown: bool = False
-    publish_period: float = 1.0
-    progress_period: float = 5.0
-    max_ambiguity: float = 0.6
-    max_reprojection_px: float = 3.0
-    max_distance: float = 12.0
-    still_px: float = 1.5
-    max_frames_per_station: int = 30
-    refine_extrinsics: bool = True
-    pixel_sigma: float = 0.5
 
 
 def uncertainty_colour(std_m: float):
@@ -135,50 +107,24 @@ def default_map_file() -> str:
 
 
 class MapperNode:
-    """The node's state; ROS I/O only, the mapping itself is :class:`MapBuilder`."""
+    """The node's state; ROS I/O only, the mapping itself is :class:`MappingPipeline`."""
 
-    def __init__(self, params: MapperParams, ring: CameraRing):
-        self.params = params
-        if params.method not in ("paper", "refined"):
-            raise ConfigError(f"expected 'paper' or 'refined', got {params.method!r}", key="~method")
-        if params.extrinsics not in ("tf", "ring_file"):
-            raise ConfigError(f"expected 'tf' or 'ring_file', got {params.extrinsics!r}", key="~extrinsics")
-        if params.camera_info_fallback not in ("none", "ring"):
-            raise ConfigError(f"expected 'none' or 'ring', got {params.camera_info_fallback!r}",
-                              key="~camera_info_fallback")
-        self.map_file = os.path.expanduser(params.map_file) or default_map_file()
-        options = MappingOptions(max_ambiguity=params.max_ambiguity, max_reprojection_px=params.max_reprojection_px,
-                                 max_distance=params.max_distance, still_px=params.still_px,
-                                 max_frames_per_station=params.max_frames_per_station,
-                                 ba=BAOptions(refine_extrinsics=params.refine_extrinsics,
-                                              pixel_sigma=params.pixel_sigma))
-        ignore = parse_id_list(params.ignore_fiducials, key="~ignore_fiducials")
-        self.builder = MapBuilder(ring, MarkerSizes.parse(params.fiducial_len, params.fiducial_len_override),
-                                  method=params.method,
-                                  reference_marker=params.reference_marker if params.reference_marker >= 0 else None,
-                                  options=options, frame_id=params.map_frame, ignore_ids=ignore)
-        self._lock = threading.Lock()
+    def __init__(self, config: MapperConfig, ring: CameraRing):
+        self.config = config
+        self.map_file = os.path.expanduser(config.map_file) or default_map_file()
+        self.pipeline = MappingPipeline(config, ring)
         self._published_version = -1
-        self._map: Optional[MarkerMap] = None
         self.pub_markers = rospy.Publisher("~markers", MarkerArray, queue_size=1, latch=True)
         self.pub_fiducial_map = rospy.Publisher("fiducial_map", FiducialMapEntryArray, queue_size=1, latch=True)
         self.static_tf = tf2_ros.StaticTransformBroadcaster()
-        self.ring_input = RingInput(ring, list(params.cameras) or None, self.on_ring_frame, slop=params.slop,
-                                    timeout=params.timeout, use_tf=params.extrinsics == "tf",
-                                    camera_info_fallback=params.camera_info_fallback == "ring", ignore_ids=ignore)
+        self.ring_input = RingSubscriber(self.pipeline, lambda _added: None, "mapper", use_tf=config.input.use_tf)
         rospy.Service("~save_map", Trigger, self.on_save_map)
         rospy.Service("~clear", Trigger, self.on_clear)
-        rospy.Timer(rospy.Duration(params.publish_period), self.on_publish_timer, reset=True)
-        rospy.Timer(rospy.Duration(params.progress_period), self.on_progress_timer, reset=True)
+        rospy.Timer(rospy.Duration(config.output.publish_period), self.on_publish_timer, reset=True)
+        rospy.Timer(rospy.Duration(config.output.progress_period), self.on_progress_timer, reset=True)
         rospy.on_shutdown(self.on_shutdown)
-        rospy.loginfo("mapper: method %s, map file %s, map frame %s", params.method, self.map_file, params.map_frame)
-
-    # --- input ------------------------------------------------------------------------------
-
-    def on_ring_frame(self, frame: RingFrame) -> None:
-        with self._lock:
-            self.builder.ring = self.ring_input.ring
-            self.builder.add_frame(frame)
+        rospy.loginfo("mapper: method %s, map file %s, map frame %s", config.map.method, self.map_file,
+                      config.map.map_frame)
 
     # --- output -----------------------------------------------------------------------------
 
@@ -191,12 +137,12 @@ class MapperNode:
             self.static_tf.sendTransform(transforms)
 
     def on_publish_timer(self, _event) -> None:
-        with self._lock:
-            version = self.builder.version
+        with self.ring_input.lock:
+            version = self.pipeline.version
             if version == self._published_version:
                 return
             try:
-                m = self.builder.build("paper")  # cheap live preview; ~save_map refines
+                m = self.pipeline.build("paper")  # cheap live preview; ~save_map refines
             except ArucoRingError as exc:
                 rospy.logwarn_throttle(WARN_PERIOD, f"mapper: no map yet: {exc}")
                 return
@@ -204,27 +150,24 @@ class MapperNode:
         self.publish(m)
 
     def on_progress_timer(self, _event) -> None:
-        with self._lock:
-            if not self.builder.frames:
-                text = "mapper: no ring frame yet"
-            else:
-                text = "mapper: " + self.builder.format_summary()
-        silent = self.ring_input.silent_cameras(2.0)
+        with self.ring_input.lock:
+            text = "mapper: " + self.pipeline.format_summary()
+            silent = self.pipeline.silent_cameras(self.ring_input.now())
         if silent:
             text += f"; silent cameras: {silent}"
         rospy.loginfo(text)
 
     def save(self) -> str:
         """Build with the configured method, write atomically; returns a summary line."""
-        with self._lock:
-            m = self.builder.save_map(self.map_file)
-            summary = self.builder.format_summary()
-            ba = self.builder.last_ba if self.params.method == "refined" else None
-            self._published_version = self.builder.version
+        with self.ring_input.lock:
+            m = self.pipeline.save(self.map_file)
+            summary = self.pipeline.format_summary()
+            ba = self.pipeline.last_ba if m.method == "refined" else None
+            self._published_version = self.pipeline.version
         self.publish(m)
         extra = (f"; bundle adjustment RMS {ba.rms_px_before:.2f} -> {ba.rms_px_after:.2f} px in {ba.seconds:.1f} s"
                  if ba is not None else "")
-        return (f"saved {len(m)} markers ({self.params.method}, map frame fixed to marker {m.reference_marker}) "
+        return (f"saved {len(m)} markers ({m.method}, map frame fixed to marker {m.reference_marker}) "
                 f"to {self.map_file}: {summary}{extra}")
 
     def on_save_map(self, _req) -> TriggerResponse:
@@ -237,16 +180,16 @@ class MapperNode:
         return TriggerResponse(success=True, message=text)
 
     def on_clear(self, _req) -> TriggerResponse:
-        with self._lock:
-            self.builder.clear()
+        with self.ring_input.lock:
+            self.pipeline.clear()
             self._published_version = -1
-        self.pub_markers.publish(map_to_marker_array(MarkerMap(frame_id=self.params.map_frame), rospy.Time.now()))
+        self.pub_markers.publish(map_to_marker_array(MarkerMap(frame_id=self.config.map.map_frame), rospy.Time.now()))
         self.pub_fiducial_map.publish(FiducialMapEntryArray())
         rospy.loginfo("mapper: cleared")
         return TriggerResponse(success=True, message="cleared")
 
     def on_shutdown(self) -> None:
-        if not self.params.save_on_shutdown:
+        if not self.config.map.save_on_shutdown:
             return
         try:
             rospy.loginfo(self.save())
@@ -256,11 +199,10 @@ class MapperNode:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     rospy.init_node("mapper", argv=list(argv) if argv is not None else None)
+    log_bridge.install()
     try:
-        params = read_params(MapperParams)
-        ring_file = params.ring_file or default_ring_file()
-        ring = CameraRing.load(ring_file)
-        MapperNode(params, ring)
+        config = read_config(MapperConfig)
+        MapperNode(config, CameraRing.load(config.ring_file or default_ring_file()))
     except (ConfigError, ValueError, OSError) as exc:
         rospy.logfatal(f"mapper: {exc}")
         return 1

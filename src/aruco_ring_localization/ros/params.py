@@ -1,64 +1,27 @@
-"""Read a node's private parameters once, into a frozen dataclass.
+"""Read a node's private parameters once, into its schema (no algorithm ever calls ``rospy.get_param``).
 
-Every node declares its parameters as a frozen dataclass whose fields have defaults; the field
-name is the parameter name (``~<name>``), the default's type is the expected type, and the
-field's ``metadata={"doc": "..."}`` (optional) says what it means. :func:`read_params` reads
-them all at start-up, so no algorithm ever calls ``rospy.get_param``::
+:func:`read_config` reads the node's nested schema (:mod:`aruco_ring_localization.schemas`, built
+with :mod:`aruco_ring_localization.config`) from its private namespace: the nested dict that
+``<rosparam command="load" file="config/NODE.yaml"/>`` and the launch file's overrides made::
 
-    @dataclass(frozen=True)
-    class MapperParams:
-        map_file: str = field(default="", metadata={"doc": "where ~save_map writes (YAML)"})
-        slop: float = 0.03
+    config = read_config(LocalizerConfig)      # inside the node, after rospy.init_node
 
-    params = read_params(MapperParams)        # inside the node, after rospy.init_node
-
-Coercion (:func:`params_from_dict`, pure, testable without a master): ints are accepted where
-floats are expected; bools must be real booleans (a YAML ``"false"`` string is an error, not
-``True``); lists/dicts are passed through; ``None`` defaults accept anything. A wrong type
-raises :class:`ConfigError` naming the parameter, the expected type and the value given.
+Unknown keys are warned about once each, by their dotted name; a value of the wrong type raises
+:class:`ConfigError` naming the key. :func:`read_params` is the older flat form (only the fields
+of a flat dataclass are read, nothing is warned about), kept for the simulator.
 """
 from __future__ import annotations
 
 import dataclasses
 from typing import Any, Dict, Mapping, Optional, Type, TypeVar
 
-from ..errors import ConfigError
+from ..config import coerce
 
 P = TypeVar("P")
 
 
-def _coerce(name: str, value: Any, default: Any, source: str) -> Any:
-    if default is None:
-        return value
-    if isinstance(default, bool):
-        if isinstance(value, bool):
-            return value
-        raise ConfigError(f"expected true or false, got {value!r}", path=source, key=name)
-    if isinstance(default, int):
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
-        raise ConfigError(f"expected an integer, got {value!r}", path=source, key=name)
-    if isinstance(default, float):
-        if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
-        raise ConfigError(f"expected a number, got {value!r}", path=source, key=name)
-    if isinstance(default, str):
-        if isinstance(value, str):
-            return value
-        if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return str(value)  # e.g. a size override "0.05" read back by YAML as a float
-        raise ConfigError(f"expected a string, got {value!r}", path=source, key=name)
-    if isinstance(default, (list, tuple)):
-        if isinstance(value, (list, tuple)):
-            return tuple(value)
-        if isinstance(value, str):
-            return tuple(v for v in value.replace(",", " ").split() if v)
-        raise ConfigError(f"expected a list, got {value!r}", path=source, key=name)
-    return value
-
-
 def params_from_dict(cls: Type[P], values: Mapping[str, Any], source: str = "parameters") -> P:
-    """Build ``cls`` (a dataclass with defaults) from ``values``; missing names keep their default.
+    """Build the flat dataclass ``cls`` from ``values``; missing names keep their default.
 
     Raises:
         ConfigError: a value has the wrong type (names the parameter and the value).
@@ -75,17 +38,12 @@ def params_from_dict(cls: Type[P], values: Mapping[str, Any], source: str = "par
             default = f.default_factory()  # type: ignore[misc]
         else:
             default = None
-        kwargs[f.name] = _coerce(f.name, values[f.name], default, source)
+        kwargs[f.name] = coerce(f.name, values[f.name], default, source)
     return cls(**kwargs)  # type: ignore[call-arg]
 
 
-def describe(cls: Type[Any]) -> Dict[str, str]:
-    """``{parameter: doc}`` from the fields' ``metadata["doc"]`` (for logs and docs)."""
-    return {f.name: str(f.metadata.get("doc", "")) for f in dataclasses.fields(cls)}
-
-
 def read_params(cls: Type[P], namespace: str = "~", overrides: Optional[Mapping[str, Any]] = None) -> P:
-    """Read every field of ``cls`` from the parameter server under ``namespace`` (default private).
+    """Read every field of the flat dataclass ``cls`` from the parameter server under ``namespace``.
 
     Only parameters that are set are read; the others keep the dataclass defaults.
     ``overrides`` (tests) win over the server. Needs ``rospy.init_node`` first.
@@ -102,11 +60,9 @@ def read_params(cls: Type[P], namespace: str = "~", overrides: Optional[Mapping[
 
 
 def read_config(cls: Type[P], namespace: str = "~", overrides: Optional[Mapping[str, Any]] = None) -> P:
-    """Read a node's nested schema (:mod:`aruco_ring_localization.config`) from the parameter server.
+    """Read a node's nested schema from the parameter server (the whole private namespace at once).
 
-    The whole private namespace is read at once (``rospy.get_param('~')``: the nested dict that
-    ``<rosparam command="load" file="config/NODE.yaml"/>`` and the launch file's overrides made);
-    unknown keys are warned about once each, by name (``rospy.logwarn``). ``overrides`` (dotted
+    Unknown keys are warned about once each, by name (``rospy.logwarn``). ``overrides`` (dotted
     keys, tests) win. Needs ``rospy.init_node`` first.
     """
     import rospy

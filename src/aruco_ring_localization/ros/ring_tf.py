@@ -8,12 +8,10 @@ All transforms go out in ONE ``StaticTransformBroadcaster.sendTransform`` call: 
 is latched and a latched publisher keeps only its last message, so sending them one by one
 would leave late-joining listeners with only the last camera.
 
-Parameters (private):
-    ~ring_file (str, default: ``$(find aruco_ring_localization)/config/ring.yaml``):
-        path of the ring YAML file.
-    ~map_file (str, default ""): a marker map; when it carries a ``ring_calibration`` (the
-        extrinsics refined by bundle adjustment while mapping), those are published instead of
-        the ring file's. Localization uses the refined calibration this way; mapping must not.
+Parameters: :class:`aruco_ring_localization.schemas.RingTfConfig` (``~ring_file``, default the
+package's ``config/ring.yaml``; ``~map_file``: a marker map whose ``ring_calibration``, the
+extrinsics refined by bundle adjustment while mapping, is published instead of the ring file's.
+Localization uses the refined calibration this way; mapping must not).
 
 Exits with code 1 and a fatal log naming the file and the key when the ring file is unusable.
 """
@@ -31,7 +29,9 @@ from geometry_msgs.msg import TransformStamped
 from ..errors import ConfigError
 from ..marker_map import MarkerMap
 from ..ring import CameraRing, apply_refined_extrinsics
+from ..schemas import RingTfConfig
 from .conversions import make_transform_stamped
+from .params import read_config
 
 PACKAGE = "aruco_ring_localization"
 
@@ -67,14 +67,18 @@ def _load_ring(path: str) -> Optional[CameraRing]:
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Run the node until shutdown; returns the process exit code (1 when the ring file is bad)."""
     rospy.init_node("ring_tf", argv=list(argv) if argv is not None else None)
-    # ~ring_file (str): path of the ring YAML; default the package's config/ring.yaml.
-    ring_file = str(rospy.get_param("~ring_file", "") or default_ring_file())
+    try:
+        config = read_config(RingTfConfig)
+    except ConfigError as exc:
+        rospy.logfatal("ring_tf: %s", exc)
+        rospy.signal_shutdown("bad parameter")
+        return 1
+    ring_file = config.ring_file or default_ring_file()
     ring = _load_ring(ring_file)
     if ring is None:
         rospy.signal_shutdown("bad ring file")
         return 1
-    # ~map_file (str): marker map whose refined ring calibration, if any, replaces the ring file's.
-    map_file = str(rospy.get_param("~map_file", "") or "")
+    map_file = config.map_file
     if map_file:
         try:
             marker_map = MarkerMap.load(map_file)

@@ -11,6 +11,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from .params import LaserParams
+
 logger = logging.getLogger(__name__)
 
 
@@ -26,8 +28,8 @@ class LaserScanner:
         seed: seed of the noise.
     """
 
-    def __init__(self, segments: np.ndarray, beams: int = 360, angle_min: float = -np.pi,
-                 angle_max: Optional[float] = None, range_min: float = 0.05, range_max: float = 20.0,
+    def __init__(self, segments: np.ndarray, beams: int = LaserParams.beams, angle_min: float = -np.pi,
+                 angle_max: Optional[float] = None, range_min: float = 0.05, range_max: float = LaserParams.range_max,
                  noise_std: float = 0.01, seed: int = 0):
         self.segments = np.asarray(segments, dtype=float).reshape(-1, 2, 2)
         self.beams = int(beams)

@@ -1,5 +1,6 @@
 """Robot motion for the simulator: a holonomic base, drifting wheel odometry, a waypoint driver.
 
+* :class:`MotionLimits` (in :mod:`.params`) — velocity and acceleration limits of the base.
 * :class:`HolonomicBase` — the true SE(2) pose of base_link in the world; follows a velocity
   command (vx, vy in the base frame, m/s; wz, rad/s) within velocity and acceleration limits.
 * :class:`WheelOdometry` — integrates the true body motion with seeded errors: a per-run scale
@@ -19,18 +20,11 @@ from typing import List, Optional, Sequence, Tuple
 import numpy as np
 
 from .. import geometry as geo
+from .params import MotionLimits, RobotParams
+
+__all__ = ["MotionLimits", "HolonomicBase", "WheelOdometry", "WaypointDriver", "RobotState", "SimRobot"]
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class MotionLimits:
-    """Velocity (m/s, rad/s) and acceleration (m/s^2, rad/s^2) limits of the base."""
-
-    max_speed: float = 0.5
-    max_yaw_rate: float = 1.0
-    max_accel: float = 0.5
-    max_yaw_accel: float = 1.5
 
 
 class HolonomicBase:
@@ -120,7 +114,8 @@ class WaypointDriver:
         loop: start again after the last pose.
     """
 
-    def __init__(self, waypoints: Sequence[Sequence[float]], hold_time: float = 3.0, gain: float = 1.5,
+    def __init__(self, waypoints: Sequence[Sequence[float]], hold_time: float = RobotParams.hold_time,
+                 gain: float = 1.5,
                  tolerance: Tuple[float, float] = (0.005, np.radians(0.5)), loop: bool = False):
         self.waypoints: List[np.ndarray] = [np.array(w, dtype=float).reshape(3) for w in waypoints]
         self.hold_time = float(hold_time)
@@ -203,8 +198,9 @@ class SimRobot:
         loop: revisit the waypoints forever.
     """
 
-    def __init__(self, start: Sequence[float], waypoints: Sequence[Sequence[float]] = (), hold_time: float = 3.0,
-                 direct: bool = False, limits: MotionLimits = MotionLimits(), seed: int = 0, loop: bool = False):
+    def __init__(self, start: Sequence[float], waypoints: Sequence[Sequence[float]] = (),
+                 hold_time: float = RobotParams.hold_time, direct: bool = False,
+                 limits: MotionLimits = MotionLimits(), seed: int = 0, loop: bool = False):
         self.base = HolonomicBase(start, limits)
         self.odometry = WheelOdometry(seed=seed)
         self.driver = WaypointDriver(waypoints, hold_time=hold_time, loop=loop) if len(waypoints) else None

@@ -31,6 +31,7 @@ import numpy as np
 from .. import geometry as geo
 from ..camera import CameraModel
 from ..ring import CameraRing
+from .params import RenderParams
 from .scene import Scene
 
 logger = logging.getLogger(__name__)
@@ -108,8 +109,9 @@ class RingRenderer:
             sampling, edges then snap to pixel boundaries).
     """
 
-    def __init__(self, scene: Scene, ring: CameraRing, seed: int = 0, blur_sigma: float = 0.6,
-                 noise_std: float = 2.0, min_depth: float = 0.05, supersample: int = 2):
+    def __init__(self, scene: Scene, ring: CameraRing, seed: int = 0, blur_sigma: float = RenderParams.blur_sigma,
+                 noise_std: float = RenderParams.noise_std, min_depth: float = 0.05,
+                 supersample: int = RenderParams.supersample):
         self.scene = scene
         self.supersample = max(1, int(supersample))
         self.ring = ring

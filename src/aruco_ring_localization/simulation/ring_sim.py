@@ -30,6 +30,7 @@ from .. import geometry as geo
 from ..detections import CameraFrame, MarkerObservation, RingFrame
 from ..markers import marker_corners
 from ..ring import CameraRing, RingCamera
+from .params import CameraParams, RenderParams, RingParams
 from .scene import Scene
 
 logger = logging.getLogger(__name__)
@@ -37,7 +38,8 @@ logger = logging.getLogger(__name__)
 PoseLike = Union[np.ndarray, Sequence[float]]
 
 
-def perturb_ring(ring: CameraRing, trans_std: float = 0.002, rot_std_deg: float = 0.2, seed: int = 0) -> CameraRing:
+def perturb_ring(ring: CameraRing, trans_std: float = RingParams.calibration_trans_std,
+                 rot_std_deg: float = RingParams.calibration_rot_std_deg, seed: int = 0) -> CameraRing:
     """The 'true' rig: every camera's extrinsics moved by a seeded calibration error.
 
     Each camera's optical frame is displaced by a Gaussian translation (``trans_std`` m per axis)
@@ -98,11 +100,13 @@ class RingSimulator:
         max_view_angle: markers seen more obliquely than this (rad) are not detected.
         margin: corners must be this many pixels inside the image.
         min_depth: corners must be at least this far in front of the camera, m.
+        render: image mode: blur, noise and supersampling of the renderer.
     """
 
-    def __init__(self, scene: Scene, true_ring: CameraRing, pixel_noise: float = 0.3, max_range: float = 8.0,
-                 seed: int = 0, min_marker_px: float = 15.0, max_view_angle: float = np.radians(75.0),
-                 margin: float = 3.0, min_depth: float = 0.05):
+    def __init__(self, scene: Scene, true_ring: CameraRing, pixel_noise: float = CameraParams.pixel_noise,
+                 max_range: float = CameraParams.max_range, seed: int = 0, min_marker_px: float = 15.0,
+                 max_view_angle: float = np.radians(75.0), margin: float = 3.0, min_depth: float = 0.05,
+                 render: RenderParams = RenderParams()):
         self.scene = scene
         self.ring = true_ring
         self.pixel_noise = float(pixel_noise)
@@ -113,6 +117,7 @@ class RingSimulator:
         self.min_depth = float(min_depth)
         self.rng = np.random.default_rng(seed)
         self.seed = seed
+        self.render_params = render
         self._renderer = None
         ids = [m.marker_id for m in scene.markers]
         self._ids = np.array(ids, dtype=int)
@@ -219,7 +224,9 @@ class RingSimulator:
         """{camera name: mono8 image (height, width)} rendered from the true pose (image mode)."""
         if self._renderer is None:
             from .render import RingRenderer
-            self._renderer = RingRenderer(self.scene, self.ring, seed=self.seed)
+            r = self.render_params
+            self._renderer = RingRenderer(self.scene, self.ring, seed=self.seed, blur_sigma=r.blur_sigma,
+                                          noise_std=r.noise_std, supersample=r.supersample)
         gen = rng if rng is not None else self.rng
         names = list(cameras) if cameras is not None else self.ring.names
         T = as_transform(T_world_base)

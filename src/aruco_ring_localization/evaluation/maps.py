@@ -1,12 +1,13 @@
-"""Errors against a reference: marker maps (mapping part; localization/demo parts below it).
+"""A marker map against the truth: per-marker errors, the strict convention and the best fit.
 
-Map errors (:func:`map_error`): an estimated map lives in a frame fixed to its reference marker
-(DESIGN §2), the truth in the simulator's world frame. The fair comparison expresses the truth in
-the *same frame definition*: :func:`marker_map.map_frame_from_reference` applied to the truth's
-pose of the estimate's reference marker. No free alignment is fitted, so an error in how the
-frame is fixed shows up in the numbers. A best-fit SE(3) alignment (:func:`align_map_to_truth`,
-least squares over all marker corners) is offered too, reported separately: it shows the
-map's internal consistency (its shape), not its error in use.
+An estimated map lives in a frame fixed to its reference marker (docs/formats.md, "Marker map"), the
+truth in the simulator's world frame. The fair comparison (the strict convention,
+:func:`truth_in_map_frame`) expresses the truth in the *same frame definition*:
+:func:`marker_map.map_frame_from_reference` applied to the truth's pose of the estimate's
+reference marker. No free alignment is fitted, so an error in how the frame is fixed shows up in
+the numbers. A best-fit SE(3) alignment (:func:`align_map_to_truth`: evo's Umeyama alignment of
+all marker corners) is offered too, reported separately: it shows the map's shape (internal
+consistency), not its error in use; :func:`map_frame_error` is the difference of the two.
 """
 from __future__ import annotations
 
@@ -14,10 +15,11 @@ import logging
 from typing import Any, Dict, List, Optional
 
 import numpy as np
+from evo.core.geometry import umeyama_alignment
 
-from . import geometry as geo
-from .errors import GeometryError
-from .marker_map import MarkerMap, map_frame_from_reference
+from .. import geometry as geo
+from ..errors import GeometryError
+from ..marker_map import MarkerMap, map_frame_from_reference
 
 logger = logging.getLogger(__name__)
 
@@ -36,7 +38,7 @@ def truth_in_map_frame(est: MarkerMap, truth: MarkerMap, floor_z: float = 0.0) -
 
 
 def align_map_to_truth(est: MarkerMap, truth: MarkerMap) -> np.ndarray:
-    """Best-fit rigid ``T_truth_est`` (least squares over the corners of the common markers).
+    """Best-fit rigid ``T_truth_est`` (evo's Umeyama alignment of the common markers' corners).
 
     Raises GeometryError when fewer than 2 markers are shared.
     """
@@ -45,12 +47,8 @@ def align_map_to_truth(est: MarkerMap, truth: MarkerMap) -> np.ndarray:
         raise GeometryError(f"need at least 2 common markers to align, have {len(ids)}")
     P = np.concatenate([est.corners(i) for i in ids])     # in est frame
     Q = np.concatenate([truth.corners(i) for i in ids])   # in truth frame
-    mp, mq = P.mean(axis=0), Q.mean(axis=0)
-    H = (P - mp).T @ (Q - mq)
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(Vt.T @ U.T))
-    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
-    return geo.make_transform(R, mq - R @ mp)
+    R, t, _ = umeyama_alignment(P.T, Q.T)
+    return geo.make_transform(R, t)
 
 
 def map_error(est: MarkerMap, truth: MarkerMap, T_truth_est: Optional[np.ndarray] = None,
@@ -133,47 +131,3 @@ def format_map_error(err: Dict[str, Any]) -> str:
             f"max {err['position_max_mm']:.2f} mm; rotation mean {err['rotation_mean_deg']:.3f} deg, "
             f"max {err['rotation_max_deg']:.3f} deg"
             + (f"; missing {err['missing']}" if err["missing"] else ""))
-
-
-# --- localization part: trajectories (localization engineer) --------------------------------
-
-def tum_lines(stamps, poses) -> List[str]:
-    """TUM trajectory lines ``t x y z qx qy qz qw`` (evo's format) for 4x4 poses or (x, y, yaw)."""
-    lines = []
-    for t, P in zip(stamps, poses):
-        P = np.asarray(P, dtype=np.float64)
-        T = geo.transform_from_se2(*P) if P.shape == (3,) else P
-        q = geo.quaternion_from_matrix(T)
-        lines.append(f"{float(t):.6f} {T[0, 3]:.6f} {T[1, 3]:.6f} {T[2, 3]:.6f} "
-                     f"{q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}")
-    return lines
-
-
-def write_tum(path: str, stamps, poses) -> None:
-    """Write a TUM trajectory file (atomically); see :func:`tum_lines`."""
-    from .fileio import atomic_write_text
-
-    atomic_write_text(path, "\n".join(tum_lines(stamps, poses)) + "\n")
-
-
-def read_tum(path: str) -> np.ndarray:
-    """(N, 8) array ``t x y z qx qy qz qw`` from a TUM file (comments '#' skipped)."""
-    rows = [list(map(float, line.split())) for line in open(path, encoding="utf-8")
-            if line.strip() and not line.startswith("#")]
-    arr = np.array(rows, dtype=np.float64).reshape(-1, 8)
-    return arr
-
-
-def se2_errors(estimates, references) -> Dict[str, float]:
-    """Position (m) and |yaw| (rad) error statistics of paired (x, y, yaw) poses.
-
-    Returns ``pos_median``, ``pos_max``, ``pos_rms``, ``yaw_mean``, ``yaw_max`` (yaw wrapped).
-    """
-    e = np.asarray(estimates, dtype=np.float64).reshape(-1, 3)
-    r = np.asarray(references, dtype=np.float64).reshape(-1, 3)
-    if e.shape != r.shape or e.size == 0:
-        raise GeometryError(f"se2_errors: expected two equal non-empty (N, 3) arrays, got {e.shape} and {r.shape}")
-    d = np.hypot(e[:, 0] - r[:, 0], e[:, 1] - r[:, 1])
-    a = np.abs(geo.angle_diff(e[:, 2], r[:, 2]))
-    return {"pos_median": float(np.median(d)), "pos_max": float(d.max()), "pos_rms": float(np.sqrt(np.mean(d * d))),
-            "yaw_mean": float(np.mean(a)), "yaw_max": float(a.max())}

@@ -3,8 +3,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from aruco_ring_localization import trajectory as tr
-from aruco_ring_localization.comparison import ComparisonConfig, ComparisonCore
+from aruco_ring_localization import geometry as geo
+from aruco_ring_localization.evaluation.comparison import ComparisonConfig, ComparisonCore
+from aruco_ring_localization.evaluation.stops import summarize
+from aruco_ring_localization.evaluation.trajectories import apply_se2
 
 
 def drive(core: ComparisonCore, T_ref_est, rng, stops=((0, 0, 0), (1, 0.5, 1.0), (-1, 1, -2.0), (0.5, -1, 3.0)),
@@ -12,7 +14,7 @@ def drive(core: ComparisonCore, T_ref_est, rng, stops=((0, 0, 0), (1, 0.5, 1.0),
     """Stop-and-go through ``stops`` (reference frame); feeds the core; returns the last stamp."""
     t = 0.0
     prev = np.asarray(stops[0], dtype=float)
-    T_est_ref = tr.invert_se2(T_ref_est)
+    T_est_ref = geo.se2_from_transform(geo.inverse(geo.transform_from_se2(*T_ref_est)))
     for k, goal in enumerate(stops):
         goal = np.asarray(goal, dtype=float)
         seq = []
@@ -24,7 +26,7 @@ def drive(core: ComparisonCore, T_ref_est, rng, stops=((0, 0, 0), (1, 0.5, 1.0),
         seq += [goal] * int(hold * rate)
         for ref in seq:
             est_in_ref = ref + np.asarray(bias) + rng.normal(scale=noise)
-            est = tr.apply_se2(T_est_ref, est_in_ref[None])[0]
+            est = apply_se2(T_est_ref, est_in_ref[None])[0]
             core.add(t, ref, est)
             t += 1 / rate
         prev = goal
@@ -42,7 +44,7 @@ def test_alignment_and_live_errors():
     assert core.last_errors is not None and core.last_errors[2] < 0.01, core.last_errors
     assert len(core.stops) == 4, f"expected 4 stops (one per still period), got {len(core.stops)}"
     rows = core.stop_rows()
-    s = tr.summarize(rows)
+    s = summarize(rows)
     assert s["position_cm_max"] < 0.5, s
     assert "stops" in core.status_text()
 
@@ -68,7 +70,7 @@ def test_requested_stop_and_write(tmp_path):
     assert stop is not None and stop.source == "request" and len(stop.stamps) in (10, 11), stop
     paths = core.write(str(tmp_path), reference_name="ground truth")
     text = (tmp_path / "table1.md").read_text()
-    assert "ground truth" in text and "| 1 |" in text, text
+    assert "ground truth" in text and "| 1 |" in text and "fitted alignment" in text, text
     assert (tmp_path / "table2.csv").is_file() and (tmp_path / "comparison_summary.json").is_file(), paths
 
 

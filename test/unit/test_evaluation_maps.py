@@ -1,10 +1,10 @@
-"""evaluation.map_error: reference-frame comparison, best fit, missing markers."""
+"""evaluation.maps.map_error: reference-frame comparison, best fit, missing markers."""
 from __future__ import annotations
 
 import numpy as np
 
 from aruco_ring_localization import geometry as geo
-from aruco_ring_localization.evaluation import align_map_to_truth, map_error, map_frame_error
+from aruco_ring_localization.evaluation.maps import align_map_to_truth, map_error, map_frame_error
 from aruco_ring_localization.marker_map import MarkerEntry, MarkerMap, map_frame_from_reference
 from aruco_ring_localization.simulation.scene import Scene
 

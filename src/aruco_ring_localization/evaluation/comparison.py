@@ -1,11 +1,11 @@
 """Live comparison of our pose with a reference (gmapping, ground truth): the comparison node's core.
 
-The comparison node (:mod:`.ros.comparison`) feeds this class time-matched planar pose pairs:
+The comparison node (:mod:`aruco_ring_localization.ros.comparison`) feeds this class time-matched planar pose pairs:
 the reference robot pose in the reference map frame (gmapping's ``map -> base_link``) and ours
 in our marker map frame (``aruco_map -> aruco_base_link``). The two map frames differ by a fixed
 unknown SE(2) transform ``T_ref_est`` (where gmapping started vs where our reference marker is):
 
-- it is estimated by least squares over the pairs (:func:`trajectory.align_se2`, closed form;
+- it is estimated by least squares over the pairs (:func:`trajectories.align_se2`, evo's Umeyama in 2D;
   re-estimated as pairs arrive, from at most ``max_pairs`` pairs thinned evenly over time), or
   given by the user (``alignment`` = (x, y, yaw));
 - the live errors are ``T_ref_est * est - ref``: x, y, Euclidean (m), yaw (rad);
@@ -24,9 +24,12 @@ from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 
-from . import geometry as geo
-from . import trajectory as tr
-from .errors import GeometryError
+from .. import geometry as geo
+from ..errors import GeometryError
+from ..fileio import atomic_write_text
+from .stops import Stop, StopError, stop_errors, summarize
+from .tables import write_tables
+from .trajectories import MatchedPairs, align_se2, apply_se2, error_statistics, pose_errors
 
 logger = logging.getLogger(__name__)
 
@@ -107,7 +110,7 @@ class ComparisonCore:
         if self._T is None:
             self.last_errors = None
             return None
-        self.last_errors = tr.pose_errors(r, tr.apply_se2(self._T, e[None]))[0]
+        self.last_errors = pose_errors(r, apply_se2(self._T, e[None]))[0]
         return self.last_errors
 
     def _estimate_alignment(self) -> np.ndarray:
@@ -115,7 +118,7 @@ class ComparisonCore:
         idx = np.arange(n) if n <= self.config.max_pairs else np.linspace(0, n - 1, self.config.max_pairs).astype(int)
         est = np.asarray(self._est)[idx]
         ref = np.asarray(self._ref)[idx]
-        return tr.align_se2(est, ref)
+        return align_se2(est, ref)
 
     # --- alignment --------------------------------------------------------------------------
     @property
@@ -183,20 +186,20 @@ class ComparisonCore:
         return self._record(end - self.config.record_window, end, "request")
 
     # --- output -----------------------------------------------------------------------------
-    def stop_rows(self) -> List[tr.StopError]:
+    def stop_rows(self) -> List[StopError]:
         """One Table I/II row per recorded stop, with the current alignment applied."""
         T = self._T if self._T is not None else np.zeros(3)
         rows = []
         for s in self.stops:
-            pairs = tr.MatchedPairs(s.stamps, s.ref, tr.apply_se2(T, s.est))
-            rows += tr.stop_errors(pairs, [tr.Stop(float(s.stamps[0]), float(s.stamps[-1]))], labels=[s.label])
+            pairs = MatchedPairs(s.stamps, s.ref, apply_se2(T, s.est))
+            rows += stop_errors(pairs, [Stop(float(s.stamps[0]), float(s.stamps[-1]))], labels=[s.label])
         return rows
 
     def statistics(self) -> Dict[str, float]:
         """Error statistics over every pair so far (with the current alignment)."""
         if self._T is None or not self._stamps:
             return {"n": 0}
-        return tr.error_statistics(tr.pose_errors(np.asarray(self._ref), tr.apply_se2(self._T, np.asarray(self._est))))
+        return error_statistics(pose_errors(np.asarray(self._ref), apply_se2(self._T, np.asarray(self._est))))
 
     def status_text(self) -> str:
         """A few lines for the rviz text marker."""
@@ -209,7 +212,7 @@ class ComparisonCore:
                          f"yaw {np.degrees(e[3]):+.2f} deg")
         rows = self.stop_rows()
         if rows:
-            s = tr.summarize(rows)
+            s = summarize(rows)
             lines.append(f"{len(rows)} stops: median {s['position_cm_median']:.1f} cm, max {s['position_cm_max']:.1f} cm, "
                          f"|yaw| mean {s['yaw_deg_mean_abs']:.2f} deg")
         T = self._T
@@ -222,11 +225,11 @@ class ComparisonCore:
         import json
         import os
 
-        from .fileio import atomic_write_text
-
         rows = self.stop_rows()
-        paths = tr.write_tables(out_dir, rows, rows, reference_name=reference_name)
-        summary = {"pairs": self.n_pairs, "stops": tr.summarize(rows), "all": self.statistics(),
+        how = "given alignment" if self.alignment_given else "fitted alignment, which absorbs a constant offset"
+        paths = write_tables(out_dir, rows, rows, reference_name=reference_name,
+                             frame=f"reference's map frame ({how})")
+        summary = {"pairs": self.n_pairs, "stops": summarize(rows), "all": self.statistics(),
                    "alignment": None if self._T is None else {
                        "x_m": float(self._T[0]), "y_m": float(self._T[1]), "yaw_deg": float(np.degrees(self._T[2])),
                        "given": self.alignment_given}}

@@ -1,15 +1,17 @@
 """Bad input at the localizer node's boundary, without a ROS master (issue 7 §2, §3).
 
-The node class is built with rospy's publishers, subscribers, services, timers and the tf
-listener/broadcaster replaced by recorders, and its callbacks are called directly with
+Needs rospy and the messages (it fails without them). The node class is built with rospy's
+publishers, subscribers, services, timers and the tf listener/broadcaster replaced by recorders,
+and its subscription callbacks (:class:`ros.ring_input.RingSubscriber`) are called directly with
 constructed messages: FiducialArray with NaN/inf/huge coordinates, empty or huge lists,
 duplicate, unknown and wrong frame ids; CameraInfo with zero K or a wrong D length; initialpose
-with NaN. Each callback must return normally (never raise), warn through a THROTTLED call, and
-the node must keep localizing from the good cameras. A hypothesis fuzz does the same with
-arbitrary field values.
+with NaN. Each callback must return normally (never raise), warn THROTTLED (rospy's throttled
+calls, or the pipeline's own throttle, whose records are captured here), and the node must keep
+localizing from the good cameras. A hypothesis fuzz does the same with arbitrary field values.
 """
 from __future__ import annotations
 
+import logging
 import math
 import time
 from typing import List
@@ -18,21 +20,20 @@ from unittest import mock
 import numpy as np
 import pytest
 
-rospy = pytest.importorskip("rospy")
-pytest.importorskip("fiducial_msgs.msg")
-pytest.importorskip("tf2_ros")
-
+import rospy  # noqa: E402
 import tf2_ros  # noqa: E402
 from fiducial_msgs.msg import Fiducial, FiducialArray  # noqa: E402
 from geometry_msgs.msg import PoseWithCovarianceStamped  # noqa: E402
 from hypothesis import given  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
+from aruco_ring_localization.config import with_overrides  # noqa: E402
 from aruco_ring_localization.marker_map import MarkerMap  # noqa: E402
 from aruco_ring_localization.ring import CameraRing  # noqa: E402
 from aruco_ring_localization.ros.conversions import (make_transform_stamped, model_to_camera_info,  # noqa: E402
                                                      observations_to_fiducials)
 from aruco_ring_localization.simulation.ring_sim import RingSimulator  # noqa: E402
+from aruco_ring_localization.schemas import LocalizerConfig  # noqa: E402
 from aruco_ring_localization.simulation.scene import Scene  # noqa: E402
 
 from fuzz_support import EXAMPLES, FUZZ  # noqa: E402
@@ -50,11 +51,19 @@ def _buffer_without_master(*args, **kwargs):
     return _RealBuffer(*args, **kwargs)
 
 
-class Recorder:
-    """Collects rospy log calls: (level, throttled, message)."""
+class Recorder(logging.Handler):
+    """Collects rospy log calls and the core's log records: (level, throttled, message).
+
+    The core's per-message warnings go through its own throttle (throttle.ThrottledWarnings): they
+    count as throttled here; the pipeline's counters say how many lines each problem gave.
+    """
 
     def __init__(self):
+        super().__init__(logging.WARNING)
         self.calls: List[tuple] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.calls.append(("warn" if record.levelno < logging.ERROR else "err", True, record.getMessage()))
 
     def make(self, level: str, throttled: bool):
         def log(*args, **_kw):
@@ -93,13 +102,28 @@ def node(world, monkeypatch):
         monkeypatch.setattr(rospy, f"log{level}_throttle", rec.make(level, True))
         monkeypatch.setattr(rospy, f"log{level}_once", rec.make(level, True))
     rospy.rostime.set_rostime_initialized(True)  # wall time, as without use_sim_time
-    n = loc_mod.LocalizerNode(loc_mod.LocalizerNodeParams(camera_info_fallback=False, timeout=0.05), ring, truth)
+    core_log = logging.getLogger("aruco_ring_localization")
+    core_log.addHandler(rec)
+    n = loc_mod.LocalizerNode(_config({"input.camera_info_fallback": False, "input.timeout": 0.05}), ring, truth)
     for cam in ring.cameras:
         n.tf_buffer.set_transform_static(make_transform_stamped(cam.T_base_cam, ring.base_frame, cam.frame_id,
                                                                 rospy.Time(0)), "test")
     n.log = rec
     n.published_poses = lambda: [c.args[0] for c in n.pub_pose.publish.call_args_list]
-    return n
+    yield n
+    core_log.removeHandler(rec)
+
+
+def _config(overrides) -> LocalizerConfig:
+    return with_overrides(LocalizerConfig(), overrides)
+
+
+def _each_problem_said_once_per_period(node) -> None:
+    """Every problem the pipeline counted went out once: a test lasts less than one throttle period (5 s)."""
+    w = node.pipeline.warn
+    assert w.counts, "no problem was counted"
+    for key, n in w.counts.items():
+        assert w.said[key] == 1, f"{key}: {w.said[key]} lines for {n} occurrences"
 
 
 def _info(ring, name, **changes):
@@ -137,7 +161,7 @@ def _feed(node, world, n_frames=3, infos=None, extra=None, frame_ids=None):
         for name, msg in _frame_msgs(world, stamp, extra, frame_ids).items():
             node.ring_input._on_fiducials(msg, name)
         # a skipped camera: the assembler's timeout sends the frame without it
-        time.sleep(node.p.timeout + 0.01)
+        time.sleep(node.config.input.timeout + 0.01)
         node.ring_input._on_timer(None)
     return stamps
 
@@ -181,8 +205,9 @@ def test_malformed_corners_are_dropped_with_a_throttled_warning(node, world, kin
     assert _last_error(node) < 0.03, f"{kind}: position error {_last_error(node) * 100:.2f} cm"
     assert node.log.warnings(throttled=True), f"{kind}: no throttled warning: {node.log.calls}"
     assert not node.log.warnings(throttled=False), f"{kind}: unthrottled warning {node.log.warnings(False)}"
-    rejected = sum(sum(v.values()) for v in node.ring_input.rejected.values())
-    assert rejected >= 2 * 3, f"{kind}: {node.ring_input.rejected}"
+    rejected = sum(sum(v.values()) for v in node.pipeline.input.rejected.values())
+    assert rejected >= 2 * 3, f"{kind}: {node.pipeline.input.rejected}"
+    _each_problem_said_once_per_period(node)
 
 
 def test_duplicate_ids_in_one_image_are_dropped(node, world):
@@ -191,7 +216,7 @@ def test_duplicate_ids_in_one_image_are_dropped(node, world):
     cam = max(msgs, key=lambda n: len(msgs[n].fiducials))
     dup = msgs[cam].fiducials[0]
     _feed(node, world, extra={cam: [dup, dup]})
-    assert node.ring_input.rejected[cam].get("duplicate id", 0) >= 3, node.ring_input.rejected
+    assert node.pipeline.input.rejected[cam].get("duplicate id", 0) >= 3, node.pipeline.input.rejected
     assert _last_error(node) < 0.05
 
 
@@ -251,8 +276,7 @@ def test_bad_camera_info_ignores_the_camera(node, world, change):
     _feed(node, world, infos=infos)
     assert any("camera_info" in w for w in node.log.warnings(throttled=True)), (change, node.log.calls)
     assert _last_error(node) < 0.05
-    assert "cam0" in node.ring_input.silent_cameras(0.0) or node.ring_input.skipped["cam0"], \
-        "the camera with bad camera_info was used"
+    assert node.pipeline.input.skipped["cam0"], "the camera with bad camera_info was used"
 
 
 def test_missing_camera_info_and_tf_for_one_camera(node, world):
@@ -264,9 +288,9 @@ def test_missing_camera_info_and_tf_for_one_camera(node, world):
             node.ring_input._on_camera_info(_info(ring, name), name)
     for name, msg in _frame_msgs(world, stamp).items():
         node.ring_input._on_fiducials(msg, name)
-    time.sleep(node.p.timeout + 0.02)
+    time.sleep(node.config.input.timeout + 0.02)
     node.ring_input._on_timer(None)
-    assert node.ring_input.skipped["cam5"], node.ring_input.skipped
+    assert node.pipeline.input.skipped["cam5"], node.pipeline.input.skipped
     assert any("camera_info" in w for w in node.log.warnings(throttled=True))
     assert _last_error(node) < 0.05
 
@@ -284,7 +308,7 @@ def test_initialpose_with_nan_is_ignored(node, world, field, value):
         msg.pose.pose.orientation.w = 0.0 if field == "qz" else value  # qz: all-zero quaternion
     node.on_initialpose(msg)
     assert any("initialpose" in w for w in node.log.warnings()), node.log.calls
-    pose = node.tracker.filter.pose
+    pose = node.pipeline.filter.pose
     assert math.hypot(pose[0] - POSE[0], pose[1] - POSE[1]) < 0.05, f"track moved to {pose}"
 
 
@@ -318,7 +342,7 @@ def test_fuzz_node_callbacks_never_raise(world, data):
         from aruco_ring_localization.ros import localizer as loc_mod
 
         rospy.rostime.set_rostime_initialized(True)
-        n = loc_mod.LocalizerNode(loc_mod.LocalizerNodeParams(camera_info_fallback=True, use_tf=False), ring, truth)
+        n = loc_mod.LocalizerNode(_config({"input.camera_info_fallback": True, "input.use_tf": False}), ring, truth)
         base = time.time()
         for _ in range(data.draw(st.integers(1, 6), label="events")):
             name = data.draw(st.sampled_from(ring.names), label="camera")
@@ -382,7 +406,8 @@ def test_localizer_exits_cleanly_on_a_bad_map_file(tmp_path, monkeypatch, case):
     monkeypatch.setattr(rospy, "spin", lambda: pytest.fail("the node started with a bad map"))
     monkeypatch.setattr(rospy, "signal_shutdown", lambda *a: None)
     monkeypatch.setattr(rospy, "logfatal", rec.make("fatal", False))
-    monkeypatch.setattr(loc_mod, "read_params", lambda cls, **k: cls(map_file=path))
+    monkeypatch.setattr(loc_mod.log_bridge, "install", lambda: None)
+    monkeypatch.setattr(loc_mod, "read_config", lambda cls, **k: with_overrides(cls(), {"map_file": path}))
     assert loc_mod.main([]) == 1
     fatal = [m for lvl, _, m in rec.calls if lvl == "fatal"]
     assert fatal and path in fatal[0] and key in fatal[0], f"{case}: {fatal}"
@@ -398,7 +423,8 @@ def test_mapper_exits_cleanly_on_a_bad_ring_file(tmp_path, monkeypatch):
     monkeypatch.setattr(rospy, "init_node", lambda *a, **k: None)
     monkeypatch.setattr(rospy, "spin", lambda: pytest.fail("the node started with a bad ring file"))
     monkeypatch.setattr(rospy, "logfatal", rec.make("fatal", False))
-    monkeypatch.setattr(mapper_mod, "read_params", lambda cls, **k: cls(ring_file=str(ring)))
+    monkeypatch.setattr(mapper_mod.log_bridge, "install", lambda: None)
+    monkeypatch.setattr(mapper_mod, "read_config", lambda cls, **k: with_overrides(cls(), {"ring_file": str(ring)}))
     assert mapper_mod.main([]) == 1
     fatal = [m for lvl, _, m in rec.calls if lvl == "fatal"]
     assert fatal and str(ring) in fatal[0] and "duplicate" in fatal[0], fatal

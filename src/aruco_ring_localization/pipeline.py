@@ -1,0 +1,754 @@
+"""The one localization pipeline and the one mapping pipeline, without ROS.
+
+Everything between "a camera's detections arrive" and "a pose goes out" (or "the map is saved")
+lives here, once. The ``localizer`` node, ``aruco_ring localize``, the benchmarks and the demo
+drive :class:`LocalizationPipeline`; the ``mapper`` node and ``aruco_ring build-map`` drive
+:class:`MappingPipeline`. They only convert messages into the event calls below and publish
+what the calls return, so a recorded bag replayed offline gives exactly the node's poses.
+
+Events (each takes ``now``, the caller's clock in seconds: ROS time in a node, the bag's
+receive time offline; outputs depend only on the sequence of events and their ``now``)::
+
+    on_camera_info(camera, model)            intrinsics of a camera (its camera_info)
+    on_extrinsics(camera, T_base_cam)        extrinsics (tf; None = the ring file's)
+    on_detections(camera, stamp, obs, now)   one camera's detections -> [PoseOutput]
+    on_motion(source, stamp, v_xy, w, now)   cmd_vel or odom twist -> []
+    on_initial_pose(T_or_se2, now)           rviz "2D Pose Estimate" -> []
+    reset()                                  forget the track
+    poll(now)                                timed-out ring frames, predict-only output -> [PoseOutput]
+
+Per detection message (:class:`RingInput`): the stamp policy (:meth:`RingInput.check_stamp`),
+the calibration in force (camera_info models, extrinsics), sanitizing (ONCE, here:
+:func:`detections.sanitize_observations`), ring-frame assembly (:class:`RingFrameAssembler`).
+Per ring frame (:meth:`LocalizationPipeline._track`, paper Algorithm 1, steps 2-5): the time-jump
+policy, the filter's prediction seeds :class:`RingLocalizer`, the measurement goes through
+:class:`MotionGate` with the latest motion input, then :class:`PoseFilter` (update,
+re-initialisation or predict only). Stale ring frames are dropped (``timing.max_frame_age``),
+and while every camera is silent :meth:`LocalizationPipeline.poll` publishes the filter's
+prediction with its growing covariance.
+
+Per-message problems are logged through :mod:`logging` with a throttle that is part of the core
+(:class:`throttle.ThrottledWarnings`, one line per problem per 5 s of ``now``); the nodes send
+these records to rosout. Nothing here is thread-safe: a node calls a pipeline under one lock.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Deque, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from . import geometry as geo
+from .camera import CameraModel
+from .detections import CameraFrame, MarkerObservation, RingFrame, RingFrameAssembler, sanitize_observations
+from .errors import ConfigError, GeometryError, MeasurementError
+from .gating import GateDecision, MotionGate
+from .kalman import PoseFilter
+from .localization import LocalizationResult, RingLocalizer
+from .mapping import MapBuilder
+from .marker_map import MarkerMap
+from .ring import CameraRing, apply_refined_extrinsics
+from .schemas import LocalizerConfig, MapperConfig, RingInputParams
+from .throttle import WARN_PERIOD, ThrottledWarnings
+
+logger = logging.getLogger(__name__)
+
+#: Reasons a whole camera frame is skipped (keys of :attr:`RingInput.skipped`).
+SKIP_NO_CAMERA_INFO = "no camera_info"
+SKIP_NO_EXTRINSICS = "no extrinsics"
+SKIP_BAD_STAMP = "bad stamp"
+
+#: Motion inputs :meth:`LocalizationPipeline.on_motion` takes.
+MOTION_SOURCES = ("cmd_vel", "odom")
+
+
+def resolve_camera_names(ring: CameraRing, entries: Optional[Sequence[str]]) -> List[str]:
+    """Ring camera names from a list of names (``cam0``) or namespaces (``ring/cam0``).
+
+    Empty -> every ring camera. Raises ConfigError naming an entry that matches nothing.
+    """
+    if not entries:
+        return ring.names
+    by_ns = {c.namespace.strip("/"): c.name for c in ring.cameras}
+    out = []
+    for e in entries:
+        e = str(e).strip()
+        if e in ring.names:
+            out.append(e)
+        elif e.strip("/") in by_ns:
+            out.append(by_ns[e.strip("/")])
+        else:
+            raise ConfigError(f"camera {e!r} is neither a ring camera name {ring.names} nor a namespace "
+                              f"{sorted(by_ns)}", key="input.cameras")
+    return out
+
+
+def pose_covariance_from_se2(cov3: np.ndarray, z_var: float = 1e6, rp_var: float = 1e6) -> np.ndarray:
+    """(x, y, yaw) 3x3 covariance -> 6x6 over (x, y, z, roll, pitch, yaw) (PoseWithCovariance order).
+
+    z, roll and pitch are not estimated: they get a large variance, so robot_localization
+    ignores them (its ``two_d_mode`` users configure them out anyway).
+    """
+    C = np.zeros((6, 6))
+    idx = [0, 1, 5]
+    C[np.ix_(idx, idx)] = np.asarray(cov3, dtype=np.float64).reshape(3, 3)
+    C[2, 2] = z_var
+    C[3, 3] = C[4, 4] = rp_var
+    return C
+
+
+# --- the way in: stamps, calibration in force, sanitizing, assembly -----------------------------
+
+class RingInput:
+    """Per-camera detections -> ring frames, with the calibration in force.
+
+    Args:
+        ring: the calibrated ring (names, frames, fallback intrinsics and extrinsics).
+        params: the ``input`` section of the node's schema.
+        warn: the pipeline's throttled warnings.
+        label: how the warnings name this stage.
+    """
+
+    def __init__(self, ring: CameraRing, params: RingInputParams, warn: ThrottledWarnings,
+                 label: str = "ring input"):
+        self.params = params
+        self.calibrated_ring = ring
+        self.camera_names = resolve_camera_names(ring, params.cameras)
+        self.ignore_ids = params.ignored_ids()
+        self.assembler = RingFrameAssembler(self.camera_names, slop=params.slop, timeout=params.timeout,
+                                            silence=params.silent_after)
+        self._warn = warn
+        self._label = label
+        self._models: Dict[str, CameraModel] = {}
+        self._extrinsics: Dict[str, np.ndarray] = (
+            {} if params.use_tf else {n: ring[n].T_base_cam for n in self.camera_names})
+        self._ring = ring
+        #: camera -> {reason: count} of detections dropped by sanitize_observations.
+        self.rejected: Dict[str, Dict[str, int]] = {n: {} for n in self.camera_names}
+        #: camera -> {reason: count} of whole camera frames skipped (no camera_info / extrinsics / stamp).
+        self.skipped: Dict[str, Dict[str, int]] = {n: {} for n in self.camera_names}
+        self.frames_in = 0
+        self.ring_frames_out = 0
+
+    # --- calibration in force ---------------------------------------------------------------
+
+    def set_camera_model(self, camera: str, model: CameraModel) -> None:
+        """The intrinsics from this camera's latest camera_info."""
+        self._models[camera] = model
+
+    def camera_model(self, camera: str) -> Optional[CameraModel]:
+        """Intrinsics in force for ``camera`` (camera_info, or the ring's with the fallback), or None."""
+        model = self._models.get(camera)
+        if model is None and self.params.camera_info_fallback:
+            model = self.calibrated_ring[camera].model
+        return model
+
+    def set_extrinsics(self, camera: str, T_base_cam: Optional[np.ndarray] = None) -> None:
+        """``T_base_cam`` (4x4) of ``camera`` (from tf); None: the calibrated ring's."""
+        if camera not in self.skipped:
+            raise ConfigError(f"extrinsics for {camera}, which is not an input camera ({self.camera_names})",
+                              key="input.cameras")
+        T = self.calibrated_ring[camera].T_base_cam if T_base_cam is None else \
+            geo.validate_transform(T_base_cam, f"extrinsics of {camera}")
+        self._extrinsics[camera] = T
+        self._ring = self.calibrated_ring.with_extrinsics(self._extrinsics)
+
+    def has_extrinsics(self, camera: str) -> bool:
+        return camera in self._extrinsics
+
+    @property
+    def ring(self) -> CameraRing:
+        """The ring with the extrinsics in force (tf's where known, the file's for the others)."""
+        return self._ring
+
+    # --- data -------------------------------------------------------------------------------
+
+    def check_stamp(self, camera: str, stamp: float, now: float) -> Optional[str]:
+        """Why a camera's message with ``stamp`` must not be used at ``now``, or None.
+
+        THE place for the stamp policy (issue 14: stamps checked against the node's clock,
+        future or absurd stamps dropped, never used to predict). Today: non-finite stamps.
+        """
+        if not np.isfinite(stamp):
+            return SKIP_BAD_STAMP
+        return None
+
+    def add_detections(self, camera: str, stamp: float, observations: Sequence[MarkerObservation],
+                       now: float) -> List[RingFrame]:
+        """Take one camera's detections at ``stamp`` (s); return the ring frames ready to go out.
+
+        Each camera frame keeps its own stamp (``RingFrame.cameras[c].stamp``; the ring frame's is
+        the earliest), for an estimator that compensates free-running cameras (issue 12).
+        """
+        self.frames_in += 1
+        if camera not in self.skipped:
+            self._warn(f"unknown camera {camera}", f"{self._label}: detections from {camera!r}, which is not an "
+                                                   f"input camera {self.camera_names}: ignored", now)
+            return self.poll(now)
+        model = self.camera_model(camera)
+        reason = self.check_stamp(camera, stamp, now)
+        if reason is None and model is None:
+            reason = SKIP_NO_CAMERA_INFO
+        if reason is None and camera not in self._extrinsics:
+            reason = SKIP_NO_EXTRINSICS
+        if reason is not None:
+            counts = self.skipped[camera]
+            counts[reason] = counts.get(reason, 0) + 1
+            hint = {SKIP_NO_CAMERA_INFO: " (set input/camera_info_fallback: true to use the ring file's)",
+                    SKIP_NO_EXTRINSICS: f" (tf {self.calibrated_ring.base_frame} -> "
+                                        f"{self.calibrated_ring[camera].frame_id})",
+                    SKIP_BAD_STAMP: f" ({stamp!r})"}.get(reason, "")
+            self._warn(f"{camera}.{reason}", f"{self._label}: {camera}: {reason}{hint}; skipping its detections", now)
+            return self.poll(now)
+        kept, dropped = sanitize_observations(observations, self.ignore_ids, model.width, model.height)
+        if dropped:
+            counts = self.rejected[camera]
+            for k, v in dropped.items():
+                counts[k] = counts.get(k, 0) + v
+            bad = {k: v for k, v in dropped.items() if k != "ignored"}
+            if bad:
+                self._warn(f"{camera}.malformed", f"{self._label}: {camera}: dropped malformed detections {bad}", now)
+        out = self.assembler.add(CameraFrame(camera, float(stamp), kept, model), now)
+        self.ring_frames_out += len(out)
+        return out
+
+    def poll(self, now: float, flush: bool = False) -> List[RingFrame]:
+        """Ring frames whose timeout has expired at ``now``; with ``flush`` every pending one."""
+        out = self.assembler.poll(np.inf if flush else now)
+        self.ring_frames_out += len(out)
+        return out
+
+    def silent_cameras(self, now: float) -> List[str]:
+        """Cameras from which nothing usable has arrived for ``input.silent_after`` s (or ever)."""
+        return self.assembler.silent_cameras(now, self.params.silent_after)
+
+
+class _RingPipeline:
+    """What both pipelines share: the way in (:attr:`input`), the calibration events, the warnings."""
+
+    input: RingInput
+    warn: ThrottledWarnings
+
+    def on_camera_info(self, camera: str, model: CameraModel) -> None:
+        """The intrinsics of ``camera`` from its camera_info."""
+        self.input.set_camera_model(camera, model)
+
+    def on_extrinsics(self, camera: str, T_base_cam: Optional[np.ndarray] = None) -> None:
+        """``T_base_cam`` of ``camera`` (tf); None: the calibrated ring's (the ring file's; for
+        localization refined with the map)."""
+        self.input.set_extrinsics(camera, T_base_cam)
+        self._use_ring(self.input.ring)
+
+    def _use_ring(self, ring: CameraRing) -> None:
+        """Hand the ring with the extrinsics in force to the estimator / map builder."""
+        raise NotImplementedError
+
+    @property
+    def ring(self) -> CameraRing:
+        """The ring with the extrinsics in force."""
+        return self.input.ring
+
+    @property
+    def camera_names(self) -> List[str]:
+        return list(self.input.camera_names)
+
+
+# --- localization ---------------------------------------------------------------------------------
+
+@dataclass
+class TrackResult:
+    """One ring frame through the estimator, the gate and the filter.
+
+    Attributes:
+        stamp: s. localization: the per-frame result. decision: the gate's (None if no pose).
+        pose: filtered (x, y, yaw), or None before the first measurement.
+        covariance: 3x3 filter covariance of (x, y, yaw), or None.
+        time_jump: the filter was reset because time went backwards.
+    """
+
+    stamp: float
+    localization: LocalizationResult
+    decision: Optional[GateDecision] = None
+    pose: Optional[np.ndarray] = None
+    covariance: Optional[np.ndarray] = None
+    time_jump: bool = False
+
+
+@dataclass
+class PoseOutput:
+    """What the localizer publishes for one ring frame (or one predict-only step).
+
+    Attributes:
+        stamp: s (the ring frame's; ``now`` for a prediction).
+        T_map_base: (4, 4) the filtered planar pose at the measured height (``~pose``, tf).
+        T_map_base_6dof: (4, 4) the same with the last accepted measurement's roll and pitch.
+        covariance: (6, 6) over (x, y, z, roll, pitch, yaw), REP-103 order.
+        twist: (3,) body-frame (v_forward m/s, v_left m/s, yaw rate rad/s) of the filter.
+        twist_covariance: (6, 6), same layout.
+        camera_estimates: camera -> (4, 4) ``T_map_base`` of each valid per-camera estimate.
+        track: the ring frame through the pipeline (the measurement is ``track.localization``).
+        predicted_only: no ring frame: every camera silent, the filter's prediction.
+    """
+
+    stamp: float
+    T_map_base: np.ndarray
+    T_map_base_6dof: np.ndarray
+    covariance: np.ndarray
+    twist: np.ndarray
+    twist_covariance: np.ndarray
+    camera_estimates: Dict[str, np.ndarray]
+    track: TrackResult
+    predicted_only: bool = False
+
+
+@dataclass
+class StatusReport:
+    """One diagnostics status (the node makes a diagnostic_msgs/DiagnosticStatus of it)."""
+
+    name: str
+    hardware_id: str
+    ok: bool
+    message: str
+    values: List[Tuple[str, str]] = field(default_factory=list)
+
+
+@dataclass
+class _Motion:
+    speed: float = 0.0
+    yaw_rate: float = 0.0
+    stamp: float = -np.inf
+
+
+class LocalizationPipeline(_RingPipeline):
+    """Detections (+ camera_info, extrinsics, motion) in, filtered poses out (module docstring).
+
+    Args:
+        config: the localizer's schema (config/localization.yaml).
+        ring: the calibrated ring (the ring file); when the map carries extrinsics refined while
+            mapping, they replace the ring file's (what ring_tf publishes with that map).
+        marker_map: the map; its frame is the output frame.
+
+    Raises:
+        ConfigError: an empty map, a refined calibration for another ring, a camera list that
+            names no ring camera.
+    """
+
+    def __init__(self, config: LocalizerConfig, ring: CameraRing, marker_map: MarkerMap):
+        if len(marker_map) == 0:
+            raise ConfigError("the map has no markers", path=config.map_file or None, key="markers")
+        if marker_map.ring_extrinsics:
+            ring = apply_refined_extrinsics(ring, marker_map.ring_extrinsics, marker_map.ring_base_frame,
+                                            source=config.map_file or "<map>")
+            logger.info("using the ring extrinsics refined while mapping (%s) where tf gives none",
+                        config.map_file or "the map")
+        self.config = config
+        self.marker_map = marker_map
+        self.warn = ThrottledWarnings(logger.warning, WARN_PERIOD)
+        self.input = RingInput(ring, config.input, self.warn, label="localizer")
+        self.localizer = RingLocalizer(self.input.ring, marker_map, config.estimator)
+        self.gate = MotionGate(config.gate)
+        self.filter = PoseFilter(config.filter)
+        self._motion: Dict[str, _Motion] = {}
+        self._z = 0.0                        # height of base_link in the map (last accepted measurement)
+        self._roll_pitch = (0.0, 0.0)        # ... and its roll, pitch
+        self._last_stamp: Optional[float] = None
+        self._last_frame_now: Optional[float] = None
+        self.last_update_now: Optional[float] = None
+        self.last_track: Optional[TrackResult] = None
+        # counters (diagnostics)
+        self.frames = 0
+        self.dropped_stale = 0
+        self.predicted_only = 0
+        self.frames_missing = 0             # ring frames processed without every camera
+        self.time_jumps = 0
+        self.rejected_counts: Dict[str, int] = {}
+        self.latency_ms: Deque[float] = deque(maxlen=200)
+        self._camera_stats: Dict[str, Dict[str, float]] = {}
+        self._in_view: Dict[int, float] = {}
+
+    # --- events -----------------------------------------------------------------------------
+
+    def _use_ring(self, ring: CameraRing) -> None:
+        self.localizer.set_ring(ring)
+
+    def on_detections(self, camera: str, stamp: float, observations: Sequence[MarkerObservation],
+                      now: float) -> List[PoseOutput]:
+        """One camera's detections (raw pixels) at ``stamp``; returns the poses to publish."""
+        return self._process(self.input.add_detections(camera, stamp, observations, now), now)
+
+    def on_motion(self, source: str, stamp: Optional[float], linear_xy: Sequence[float], yaw_rate: float,
+                  now: float, T_odom_base: Optional[np.ndarray] = None) -> List[PoseOutput]:
+        """A motion input: ``cmd_vel`` (no stamp) or ``odom`` (its header stamp and twist).
+
+        Args:
+            source: ``cmd_vel`` or ``odom``.
+            stamp: the message's stamp (s), or None (Twist has none; 0 counts as none): ``now``.
+            linear_xy: (v_x, v_y) m/s; yaw_rate: rad/s, body frame.
+            T_odom_base: the odometry pose (4x4), unused today: issue 12 predicts the filter with
+                odometry increments here, and may then return poses at the odometry rate.
+
+        The gate allows jumps that grow with the largest fresh speed (``timing.motion_timeout``).
+        """
+        if source not in MOTION_SOURCES:
+            raise ValueError(f"motion source must be one of {MOTION_SOURCES}, got {source!r}")
+        v = float(np.hypot(float(linear_xy[0]), float(linear_xy[1])))
+        w = float(yaw_rate)
+        t = float(stamp) if stamp else float(now)
+        if not (np.isfinite(v) and np.isfinite(w) and np.isfinite(t)):
+            self.warn(f"{source}.non-finite", f"localizer: {source}: non-finite speed or stamp "
+                                              f"(v {v!r}, yaw rate {w!r}, stamp {t!r}) ignored", now)
+            return []
+        self._motion[source] = _Motion(abs(v), abs(w), t)
+        return []
+
+    def on_initial_pose(self, pose, now: float) -> List[PoseOutput]:
+        """Restart the track at ``pose`` (4x4 ``T_map_base`` or (x, y, yaw)): rviz's initialpose.
+
+        Raises:
+            MeasurementError: a pose that is not finite.
+        """
+        P = np.asarray(pose, dtype=np.float64)
+        try:
+            se2 = geo.se2_from_transform(geo.validate_transform(P, "initialpose")) if P.shape == (4, 4) \
+                else P.reshape(3)
+        except (GeometryError, ValueError) as exc:
+            raise MeasurementError(f"initialpose: {exc}") from None
+        if not np.all(np.isfinite(se2)):
+            raise MeasurementError(f"initialpose: not finite: {se2.tolist()}")
+        stamp = self._last_stamp if self._last_stamp is not None else float(now)
+        self._reset(se2, stamp)
+        return []
+
+    def reset(self) -> None:
+        """Forget the track: the next measurement initialises it (the ``~reset`` service)."""
+        self._reset(None, None)
+
+    def poll(self, now: float) -> List[PoseOutput]:
+        """Call periodically: ring frames that timed out, and the prediction while every camera is silent.
+
+        After ``input.silent_after`` s of ``now`` without any ring frame (the assembler emits
+        nothing when no camera reports) the filter predicts to ``now`` and the pose goes out with
+        its growing covariance (``PoseOutput.predicted_only``), with a throttled warning.
+        """
+        out = self._process(self.input.poll(now), now)
+        if out or self._last_frame_now is None or not self.filter.initialized:
+            return out
+        blind = now - self._last_frame_now
+        if blind < self.config.input.silent_after or self.filter.stamp is None or now <= self.filter.stamp:
+            return out  # not silent long enough, or the clock has not moved (a paused bag)
+        track = self._track(RingFrame(stamp=float(now), missing=list(self.input.camera_names)))
+        self.warn("blind", f"localizer: no ring frame for {blind:.1f} s (every camera silent): predicting only, "
+                           "the covariance grows", now)
+        if track.pose is None:
+            return out
+        self.predicted_only += 1
+        return [self._output(track, predicted_only=True)]
+
+    def flush(self, now: float) -> List[PoseOutput]:
+        """Every pending ring frame, complete or not (the end of a bag)."""
+        return self._process(self.input.poll(now, flush=True), now)
+
+    # --- queries ------------------------------------------------------------------------------
+
+    @property
+    def height(self) -> float:
+        """z of base_link in the map frame from the last accepted measurement, m."""
+        return self._z
+
+    def prediction(self, stamp: float) -> Optional[np.ndarray]:
+        """Predicted ``T_map_base`` (4x4) at ``stamp``, or None without a track."""
+        if not self.filter.initialized:
+            return None
+        x, y, yaw = self.filter.predicted(stamp)
+        return geo.transform_from_se2(x, y, yaw, self._z)
+
+    def markers_in_view(self, now: float, window: float) -> set:
+        """Ids of the mapped markers used within ``window`` s before ``now``."""
+        return {m for m, t in self._in_view.items() if 0.0 <= now - t < window}
+
+    def diagnostics(self, now: float) -> List[StatusReport]:
+        """One status per camera and one for the filter (what ``/diagnostics`` shows)."""
+        out = []
+        silent = set(self.input.silent_cameras(now))
+        for name in self.input.camera_names:
+            st = self._camera_stats.get(name)
+            alive = name not in silent
+            rate = st["frames"] / max(now - st["first"], 1e-3) if st else 0.0
+            skipped = sum(self.input.skipped[name].values())
+            rejected = sum(self.input.rejected[name].values())
+            out.append(StatusReport(
+                f"aruco_ring localizer: camera {name}", name, alive,
+                "alive" if alive else "silent (no detections, camera_info or tf)",
+                [("alive", str(alive)), ("rate_hz", f"{rate:.1f}"),
+                 ("markers_seen", str(int(st["markers"])) if st else "0"),
+                 ("frames_skipped", str(skipped)), ("detections_dropped", str(rejected))]))
+        age = None if self.last_update_now is None else now - self.last_update_now
+        if age is None:
+            ok, message = False, "not initialised (no usable measurement yet)"
+        elif age > 2.0:
+            ok, message = False, f"no accepted measurement for {age:.1f} s"
+        else:
+            ok, message = True, "tracking"
+        cov = self.filter.covariance if self.filter.initialized else np.full((3, 3), np.nan)
+        lat = np.array(self.latency_ms) if self.latency_ms else np.array([np.nan])
+        values = [("last_update_age_s", "none" if age is None else f"{age:.2f}"),
+                  ("std_x_m", f"{np.sqrt(cov[0, 0]):.4f}"), ("std_y_m", f"{np.sqrt(cov[1, 1]):.4f}"),
+                  ("std_yaw_deg", f"{np.degrees(np.sqrt(cov[2, 2])):.3f}"),
+                  ("frames", str(self.frames)), ("dropped_stale", str(self.dropped_stale)),
+                  ("frames_with_missing_cameras", str(self.frames_missing)),
+                  ("predicted_only", str(self.predicted_only)),
+                  ("time_jumps", str(self.time_jumps)),
+                  ("reinitializations", str(self.gate.reinitializations)),
+                  ("latency_ms_median", f"{np.median(lat):.2f}")]
+        values += [(f"rejected_{k.replace(' ', '_')}", str(v)) for k, v in sorted(self.rejected_counts.items())]
+        out.append(StatusReport("aruco_ring localizer: filter", "localizer", ok, message, values))
+        return out
+
+    # --- the pipeline -------------------------------------------------------------------------
+
+    def _process(self, frames: List[RingFrame], now: float) -> List[PoseOutput]:
+        if not frames:
+            return []
+        self._last_frame_now = float(now)
+        if len(frames) > 1:
+            # Never fall behind: a ring frame that a newer one overtook is worth less than the newest.
+            self.dropped_stale += len(frames) - 1
+            self.warn("stale", f"localizer: dropped {self.dropped_stale} stale ring frames so far ({len(frames) - 1} "
+                               f"overtaken at {frames[-1].stamp:.3f} s)", now)
+            frames = frames[-1:]
+        frame = frames[0]
+        age = float(now) - frame.stamp
+        max_age = self.config.timing.max_frame_age
+        if max_age > 0 and age > max_age:
+            self.dropped_stale += 1
+            self.warn("stale", f"localizer: dropped {self.dropped_stale} stale ring frames so far (last "
+                               f"{age:.2f} s old > timing/max_frame_age {max_age} s)", now)
+            return []
+        t0 = time.perf_counter()
+        track = self._track(frame)
+        self.latency_ms.append(1000.0 * (time.perf_counter() - t0))
+        self.frames += 1
+        if frame.missing:
+            self.frames_missing += 1
+        for name, cf in frame.cameras.items():
+            st = self._camera_stats.setdefault(name, {"frames": 0, "first": float(now), "markers": 0})
+            st["frames"] += 1
+            st["markers"] = len(cf.observations)
+            st["last"] = float(now)
+        for mid in track.localization.marker_ids:
+            self._in_view[mid] = float(now)
+        decision = track.decision
+        if decision is not None and decision.accepted:
+            self.last_update_now = float(now)
+        elif decision is not None:
+            self.warn("gate", f"localizer: measurement rejected by the gate (jump {decision.distance:.2f} m / "
+                              f"{np.degrees(decision.angle):.1f} deg; allowed {decision.allowed_distance:.2f} m / "
+                              f"{np.degrees(decision.allowed_angle):.1f} deg)", now)
+        if track.pose is None:
+            return []
+        return [self._output(track)]
+
+    def _speeds(self, stamp: float) -> Tuple[float, float]:
+        fresh = [m for m in self._motion.values() if stamp - m.stamp <= self.config.timing.motion_timeout]
+        return (max((m.speed for m in fresh), default=0.0), max((m.yaw_rate for m in fresh), default=0.0))
+
+    def _reset(self, pose, stamp: Optional[float]) -> None:
+        self.gate.reset()
+        self.filter.reset(pose, stamp)
+        if pose is not None:
+            self.gate.last_accepted_stamp = float(stamp if stamp is not None else 0.0)
+        logger.info("localizer: track reset%s", "" if pose is None else
+                    f" at ({pose[0]:.2f}, {pose[1]:.2f}, {np.degrees(pose[2]):.1f} deg)")
+
+    def _track(self, ring_frame: RingFrame) -> TrackResult:
+        """Paper Algorithm 1, steps 2-5, on one ring frame."""
+        stamp = float(ring_frame.stamp)
+        self._last_stamp = stamp
+        time_jump = self.filter.check_time(stamp)
+        if time_jump:
+            # Time went backwards (a bag loop, a clock reset): the track starts over.
+            self.gate.reset()
+            self.time_jumps += 1
+            logger.warning("localizer: time jumped back to %.3f s: filter reset", stamp)
+        pred = self.prediction(stamp)
+        loc = self.localizer.process(ring_frame, pred)
+        for k, v in loc.rejected.items():
+            self.rejected_counts[k] = self.rejected_counts.get(k, 0) + v
+        out = TrackResult(stamp=stamp, localization=loc, time_jump=time_jump)
+        if loc.ok:
+            z = loc.se2
+            cov = loc.covariance_se2
+            speed, yaw_rate = self._speeds(stamp)
+            predicted = None if pred is None else geo.se2_from_transform(pred)
+            gate_cov = None
+            if predicted is not None:
+                # Covariance of (z - prediction): the filter's predicted covariance + the measurement's.
+                gate_cov = self.filter.predicted_covariance(stamp) + self.filter.measurement_covariance(cov)
+            # The full rotation goes in too (a flipped pose tilts), and whether the localizer found
+            # the measurement ambiguous (then it is not used).
+            decision = self.gate.check(z, stamp, predicted, speed, yaw_rate, gate_cov, rotation=loc.T_map_base[:3, :3],
+                                       ambiguous=loc.ambiguous)
+            out.decision = decision
+            if decision.reinitialize:
+                if decision.reason != "initialized":
+                    logger.warning("localizer: re-initialised after consistent measurements disagreed with the "
+                                   "track")
+                self.filter.reset(z, stamp, cov)
+                self._keep_attitude(loc.T_map_base)
+            elif decision.accepted:
+                self.filter.update(z, stamp, cov)
+                self._keep_attitude(loc.T_map_base)
+            else:
+                self.rejected_counts["gate"] = self.rejected_counts.get("gate", 0) + 1
+                self.filter.predict(stamp)
+        else:
+            self.filter.predict(stamp)
+        if self.filter.initialized:
+            out.pose = self.filter.pose
+            out.covariance = self.filter.covariance
+        self.last_track = out
+        return out
+
+    def _keep_attitude(self, T_map_base: np.ndarray) -> None:
+        self._z = float(T_map_base[2, 3])
+        roll, pitch, _ = geo.rpy_from_matrix(T_map_base)
+        self._roll_pitch = (float(roll), float(pitch))
+
+    def _output(self, track: TrackResult, predicted_only: bool = False) -> PoseOutput:
+        x, y, yaw = track.pose
+        T = geo.transform_from_se2(x, y, yaw, self._z)
+        T6 = geo.make_transform(geo.matrix_from_rpy(self._roll_pitch[0], self._roll_pitch[1], yaw), [x, y, self._z])
+        estimates = {name: e.T_map_base for name, e in track.localization.estimates.items() if e.valid}
+        return PoseOutput(stamp=track.stamp, T_map_base=T, T_map_base_6dof=T6,
+                          covariance=pose_covariance_from_se2(track.covariance),
+                          twist=self.filter.body_twist,
+                          twist_covariance=pose_covariance_from_se2(self.filter.velocity_covariance),
+                          camera_estimates=estimates, track=track, predicted_only=predicted_only)
+
+
+# --- mapping ---------------------------------------------------------------------------------------
+
+class MappingPipeline(_RingPipeline):
+    """Detections (+ camera_info, extrinsics) in, a marker map out: the mapper node and ``build-map``.
+
+    Args:
+        config: the mapper's schema (config/mapping.yaml).
+        ring: the calibrated ring (the ring file).
+
+    The :class:`MapBuilder` is this object's own (:attr:`builder`): the extrinsics in force reach
+    it through :meth:`on_extrinsics`, never from outside.
+    """
+
+    def __init__(self, config: MapperConfig, ring: CameraRing):
+        self.config = config
+        self.warn = ThrottledWarnings(logger.warning, WARN_PERIOD)
+        self.input = RingInput(ring, config.input, self.warn, label="mapper")
+        self.builder = MapBuilder(self.input.ring, config.markers.sizes(), method=config.map.method,
+                                  reference_marker=config.map.reference, options=config.mapping,
+                                  frame_id=config.map.map_frame)
+        self.frames_missing = 0  # ring frames added without every camera
+
+    # --- events -----------------------------------------------------------------------------
+
+    def _use_ring(self, ring: CameraRing) -> None:
+        self.builder.set_ring(ring)
+
+    def on_detections(self, camera: str, stamp: float, observations: Sequence[MarkerObservation],
+                      now: float) -> int:
+        """One camera's detections; returns the number of ring frames added to the map."""
+        return self._add(self.input.add_detections(camera, stamp, observations, now))
+
+    def poll(self, now: float) -> int:
+        """Ring frames that timed out (call periodically); returns how many were added."""
+        return self._add(self.input.poll(now))
+
+    def flush(self, now: float) -> int:
+        """Every pending ring frame, complete or not (the end of a bag)."""
+        return self._add(self.input.poll(now, flush=True))
+
+    def clear(self) -> None:
+        """Forget every observation (the ``~clear`` service)."""
+        self.builder.clear()
+
+    # --- the map ------------------------------------------------------------------------------
+
+    def build(self, method: Optional[str] = None) -> MarkerMap:
+        """The map (``paper`` or ``refined``; default ``map.method``)."""
+        return self.builder.build(method)
+
+    def save(self, path: str) -> MarkerMap:
+        """Build with ``map.method`` and write ``path`` atomically (:meth:`MapBuilder.save_map`)."""
+        return self.builder.save_map(path)
+
+    @property
+    def version(self) -> int:
+        """Changes whenever an observation is added (or the map cleared)."""
+        return self.builder.version
+
+    @property
+    def frames(self) -> int:
+        return self.builder.frames
+
+    @property
+    def station_count(self) -> int:
+        """Robot placements found so far."""
+        return self.builder.station_count
+
+    @property
+    def last_ba(self):
+        """The last bundle adjustment's result (:class:`bundle_adjustment.BAResult`), or None."""
+        return self.builder.last_ba
+
+    def summary(self) -> dict:
+        return self.builder.summary()
+
+    def format_summary(self) -> str:
+        if not self.builder.frames:
+            return "no ring frame yet"
+        text = self.builder.format_summary()
+        if self.frames_missing:
+            text += f"; {self.frames_missing} ring frames without every camera (input/timeout)"
+        return text
+
+    def silent_cameras(self, now: float) -> List[str]:
+        return self.input.silent_cameras(now)
+
+    def _add(self, frames: List[RingFrame]) -> int:
+        for f in frames:
+            self.frames_missing += bool(f.missing)
+            self.builder.add_frame(f)
+        return len(frames)
+
+
+# --- helpers for in-process drivers (benchmarks, tests, the demo's report) ---------------------------
+
+def feed_ring_frame(pipeline, frame: RingFrame, now: Optional[float] = None, flush: bool = True):
+    """Every camera of ``frame`` through ``pipeline.on_detections`` (at ``now``, default the stamp).
+
+    Returns what the pipeline returned (a list of :class:`PoseOutput` for localization, a count for
+    mapping). With ``flush``, a ring frame left incomplete (a camera the frame lacks) goes out too.
+    """
+    t = frame.stamp if now is None else now
+    out: list = []
+    added = 0
+    for name, cf in frame.cameras.items():
+        r = pipeline.on_detections(name, cf.stamp, cf.observations, t)
+        if isinstance(r, list):
+            out += r
+        else:
+            added += r
+    if flush:
+        r = pipeline.flush(t)
+        if isinstance(r, list):
+            out += r
+        else:
+            added += r
+    return out if isinstance(pipeline, LocalizationPipeline) else added
+
+
+__all__ = ["LocalizationPipeline", "MappingPipeline", "PoseOutput", "TrackResult", "StatusReport", "RingInput",
+           "feed_ring_frame", "resolve_camera_names", "pose_covariance_from_se2", "SKIP_NO_CAMERA_INFO",
+           "SKIP_NO_EXTRINSICS", "SKIP_BAD_STAMP", "MOTION_SOURCES"]

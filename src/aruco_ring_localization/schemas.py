@@ -1,0 +1,359 @@
+"""Every node's parameter schema: one nested frozen dataclass per node (:mod:`config` mechanism).
+
+A node reads its private namespace once into its schema (``ros/params.read_config``); the command
+line tools read the same schema from the same YAML file (``config/<node>.yaml``), so
+``aruco_ring localize`` runs what the localizer node runs. Sections are the core's own parameter
+dataclasses (:class:`localization.LocalizationParams`, :class:`gating.GateParams`,
+:class:`kalman.FilterParams`, :class:`mapping.MappingOptions`, :class:`bundle_adjustment.BAOptions`,
+:class:`detection.DetectorParams` ...), so each default is written once, where it is used.
+
+==========================  =====================  ===========================
+node                        schema                 YAML file
+==========================  =====================  ===========================
+localizer                   :class:`LocalizerConfig`   config/localization.yaml
+mapper                      :class:`MapperConfig`      config/mapping.yaml
+detector                    :class:`DetectorConfig`    config/detector.yaml
+ring_tf                     :class:`RingTfConfig`      (launch arguments only)
+comparison                  :class:`ComparisonConfig`  config/comparison.yaml
+==========================  =====================  ===========================
+
+The simulator's schema lives with the simulator node (``ros/simulator.py``).
+``docs/parameters.md`` is generated from these classes (``tools/parameters_doc.py``), and a unit
+test checks that the YAML files, the launch files, the docs and the classes agree.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Tuple
+
+import numpy as np
+
+from .evaluation import comparison as _comparison
+from .config import default, param, require_positive, section
+from .detection import DetectorParams
+from .errors import ConfigError
+from .gating import GateParams
+from .kalman import FilterParams
+from .localization import LocalizationParams
+from .mapping import METHODS, MappingOptions
+from .markers import MarkerSizes, parse_id_list
+
+TF_MODES = ("auto", "map_to_odom", "map_to_base")
+IMAGE_TRANSPORTS = ("raw", "compressed")
+
+
+# --- shared by the mapper and the localizer ------------------------------------------------------
+
+@dataclass(frozen=True)
+class RingInputParams:
+    """The ring's input: which cameras, where their calibration comes from, how frames are grouped."""
+
+    cameras: Tuple[str, ...] = param([], "ring camera names (cam0) or namespaces (ring/cam0) to use; empty: all "
+                                         "of the ring")
+    use_tf: bool = param(True, "extrinsics base_link -> camK_optical_frame from tf (ring_tf publishes them); false: "
+                               "the ring file's (for the localizer: those refined with the map when it has them)")
+    camera_info_fallback: bool = param(False, "use the ring file's intrinsics while a camera has sent no "
+                                              "camera_info (false: its detections are skipped, as aruco_detect)")
+    slop: float = param(0.03, "detections whose stamps differ by at most this form one ring frame", unit="s")
+    timeout: float = param(0.25, "an incomplete ring frame goes out this long after its first camera (node's clock: "
+                                 "ROS time); a silent camera never stalls the others", unit="s")
+    silent_after: float = param(1.0, "a camera with no usable detections for this long is silent: ring frames stop "
+                                     "waiting for it and the diagnostics report it", unit="s")
+    ignore_fiducials: str = param("", "marker ids never used, aruco_detect syntax \"1,4,9-12\"")
+
+    def __post_init__(self) -> None:
+        if self.slop < 0:
+            raise ConfigError(f"must be >= 0, got {self.slop!r}", key="slop")
+        require_positive(self, "timeout", "silent_after")
+        parse_id_list(self.ignore_fiducials, key="ignore_fiducials")
+
+    def ignored_ids(self) -> frozenset:
+        """The ids of ``ignore_fiducials``."""
+        return frozenset(parse_id_list(self.ignore_fiducials, key="ignore_fiducials"))
+
+
+# --- localizer -----------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class TimingParams:
+    """Which ring frames and motion inputs are too old to use (the pipeline's time policy)."""
+
+    max_frame_age: float = param(2.0, "a ring frame older than this (node's clock minus its stamp) when it is "
+                                      "complete is dropped and counted, as is every ring frame that a newer one "
+                                      "overtook: the estimator never falls behind; 0 disables the age test",
+                                 unit="s")
+    motion_timeout: float = param(0.5, "a cmd_vel or odom twist older than this counts as zero for the gate",
+                                  unit="s")
+
+    def __post_init__(self) -> None:
+        if self.max_frame_age < 0 or not self.motion_timeout > 0:
+            raise ConfigError("max_frame_age must be >= 0 and motion_timeout positive", key="max_frame_age")
+
+
+@dataclass(frozen=True)
+class LocalizerOutputParams:
+    """Frames and publishing of the localizer."""
+
+    map_frame: str = param("", "frame of ~pose and the tf parent; empty: the map file's frame_id (map)")
+    base_frame: str = param("", "the robot frame we publish; empty: the ring's base_frame (base_link)")
+    odom_frame: str = param("odom", "odometry frame, for tf_mode map_to_odom and auto")
+    publish_tf: bool = param(True, "broadcast our pose on tf")
+    tf_mode: str = param("auto", "auto: map -> odom when odom -> base_link exists in tf, else map -> base_link "
+                                 "(REP-105); map_to_odom; or map_to_base")
+    markers_period: float = param(1.0, "publishing period of ~markers", unit="s")
+    diagnostics_period: float = param(1.0, "publishing period of /diagnostics", unit="s")
+
+    def __post_init__(self) -> None:
+        if self.tf_mode not in TF_MODES:
+            raise ConfigError(f"expected one of {TF_MODES}, got {self.tf_mode!r}", key="tf_mode")
+        require_positive(self, "markers_period", "diagnostics_period")
+
+
+@dataclass(frozen=True)
+class LocalizerConfig:
+    """Parameters of the localizer node and ``aruco_ring localize`` (config/localization.yaml)."""
+
+    map_file: str = param("", "marker map YAML written by the mapper (required)")
+    ring_file: str = param("", "ring YAML (cameras, namespaces, frames, fallback intrinsics and extrinsics); "
+                               "empty: the package's config/ring.yaml")
+    input: RingInputParams = section(RingInputParams, "the ring's detections, camera_info and extrinsics")
+    estimator: LocalizationParams = section(LocalizationParams, "per-camera PnP, the paper's fusion or the joint "
+                                                                "estimate (paper section II-E)")
+    gate: GateParams = section(GateParams, "outlier gate against the prediction and the motion (paper Algorithm "
+                                           "1, step 4)")
+    filter: FilterParams = section(FilterParams, "the paper's Kalman filter: state x y x' y' x'' y'' phi phi' "
+                                                 "phi'', measurement x y phi (paper section II-E-1)")
+    timing: TimingParams = section(TimingParams, "stale frames and motion inputs")
+    output: LocalizerOutputParams = section(LocalizerOutputParams, "frames and publishing")
+
+
+# --- mapper --------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class MarkerParams:
+    """Marker sizes (aruco_detect's names)."""
+
+    fiducial_len: float = param(0.20, "side of the black square of every marker (as aruco_detect)", unit="m")
+    fiducial_len_override: str = param("", "per-id sides, aruco_detect syntax \"1-10: 0.05, 12: 0.06\"")
+
+    def __post_init__(self) -> None:
+        self.sizes()
+
+    def sizes(self) -> MarkerSizes:
+        """Marker sides per id (raises ConfigError naming the key)."""
+        return MarkerSizes.parse(self.fiducial_len, self.fiducial_len_override)
+
+
+@dataclass(frozen=True)
+class MapParams:
+    """What map is built and where it goes."""
+
+    method: str = param("refined", "paper: the paper's chaining through the ring from the reference marker, "
+                                   "averaged over frames; refined: that, then bundle adjustment")
+    reference_marker: int = param(-1, "id fixing the map frame; -1: the paper's rule (the marker closest to its "
+                                      "camera, most face-on, at the first placement)")
+    map_frame: str = param("map", "name of the map frame (REP-105 map; aruco_map beside gmapping)")
+    save_on_shutdown: bool = param(False, "save the map when the node stops")
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ConfigError(f"expected one of {METHODS}, got {self.method!r}", key="method")
+
+    @property
+    def reference(self) -> Optional[int]:
+        """``reference_marker``, None for the paper's rule."""
+        return self.reference_marker if self.reference_marker >= 0 else None
+
+
+@dataclass(frozen=True)
+class MapperOutputParams:
+    """Publishing and progress of the mapper."""
+
+    publish_period: float = param(1.0, "how often a changed live (paper-mode) map is republished (~markers, "
+                                       "fiducial_map, static tf map -> marker_<id>)", unit="s")
+    progress_period: float = param(5.0, "how often progress goes to the log", unit="s")
+
+    def __post_init__(self) -> None:
+        require_positive(self, "publish_period", "progress_period")
+
+
+@dataclass(frozen=True)
+class MapperConfig:
+    """Parameters of the mapper node and ``aruco_ring build-map`` (config/mapping.yaml)."""
+
+    map_file: str = param("", "where ~save_map writes (YAML, atomic, previous kept as .bak); empty: "
+                              "$ROS_HOME/aruco_map.yaml")
+    ring_file: str = param("", "ring YAML (camera names, namespaces, frames, extrinsics); empty: the package's "
+                               "config/ring.yaml")
+    # Mapping needs no low latency: a ring frame waits up to 1 s for a late camera (the live preview
+    # holds the pipeline for 0.1-0.4 s on a loaded machine; a shorter wait split frames).
+    input: RingInputParams = section(RingInputParams, "the ring's detections, camera_info and extrinsics",
+                                     timeout=1.0)
+    markers: MarkerParams = section(MarkerParams, "marker sizes")
+    map: MapParams = section(MapParams, "the map built")
+    mapping: MappingOptions = section(MappingOptions, "the map builder (paper section II-D and beyond)")
+    output: MapperOutputParams = section(MapperOutputParams, "publishing and progress")
+
+
+# --- detector ------------------------------------------------------------------------------------
+
+def _det(name: str):
+    return default(DetectorParams, name)
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    """Parameters of the detector node (config/detector.yaml). Flat, with aruco_detect's names, so a
+    launch file written for aruco_detect works unchanged."""
+
+    dictionary: int = param(_det("dictionary"), "OpenCV predefined dictionary index: 7 = DICT_5X5_1000 "
+                                                "(aruco_detect's default and the simulated lab's), 0 = DICT_4X4_50, "
+                                                "16 = DICT_ARUCO_ORIGINAL, 17..20 = AprilTag families")
+    fiducial_len: float = param(default(MarkerParams, "fiducial_len"), "side of the markers' black square, only used for fiducial_transforms (the "
+                                      "mapper and localizer take sizes from their own configuration); the "
+                                      "simulated lab's markers are 0.20 (aruco_detect's default is 0.14)", unit="m")
+    fiducial_len_override: str = param("", "per-id sides: \"1-10: 0.05, 12: 0.06\"; empty: every marker is "
+                                           "fiducial_len")
+    ignore_fiducials: str = param("", "ids never published: \"1,4,9-12\"")
+    publish_images: bool = param(False, "publish an annotated bgr8 image (outlines, ids, pose axes) on "
+                                        "fiducial_images; costs a copy and a colour conversion per image")
+    do_pose_estimation: bool = param(True, "publish fiducial_transforms (per-marker pose in the camera's optical "
+                                           "frame with aruco_detect's image_error, object_error, fiducial_area); "
+                                           "needs camera_info")
+    corner_refinement: str = param(_det("corner_refinement"),
+                                   "lines (unbiased edge-line intersections, 0.02-0.15 px on sharp markers) | "
+                                   "subpix (exactly aruco_detect's corners) | contour | apriltag | none "
+                                   "(docs/detector.md)")
+    max_image_age: float = param(0.0, "drop images older than this when they arrive, 0 = off; keep 0 when "
+                                      "replaying a bag without --clock (the stamps are then far in the past)",
+                                 unit="s")
+    image_transport: str = param("raw", "raw: subscribe image (sensor_msgs/Image); compressed: subscribe "
+                                        "image/compressed (sensor_msgs/CompressedImage, image_transport's name)")
+    adaptiveThreshWinSizeMin: int = param(_det("adaptive_thresh_win_size_min"),
+                                          "smallest adaptive threshold window (aruco_detect's dynamic-reconfigure "
+                                          "name); windows min, min+step, ... <= max are tried, each about 6 ms per "
+                                          "1280x960 image", unit="px")
+    adaptiveThreshWinSizeMax: int = param(_det("adaptive_thresh_win_size_max"), "largest threshold window",
+                                          unit="px")
+    adaptiveThreshWinSizeStep: int = param(_det("adaptive_thresh_win_size_step"),
+                                           "window step; 5/21/16 (two windows) ran in 13 instead of 20 ms CPU with "
+                                           "the same detections on the simulated lab (docs/detector.md); "
+                                           "aruco_detect's own default 3/53/4 is robust in odd light but slow",
+                                           unit="px")
+
+    def __post_init__(self) -> None:
+        if self.image_transport not in IMAGE_TRANSPORTS:
+            raise ConfigError(f"expected one of {IMAGE_TRANSPORTS}, got {self.image_transport!r}",
+                              key="image_transport")
+        if self.max_image_age < 0:
+            raise ConfigError(f"must be >= 0, got {self.max_image_age!r}", key="max_image_age")
+        self.detector_params()
+        self.sizes()
+        self.ignored()
+
+    def detector_params(self) -> DetectorParams:
+        """The core detector's settings (raises ConfigError naming the key)."""
+        try:
+            return DetectorParams(dictionary=self.dictionary, corner_refinement=self.corner_refinement,
+                                  adaptive_thresh_win_size_min=self.adaptiveThreshWinSizeMin,
+                                  adaptive_thresh_win_size_max=self.adaptiveThreshWinSizeMax,
+                                  adaptive_thresh_win_size_step=self.adaptiveThreshWinSizeStep)
+        except ConfigError as exc:
+            names = {"adaptive_thresh_win_size_min": "adaptiveThreshWinSizeMin",
+                     "adaptive_thresh_win_size_max": "adaptiveThreshWinSizeMax",
+                     "adaptive_thresh_win_size_step": "adaptiveThreshWinSizeStep"}
+            raise ConfigError(exc.detail, key=names.get(exc.key or "", exc.key)) from None
+
+    def sizes(self) -> MarkerSizes:
+        """Marker sides per id (raises ConfigError naming fiducial_len / fiducial_len_override)."""
+        return MarkerSizes.parse(self.fiducial_len, self.fiducial_len_override)
+
+    def ignored(self) -> frozenset:
+        """Ids never published (raises ConfigError naming ignore_fiducials)."""
+        return frozenset(parse_id_list(self.ignore_fiducials, key="ignore_fiducials"))
+
+
+# --- ring_tf -------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class RingTfConfig:
+    """Parameters of the ring_tf node (set by launch/ring_tf.launch's arguments)."""
+
+    ring_file: str = param("", "ring YAML; one static transform base_link -> camK_optical_frame per camera, all "
+                               "in one /tf_static message; empty: the package's config/ring.yaml")
+    map_file: str = param("", "a marker map: when it carries a ring_calibration (the extrinsics refined while "
+                              "mapping), those are published instead of the ring file's; empty: none")
+
+
+# --- comparison ----------------------------------------------------------------------------------
+
+def _cmp(name: str):
+    return default(_comparison.ComparisonConfig, name)
+
+
+@dataclass(frozen=True)
+class ComparisonConfig:
+    """Parameters of the comparison node (config/comparison.yaml)."""
+
+    reference_frame: str = param("map", "the reference robot pose is reference_frame -> reference_child (gmapping: "
+                                        "map -> base_link; in the simulation the ground truth, world -> "
+                                        "sim_ground_truth)")
+    reference_child: str = param("base_link", "see reference_frame")
+    estimate_frame: str = param("aruco_map", "ours is estimate_frame -> estimate_child (localization.launch "
+                                             "beside_gmapping:=true publishes aruco_map -> aruco_base_link)")
+    estimate_child: str = param("aruco_base_link", "see estimate_frame")
+    rate: float = param(10.0, "rate at which our latest pose is paired with the reference at the same stamp",
+                        unit="Hz")
+    lookup_timeout: float = param(0.2, "time to wait for the reference pose at our stamp before skipping the pair",
+                                  unit="s")
+    alignment: Tuple[float, ...] = param([], "[x, y, yaw_deg], the pose of estimate_frame in reference_frame, when "
+                                             "you know it (measured once); empty: estimated by SE(2) least squares "
+                                             "over all pose pairs (closed form; a fitted alignment absorbs any "
+                                             "constant offset between the two systems)")
+    min_pairs: int = param(_cmp("min_pairs"), "pose pairs needed before the alignment is estimated and errors are "
+                                              "published")
+    max_pairs: int = param(_cmp("max_pairs"), "pairs used for the alignment (older ones are thinned evenly in time)")
+    publish_tf: bool = param(True, "publish reference_frame -> estimate_frame (map -> aruco_map) so rviz shows both "
+                                   "robots in the reference map")
+    still_time: float = param(_cmp("still_time"), "time the reference must stay still to record a stop (a row of "
+                                                  "Table I / II) automatically; <= 0: only the ~record_stop service "
+                                                  "records stops", unit="s")
+    still_position_tolerance: float = param(_cmp("still_position_tolerance"), "what still means, position",
+                                            unit="m")
+    still_yaw_tolerance_deg: float = param(float(np.degrees(_cmp("still_yaw_tolerance"))), "what still means, yaw",
+                                           unit="deg")
+    settle: float = param(_cmp("settle"), "time ignored at the start of a still period (the filters catching up "
+                                          "after the motion)", unit="s")
+    record_window: float = param(_cmp("record_window"), "time of pose pairs averaged by a ~record_stop request",
+                                 unit="s")
+    output_dir: str = param("", "where Table I/II (table1.md/.csv, table2.md/.csv, comparison_summary.json) are "
+                                "written at shutdown and on ~write_tables; empty: $ROS_HOME/comparison")
+    reference_name: str = param("gmapping", "how the tables name the reference")
+    text_height: float = param(1.5, "height above the reference robot of the rviz text (~text)", unit="m")
+
+    def __post_init__(self) -> None:
+        self.core_config()
+
+    def core_config(self) -> "_comparison.ComparisonConfig":
+        """The comparison core's settings (raises ConfigError naming ``alignment``)."""
+        alignment = None
+        if self.alignment:
+            if len(self.alignment) != 3:
+                raise ConfigError(f"expected [x, y, yaw_deg], got {list(self.alignment)!r}", key="alignment")
+            x, y, yaw = (float(v) for v in self.alignment)
+            alignment = (x, y, float(np.radians(yaw)))
+        return _comparison.ComparisonConfig(
+            alignment=alignment, min_pairs=self.min_pairs, max_pairs=self.max_pairs, still_time=self.still_time,
+            still_position_tolerance=self.still_position_tolerance,
+            still_yaw_tolerance=float(np.radians(self.still_yaw_tolerance_deg)), settle=self.settle,
+            record_window=self.record_window)
+
+
+#: node name -> (schema, YAML file under config/ or None): what the docs and the consistency test cover.
+NODE_SCHEMAS = {
+    "localizer": (LocalizerConfig, "localization.yaml"),
+    "mapper": (MapperConfig, "mapping.yaml"),
+    "detector": (DetectorConfig, "detector.yaml"),
+    "ring_tf": (RingTfConfig, None),
+    "comparison": (ComparisonConfig, "comparison.yaml"),
+}
