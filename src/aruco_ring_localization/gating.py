@@ -21,7 +21,7 @@ initial pose, a long outage) and logs it.
 
 Flips (a single marker's two IPPE poses, or two minima of the joint problem): the gate also
 checks the measurement's full rotation when it is given -- its up axis (roll and pitch) may differ
-from the track's, the last accepted measurement's, by at most ``max_tilt_change`` (a ground robot
+from the track's, the last accepted measurement's, by at most ``max_tilt_change_deg`` (a ground robot
 does not tilt by degrees between two frames, a flipped pose usually does) -- and it treats a
 measurement the localizer marks *ambiguous* (the data admit another, distinct pose about as well)
 as no measurement: it never enters the filter (the localizer chose it by the prediction, so it

@@ -10,7 +10,7 @@ from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.simulation.ring_sim import RingSimulator
 from aruco_ring_localization.simulation.scene import Scene
 
-from helpers import RING_YAML
+from helpers import RING_YAML, se2_error
 
 SIGMA = 0.5
 
@@ -40,9 +40,7 @@ def test_joint_rms_within_125_percent_of_crlb(index):
     for _ in range(150):
         start = geo.se3_perturb(T, np.r_[rng.normal(0, 0.01, 3), rng.normal(0, 0.03, 3)])
         res = loc.process(sim.observe(T), prediction=start)
-        e = geo.se2_from_transform(res.T_map_base) - geo.se2_from_transform(T)
-        e[2] = geo.wrap_angle(e[2])
-        errs.append(e)
+        errs.append(se2_error(res.T_map_base, T))
         covs.append(res.covariance_se2)
     errs = np.array(errs)
     rms_xy = np.sqrt(np.mean(np.sum(errs[:, :2] ** 2, axis=1)))

@@ -12,7 +12,7 @@ from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.simulation.ring_sim import RingSimulator, perturb_ring
 from aruco_ring_localization.simulation.scene import Scene
 
-from helpers import RING_YAML
+from helpers import RING_YAML, se2_error
 
 SIGMA = 0.3
 
@@ -65,9 +65,7 @@ def test_reported_covariance_matches_a_monte_carlo_of_perturbed_rigs(lab, index)
         for k in range(60):
             sim = RingSimulator(scene, perturb_ring(ring, seed=1000 + k), pixel_noise=SIGMA, seed=k)
             res = loc.process(sim.observe(T), prediction=T)
-            e = geo.se2_from_transform(res.T_map_base) - geo.se2_from_transform(T)
-            e[2] = geo.wrap_angle(e[2])
-            E.append(e)
+            E.append(se2_error(res.T_map_base, T))
             P.append(res.covariance_se2)
         E = np.array(E)
         Pm = np.mean(P, axis=0)
