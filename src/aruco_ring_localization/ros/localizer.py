@@ -40,7 +40,7 @@ from ..schemas import LocalizerConfig
 from . import log_bridge
 from .conversions import msg_to_transform, pose_msg_to_transform, pose_to_msg, stamp_to_sec
 from .params import read_config
-from .ring_input import RingSubscriber
+from .ring_input import NOW, RingSubscriber
 from .ring_tf import default_ring_file
 from .tf_output import MapTransform
 
@@ -81,7 +81,7 @@ class LocalizerNode:
 
     def on_cmd_vel(self, msg: Twist) -> None:
         self.ring_input.call(self.pipeline.on_motion, "cmd_vel", None, (msg.linear.x, msg.linear.y), msg.angular.z,
-                             self.ring_input.now())
+                             NOW)
 
     def on_odom(self, msg: Odometry) -> None:
         t = msg.twist.twist
@@ -90,7 +90,7 @@ class LocalizerNode:
         except ArucoRingError:
             T_odom_base = None  # the twist is what the gate uses; a bad pose is not its problem
         self.ring_input.call(self.pipeline.on_motion, "odom", stamp_to_sec(msg.header.stamp),
-                             (t.linear.x, t.linear.y), t.angular.z, self.ring_input.now(), T_odom_base)
+                             (t.linear.x, t.linear.y), t.angular.z, NOW, T_odom_base)
 
     def on_initialpose(self, msg: PoseWithCovarianceStamped) -> None:
         try:
@@ -99,7 +99,7 @@ class LocalizerNode:
             if frame and frame != self.map_frame:
                 tf = self.tf_buffer.lookup_transform(self.map_frame, frame, rospy.Time(0), rospy.Duration(0.2))
                 T = msg_to_transform(tf.transform, "tf") @ T
-            self.ring_input.call(self.pipeline.on_initial_pose, T, self.ring_input.now())
+            self.ring_input.call(self.pipeline.on_initial_pose, T, NOW)
         except (ArucoRingError, tf2_ros.LookupException, tf2_ros.ConnectivityException,
                 tf2_ros.ExtrapolationException) as exc:
             rospy.logwarn("localizer: ignoring initialpose in %r: %s", msg.header.frame_id, exc)
