@@ -98,7 +98,7 @@ class MappingOptions:
                                             "ambiguously")
     consensus_angle_deg: float = param(10.0, "agreement tolerance of that consensus, rotation", unit="deg")
     consensus_distance: float = param(0.10, "agreement tolerance of that consensus, position", unit="m")
-    min_detection_ratio: float = param(0.3, "a marker that every camera seeing it detected in fewer than this "
+    min_detection_ratio: float = param(0.0, "a marker that every camera seeing it detected in fewer than this "
                                             "fraction of its frames at a station (of at least "
                                             f"{RATIO_MIN_FRAMES} frames) is taken for a misread id and not mapped; "
                                             "0 disables")
