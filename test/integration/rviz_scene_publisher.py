@@ -113,8 +113,13 @@ def main() -> None:
     angles = np.linspace(-np.pi, np.pi, 360, endpoint=False)
     ranges = wall_ranges(scene, x + 0.2 * np.cos(yaw), y + 0.2 * np.sin(yaw), yaw, angles, 12.0)
     rate = rospy.Rate(10)
+    ring_msg = ring_markers(ring, rospy.Time(0), 1.0)
+    tick = 0
     while not rospy.is_shutdown():
         stamp = rospy.Time.now()
+        if tick % 10 == 0:  # as ring_tf does: again each second
+            pubs["ring"].publish(ring_msg)
+        tick += 1
         tfb.sendTransform([make_transform_stamped(T_map_base, "map", ring.base_frame, stamp),
                            make_transform_stamped(geo.transform_from_se2(x + 0.01, y, yaw), "map",
                                                   "sim_ground_truth", stamp)])

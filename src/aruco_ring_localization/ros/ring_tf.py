@@ -13,9 +13,9 @@ package's ``config/ring.yaml``; ``~map_file``: a marker map whose ``ring_calibra
 extrinsics refined by bundle adjustment while mapping, is published instead of the ring file's.
 Localization uses the refined calibration this way; mapping must not).
 
-Also publishes ``~markers`` (visualization_msgs/MarkerArray, latched), for rviz: each camera's
-field of view (namespace ``frustums``, a line list in its optical frame, ``~frustum_depth`` m
-long) and the robot (namespace ``robot``: a disc of the ring's radius in the base frame and an
+Also publishes ``~markers`` (visualization_msgs/MarkerArray, latched, sent again each second
+while someone listens), for rviz: each camera's field of view (namespace ``frustums``, a line
+list in its optical frame, ``~frustum_depth`` m long) and the robot (namespace ``robot``: a disc of the ring's radius in the base frame and an
 arrow along its x axis), all frame-locked, so they follow the robot wherever tf puts it.
 
 Exits with code 1 and a fatal log naming the file and the key when the ring file is unusable.
@@ -140,7 +140,16 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     broadcaster.sendTransform(transforms)
     markers = rospy.Publisher("~markers", MarkerArray, queue_size=1, latch=True)
     # stamp 0: "the latest transform" for rviz, whenever the robot's pose appears on tf
-    markers.publish(ring_markers(ring, rospy.Time(0), config.frustum_depth))
+    marker_msg = ring_markers(ring, rospy.Time(0), config.frustum_depth)
+    markers.publish(marker_msg)
+
+    def resend(_event) -> None:
+        # rviz marks a marker whose frame it could not transform on arrival as failed for good; a
+        # robot whose pose appears on tf later (the mapper's first station, a localizer started
+        # after rviz) would stay in error. Sent again each second while someone listens.
+        if markers.get_num_connections():
+            markers.publish(marker_msg)
+    rospy.Timer(rospy.Duration(1.0), resend)
     rospy.loginfo("ring_tf: published %d static transforms %s -> {%s} from %s", len(transforms),
                   ring.base_frame, ", ".join(t.child_frame_id for t in transforms), ring_file)
     rospy.spin()
