@@ -62,4 +62,4 @@ def test_localization_without_a_saved_map_fails_naming_the_file(tmp_path):
         pytest.fail(f"roslaunch did not stop on the missing map: {str(exc.stdout)[-2000:]}")
     out = res.stdout + res.stderr
     assert res.returncode != 0, out[-2000:]
-    assert str(tmp_path / "aruco_map.yaml") in out and "does not exist" in out, out[-2000:]
+    assert str(tmp_path / "aruco_map.yaml") in out and "map_file_must_exist" in out, out[-2000:]
