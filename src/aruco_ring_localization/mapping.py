@@ -716,16 +716,16 @@ class MapBuilder:
             out.ring_base_frame = self.ring.base_frame
         return out
 
-    def save_map(self, path: str, method: Optional[str] = None) -> MarkerMap:
+    def save_map(self, path: str, method: Optional[str] = None, backups: int = 1) -> MarkerMap:
         """Build the map (:meth:`build`) and write it to ``path`` atomically (previous file kept as
-        ``<path>.bak``, :meth:`MarkerMap.save`): what the mapper's ``~save_map`` and
+        ``<path>.bak``, ``backups`` generations: :meth:`MarkerMap.save`): what the mapper's ``~save_map`` and
         ``save_on_shutdown`` do. A crash at any instant leaves the old file or the new one whole.
 
         Raises:
             ArucoRingError: nothing to map yet; OSError: the file cannot be written.
         """
         m = self.build(method)
-        m.save(path)
+        m.save(path, backups=backups)
         return m
 
     def _refined_reference(self, init: _Init, res: BAResult, mids: List[int]) -> int:
