@@ -14,6 +14,10 @@ ready), ``~odometry`` (nav_msgs/Odometry with the filter's twist), ``~camera_est
 (PoseArray, one per camera), ``~markers`` (MarkerArray, markers in view highlighted),
 ``/diagnostics``, tf ``map -> odom`` or ``map -> base_link``. Service: ``~reset`` (std_srvs/Trigger).
 
+Another node publishing the tf child frame we publish (a second localizer, gmapping's
+``map -> odom``) is found from the tf listener's authorities once per second and warned about,
+throttled (docs/security.md).
+
 Parameters: :class:`aruco_ring_localization.schemas.LocalizerConfig` (config/localization.yaml,
 docs/parameters.md).
 """
@@ -24,6 +28,7 @@ from typing import List, Optional, Sequence
 
 import numpy as np
 import rospy
+import yaml
 import tf2_ros
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped, Twist
@@ -40,7 +45,7 @@ from ..schemas import LocalizerConfig
 from . import log_bridge
 from .conversions import make_transform_stamped, msg_to_transform, pose_msg_to_transform, pose_to_msg, stamp_to_sec
 from .params import read_config
-from .ring_input import RingSubscriber
+from .ring_input import NOW, RingSubscriber
 from .ring_tf import default_ring_file
 
 WARN_PERIOD = 5.0
@@ -64,14 +69,17 @@ class LocalizerNode:
         self.pub_cams = rospy.Publisher("~camera_estimates", PoseArray, queue_size=5)
         self.pub_markers = rospy.Publisher("~markers", MarkerArray, queue_size=1, latch=True)
         self.pub_diag = rospy.Publisher("/diagnostics", DiagnosticArray, queue_size=5)
+        # One detection message kept per camera when we fall behind: an older one would be overtaken.
         self.ring_input = RingSubscriber(self.pipeline, self.publish, "localizer", use_tf=config.input.use_tf,
-                                         tf_buffer=self.tf_buffer)
+                                         tf_buffer=self.tf_buffer, queue_size=1)
         rospy.Subscriber("cmd_vel", Twist, self.on_cmd_vel, queue_size=5)
         rospy.Subscriber("odom", Odometry, self.on_odom, queue_size=5)
         rospy.Subscriber("initialpose", PoseWithCovarianceStamped, self.on_initialpose, queue_size=1)
         rospy.Service("~reset", Trigger, self.on_reset)
         rospy.Timer(rospy.Duration(out.diagnostics_period), self.publish_diagnostics, reset=True)
         rospy.Timer(rospy.Duration(out.markers_period), self.publish_markers, reset=True)
+        self._tf_child: Optional[str] = None   # the child frame we last put on tf
+        rospy.Timer(rospy.Duration(1.0), self.check_tf_authority, reset=True)
         rospy.loginfo("localizer: %d mapped markers in %s, fusion %s, output %s -> %s, tf %s (%s)",
                       len(marker_map), self.map_frame, config.estimator.fusion, self.map_frame, self.base_frame,
                       out.tf_mode, "on" if out.publish_tf else "off")
@@ -80,7 +88,7 @@ class LocalizerNode:
 
     def on_cmd_vel(self, msg: Twist) -> None:
         self.ring_input.call(self.pipeline.on_motion, "cmd_vel", None, (msg.linear.x, msg.linear.y), msg.angular.z,
-                             self.ring_input.now())
+                             NOW)
 
     def on_odom(self, msg: Odometry) -> None:
         t = msg.twist.twist
@@ -89,7 +97,7 @@ class LocalizerNode:
         except ArucoRingError:
             T_odom_base = None  # the twist is what the gate uses; a bad pose is not its problem
         self.ring_input.call(self.pipeline.on_motion, "odom", stamp_to_sec(msg.header.stamp),
-                             (t.linear.x, t.linear.y), t.angular.z, self.ring_input.now(), T_odom_base)
+                             (t.linear.x, t.linear.y), t.angular.z, NOW, T_odom_base)
 
     def on_initialpose(self, msg: PoseWithCovarianceStamped) -> None:
         try:
@@ -98,13 +106,14 @@ class LocalizerNode:
             if frame and frame != self.map_frame:
                 tf = self.tf_buffer.lookup_transform(self.map_frame, frame, rospy.Time(0), rospy.Duration(0.2))
                 T = msg_to_transform(tf.transform, "tf") @ T
-            self.ring_input.call(self.pipeline.on_initial_pose, T, self.ring_input.now())
+            self.ring_input.call(self.pipeline.on_initial_pose, T, NOW)
         except (ArucoRingError, tf2_ros.LookupException, tf2_ros.ConnectivityException,
                 tf2_ros.ExtrapolationException) as exc:
-            rospy.logwarn("localizer: ignoring initialpose in %r: %s", msg.header.frame_id, exc)
+            rospy.logwarn_throttle(WARN_PERIOD, f"localizer: ignoring initialpose in {msg.header.frame_id!r}: {exc}")
             return
         x, y, yaw = geo.se2_from_transform(T)
-        rospy.loginfo("localizer: re-initialised from initialpose at (%.2f, %.2f, %.1f deg)", x, y, np.degrees(yaw))
+        rospy.loginfo_throttle(WARN_PERIOD, f"localizer: re-initialised from initialpose at ({x:.2f}, {y:.2f}, "
+                                            f"{np.degrees(yaw):.1f} deg)")
 
     def on_reset(self, _req) -> TriggerResponse:
         self.ring_input.call(self.pipeline.reset)
@@ -163,13 +172,36 @@ class LocalizerNode:
                 T_odom_base = msg_to_transform(tf.transform, "tf odom -> base")
                 self.tf_broadcaster.sendTransform(make_transform_stamped(
                     T_map_base @ geo.inverse(T_odom_base), self.map_frame, p.odom_frame, stamp))
+                self._tf_child = p.odom_frame
                 return
             if p.tf_mode == "map_to_odom":
                 rospy.logwarn_throttle(WARN_PERIOD, f"localizer: no tf {p.odom_frame} -> {self.base_frame}; "
                                                     "not publishing map -> odom")
                 return
         self.tf_broadcaster.sendTransform(make_transform_stamped(T_map_base, self.map_frame, self.base_frame, stamp))
+        self._tf_child = self.base_frame
 
+    def check_tf_authority(self, _event=None) -> None:
+        """Warn, throttled, when the latest tf of the child frame we publish came from another node.
+
+        Two localizers on the same frames (or ours beside gmapping without beside_gmapping:=true)
+        both publish ``map -> odom``: every tf user then sees the robot jump between two poses. The
+        tf listener records which node sent each frame's latest transform (its authority); sampled
+        once per second, the other publisher shows up within a few seconds.
+        """
+        child = self._tf_child
+        if child is None:
+            return
+        try:
+            frames = yaml.safe_load(self.tf_buffer.all_frames_as_yaml()) or {}
+        except yaml.YAMLError:
+            return
+        info = frames.get(child) if isinstance(frames, dict) else None
+        other = str(info.get("broadcaster", "")) if isinstance(info, dict) else ""
+        if other and other.strip("/") != rospy.get_name().strip("/"):
+            rospy.logwarn_throttle(WARN_PERIOD, f"localizer: {other} also publishes tf {info.get('parent', '?')} -> "
+                                                f"{child}, as this node does: two localizers on the same frames "
+                                                "(stop one; beside gmapping, use beside_gmapping:=true)")
     def publish_markers(self, _event=None) -> None:
         period = self.config.output.markers_period
         with self.ring_input.lock:

@@ -11,10 +11,17 @@ so the node's namespace applies), converts the messages and calls the pipeline's
   ``on_extrinsics``; until tf has it the pipeline skips that camera and says so;
 * fiducial_vertices -> ``on_detections``; a timer calls ``poll`` (timeouts, predict-only output).
 
-Every pipeline call runs under one lock (:meth:`call`, also for the node's other inputs); what the
-calls return is queued in call order and handed to ``deliver`` by one thread at a time, in that
-order. A package error (:class:`ArucoRingError`) from a message is logged throttled: a bad message
-never kills the node.
+Every pipeline call runs under one lock (:meth:`call`, also for the node's other inputs); ``now``
+is read under that lock (:data:`NOW`), so the pipeline never sees its clock go back because a thread
+waited for the lock. What the calls return is queued in call order and handed to ``deliver`` by one
+thread at a time, in that order. A package error (:class:`ArucoRingError`) from a message is logged
+throttled: a bad message never kills the node.
+
+Bounded work per message (issue 14): rospy calls a subscriber's callback on the thread that reads
+its connection, so a slow callback leaves messages in the socket, where ``queue_size`` cannot drop
+them (a flood backed up 14 s). Every subscription here reads up to :data:`BUFF_SIZE` bytes at once,
+so rospy sees every waiting message and keeps only the newest ``queue_size``; a detection message
+is converted only up to ``input/max_detections`` + 1 quads (the pipeline drops a longer one whole).
 """
 from __future__ import annotations
 
@@ -33,6 +40,14 @@ from .conversions import camera_info_to_model, fiducial_array_to_observations, m
 
 WARN_PERIOD = 5.0  # s between repeats of one throttled warning
 
+#: rospy's per-read buffer for our subscriptions, bytes: larger than any backlog the kernel holds
+#: (a 3,000-quad FiducialArray is 120 kB), so queue_size drops old messages instead of the socket
+#: keeping them (rospy's default, 64 kB, is smaller than such a message).
+BUFF_SIZE = 1 << 24
+
+#: An argument of :meth:`RingSubscriber.call` replaced by :meth:`RingSubscriber.now` under the lock.
+NOW = object()
+
 
 class RingSubscriber:
     """Subscriptions of the ring's cameras feeding ``pipeline``; ordered delivery of its outputs.
@@ -44,10 +59,12 @@ class RingSubscriber:
         use_tf: extrinsics from tf (else the pipeline uses the ring file's).
         poll_period: period (s) of the timer calling ``pipeline.poll``.
         tf_buffer: an existing tf2 Buffer to share (one with a listener is created otherwise).
+        queue_size: detection messages kept per camera when the callback falls behind (the
+            localizer keeps 1: an older frame would only be overtaken).
     """
 
     def __init__(self, pipeline: Any, deliver: Callable[[Any], None], name: str, use_tf: bool = True,
-                 poll_period: float = 0.05, tf_buffer: Optional[tf2_ros.Buffer] = None):
+                 poll_period: float = 0.05, tf_buffer: Optional[tf2_ros.Buffer] = None, queue_size: int = 5):
         self.pipeline = pipeline
         self._deliver_fn = deliver
         self._name = name
@@ -67,9 +84,9 @@ class RingSubscriber:
             ns = ring[camera].namespace.strip("/")
             prefix = f"{ns}/" if ns else ""
             self._subs.append(rospy.Subscriber(f"{prefix}fiducial_vertices", FiducialArray, self._on_fiducials,
-                                               callback_args=camera, queue_size=5))
+                                               callback_args=camera, queue_size=queue_size, buff_size=BUFF_SIZE))
             self._subs.append(rospy.Subscriber(f"{prefix}camera_info", CameraInfo, self._on_camera_info,
-                                               callback_args=camera, queue_size=1))
+                                               callback_args=camera, queue_size=1, buff_size=BUFF_SIZE))
         # reset=True: a bag loop moves ROS time backwards, which would otherwise kill the timer thread.
         self._timer = rospy.Timer(rospy.Duration(poll_period), self._on_timer, reset=True)
         p = pipeline.input.params
@@ -86,8 +103,12 @@ class RingSubscriber:
         return rospy.get_time()
 
     def call(self, fn: Callable[..., Any], *args: Any) -> Any:
-        """``fn(*args)`` under the pipeline lock; a non-empty result is delivered in order. Returns it."""
+        """``fn(*args)`` under the pipeline lock (an argument :data:`NOW` becomes :meth:`now`, read
+        under the lock); a non-empty result is delivered in order. Returns it."""
         with self.lock:
+            if any(a is NOW for a in args):
+                now = self.now()
+                args = tuple(now if a is NOW else a for a in args)
             out = fn(*args)
             if out:
                 self._queue.append(out)
@@ -140,15 +161,14 @@ class RingSubscriber:
         try:
             if self.use_tf:
                 self._look_up_extrinsics(camera, msg.header.frame_id)
-            observations = fiducial_array_to_observations(msg)
-            self.call(self.pipeline.on_detections, camera, stamp_to_sec(msg.header.stamp), observations,
-                      self.now())
+            observations = fiducial_array_to_observations(msg, limit=self.pipeline.input.params.max_detections + 1)
+            self.call(self.pipeline.on_detections, camera, stamp_to_sec(msg.header.stamp), observations, NOW)
         except ArucoRingError as exc:
             rospy.logwarn_throttle(WARN_PERIOD, f"{self._name}: {camera}: {exc}")
 
     def _on_timer(self, _event) -> None:
         try:
-            self.call(self.pipeline.poll, self.now())
+            self.call(self.pipeline.poll, NOW)
         except ArucoRingError as exc:
             rospy.logwarn_throttle(WARN_PERIOD, f"{self._name}: {exc}")
 
