@@ -1,0 +1,213 @@
+#!/usr/bin/env python3
+"""rostest node of hostile_stamps.test: one message each (issue 14, F1, F2, F5, F7).
+
+setUpClass waits until the localizer tracks, then injects the faults one after the other, each
+in its own window, as the issue's reproductions did (``rostopic pub`` or a small rospy script):
+
+=================  ======================================================================
+future_one         one empty FiducialArray on ring/cam0 stamped 2,000,000,000 s
+future_copies      for 5 s, every cam0 message of the simulator again, stamped +100 s
+odom_nan           one odom with a NaN twist stamped +1e6 s (beside the simulator's odom)
+cmd_vel_nan        NaN cmd_vel at 20 Hz for 4 s
+odom_fast          one odom at 1e6 m/s stamped +100 s
+initialpose        initialpose at x = 1e9, then x = 1e300
+negative_id        a cam1 detection with id -5
+=================  ======================================================================
+
+Each test then checks every window: no pose more than 10 cm off the ground truth, no step
+larger than the robot's motion (+ noise), the tf listener started before the faults resolves
+``map -> base_link`` at now after each, each fault's warning said (once per 5 s at most), no pose
+stamped after its arrival. Named ``*_rostest.py`` so pytest does not collect it.
+"""
+from __future__ import annotations
+
+import math
+import os
+import sys
+import unittest
+
+import rospy
+import rostest
+from fiducial_msgs.msg import Fiducial, FiducialArray
+from geometry_msgs.msg import PoseWithCovarianceStamped, Twist
+from nav_msgs.msg import Odometry
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "faults"))
+
+from hostile_session import MAX_ERROR_M, STEP_NOISE_M, HostileSession  # noqa: E402
+
+PKG = "aruco_ring_localization"
+SETTLE = 2.0   # s after a fault that still belongs to its window
+
+#: fault -> (what its warning says, on the localizer's /rosout)
+WARNINGS = {
+    "future_one": "future stamp",
+    "future_copies": "future stamp",
+    "odom_nan": "odom: non-finite",
+    "cmd_vel_nan": "cmd_vel: non-finite",
+    "odom_fast": "beyond limits",
+    "initialpose": "outside the map",
+    "negative_id": "negative id",
+}
+
+
+class HostileStamps(unittest.TestCase):
+    windows = {}
+    tf_after = {}
+
+    @classmethod
+    def setUpClass(cls):
+        rospy.init_node("hostile", anonymous=False)
+        cls.s = HostileSession()
+        cls.cam0 = rospy.Publisher("ring/cam0/fiducial_vertices", FiducialArray, queue_size=20)
+        cls.cam1 = rospy.Publisher("ring/cam1/fiducial_vertices", FiducialArray, queue_size=5)
+        cls.odom = rospy.Publisher("odom", Odometry, queue_size=5)
+        cls.cmd = rospy.Publisher("cmd_vel", Twist, queue_size=20)
+        cls.initialpose = rospy.Publisher("initialpose", PoseWithCovarianceStamped, queue_size=5)
+        cls._copying = False
+        rospy.Subscriber("ring/cam0/fiducial_vertices", FiducialArray, cls._copy_cam0, queue_size=20)
+        cls.s.sleep(1.0)   # connections
+        cls.t_start = cls.s.wait_tracking()
+        for name in WARNINGS:
+            t0 = rospy.get_time()
+            getattr(cls, f"_{name}")()
+            cls.s.sleep(SETTLE)
+            cls.windows[name] = (t0, rospy.get_time())
+            try:
+                cls.s.lookup_now()
+                cls.tf_after[name] = None
+            except (tf2_ros_errors()) as exc:
+                cls.tf_after[name] = f"{type(exc).__name__}: {exc}"
+        cls.t_end = rospy.get_time()
+
+    @classmethod
+    def tearDownClass(cls):
+        lines = {k: len(cls.s.lines(WARNINGS[k], *w)) for k, w in cls.windows.items()}
+        cls.s.write_results("hostile_stamps", cls.windows, {"warning_lines": lines, "tf_after": cls.tf_after})
+
+    # --- the faults -------------------------------------------------------------------------------
+
+    @classmethod
+    def _copy_cam0(cls, msg: FiducialArray) -> None:
+        if cls._copying and msg._connection_header.get("callerid") == "/simulator":
+            msg.header.stamp = rospy.Time(msg.header.stamp.secs + 100, msg.header.stamp.nsecs)
+            cls.cam0.publish(msg)
+
+    @classmethod
+    def _future_one(cls):
+        msg = FiducialArray()
+        msg.header.stamp = rospy.Time(2000000000)
+        msg.header.frame_id = "cam0_optical_frame"
+        cls.cam0.publish(msg)
+        cls.s.sleep(1.0)
+
+    @classmethod
+    def _future_copies(cls):
+        cls._copying = True
+        cls.s.sleep(5.0)
+        cls._copying = False
+
+    @classmethod
+    def _odom(cls, stamp: float, vx: float) -> None:
+        msg = Odometry()
+        msg.header.stamp = rospy.Time.from_sec(stamp)
+        msg.header.frame_id = "odom"
+        msg.child_frame_id = "base_link"
+        msg.pose.pose.orientation.w = 1.0
+        msg.twist.twist.linear.x = vx
+        cls.odom.publish(msg)
+
+    @classmethod
+    def _odom_nan(cls):
+        cls._odom(rospy.get_time() + 1e6, math.nan)
+        cls.s.sleep(4.0)   # the issue: the standing robot's pose drifted 4.5 m in 26 s, unexplained
+
+    @classmethod
+    def _cmd_vel_nan(cls):
+        t_end = rospy.get_time() + 4.0
+        while rospy.get_time() < t_end:
+            tw = Twist()
+            tw.linear.x = tw.angular.z = math.nan
+            cls.cmd.publish(tw)
+            cls.s.sleep(0.05)
+
+    @classmethod
+    def _odom_fast(cls):
+        cls._odom(rospy.get_time() + 100.0, 1e6)
+        cls.s.sleep(2.0)
+
+    @classmethod
+    def _initialpose(cls):
+        for x in (1e9, 1e300):
+            msg = PoseWithCovarianceStamped()
+            msg.header.frame_id = "map"
+            msg.header.stamp = rospy.Time.now()
+            msg.pose.pose.position.x, msg.pose.pose.position.y = x, 4.0
+            msg.pose.pose.orientation.w = 1.0
+            cls.initialpose.publish(msg)
+            cls.s.sleep(0.5)
+        cls.s.sleep(1.0)
+
+    @classmethod
+    def _negative_id(cls):
+        msg = FiducialArray()
+        msg.header.stamp = rospy.Time.now()
+        msg.header.frame_id = "cam1_optical_frame"
+        f = Fiducial()
+        f.fiducial_id = -5
+        f.x0, f.y0, f.x1, f.y1, f.x2, f.y2, f.x3, f.y3 = 100.0, 100.0, 200.0, 100.0, 200.0, 200.0, 100.0, 200.0
+        msg.fiducials = [f]
+        cls.cam1.publish(msg)
+        cls.s.sleep(1.0)
+
+    # --- the checks -------------------------------------------------------------------------------
+
+    def test_1_no_pose_more_than_10cm_off(self):
+        for name, (t0, t1) in self.windows.items():
+            worst = self.s.worst(t0, t1)
+            self.assertLess(worst.error, MAX_ERROR_M, f"{name}: {100 * worst.error:.1f} cm off at {worst.stamp:.2f} "
+                                                      f"({self.s.summary(t0, t1)})")
+
+    def test_2_no_step_beyond_the_motion(self):
+        for name, (t0, t1) in self.windows.items():
+            excess, a, b = self.s.worst_step(t0, t1)
+            self.assertLess(excess, STEP_NOISE_M, f"{name}: a step {100 * excess:.1f} cm beyond the robot's motion "
+                                                  f"between {getattr(a, 'stamp', 0):.2f} and {getattr(b, 'stamp', 0):.2f}")
+
+    def test_3_poses_keep_coming(self):
+        for name, (t0, t1) in self.windows.items():
+            n = len(self.s.poses(t0, t1))
+            self.assertGreater(n, 0.5 * 10.0 * (t1 - t0), f"{name}: only {n} poses in {t1 - t0:.1f} s")
+
+    def test_4_tf_resolves_map_to_base_link_at_now_after_each_fault(self):
+        bad = {k: v for k, v in self.tf_after.items() if v is not None}
+        self.assertFalse(bad, f"the tf listener started before the faults fails: {bad}")
+
+    def test_5_no_pose_stamped_after_its_arrival(self):
+        late = [p for p in self.s.poses(self.t_start) if p.stamp > p.received + 0.25]
+        self.assertFalse(late, f"{len(late)} poses stamped in the future, e.g. {late[:1]}")
+
+    def test_6_each_fault_is_said_and_throttled(self):
+        for name, (t0, t1) in self.windows.items():
+            lines = self.s.lines(WARNINGS[name], t0, t1 + 0.5)
+            self.assertGreaterEqual(len(lines), 1, f"{name}: nothing said ({WARNINGS[name]!r})")
+            self.assertLessEqual(len(lines), self.s.max_throttled_lines(t1 - t0),
+                                 f"{name}: {len(lines)} lines in {t1 - t0:.1f} s: {lines[:3]}")
+        (line,) = self.s.lines("future stamp", *self.windows["future_one"])
+        self.assertIn("ring/cam0/fiducial_vertices", line)
+        self.assertIn("s ahead of the node's clock", line)
+
+    def test_9_no_callback_raised(self):
+        bad = self.s.lines("bad callback") + self.s.lines("Traceback")
+        self.assertFalse(bad, f"a localizer callback raised: {bad[:2]}")
+
+
+def tf2_ros_errors():
+    import tf2_ros
+
+    return (tf2_ros.LookupException, tf2_ros.ConnectivityException, tf2_ros.ExtrapolationException,
+            tf2_ros.TransformException)
+
+
+if __name__ == "__main__":
+    rostest.rosrun(PKG, "hostile_stamps", HostileStamps)
