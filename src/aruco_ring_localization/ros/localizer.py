@@ -15,8 +15,7 @@ ready), ``~odometry`` (nav_msgs/Odometry with the filter's twist), ``~camera_est
 ``/diagnostics``, tf ``map -> odom`` or ``map -> base_link``. Service: ``~reset`` (std_srvs/Trigger).
 
 Another node publishing the tf child frame we publish (a second localizer, gmapping's
-``map -> odom``) is found from the tf listener's authorities once per second and warned about,
-throttled (docs/security.md).
+``map -> odom``) is warned about, throttled, at its first such message (docs/security.md).
 
 Parameters: :class:`aruco_ring_localization.schemas.LocalizerConfig` (config/localization.yaml,
 docs/parameters.md).
@@ -28,12 +27,12 @@ from typing import List, Optional, Sequence
 
 import numpy as np
 import rospy
-import yaml
 import tf2_ros
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped, Twist
 from nav_msgs.msg import Odometry
 from std_srvs.srv import Trigger, TriggerResponse
+from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import Marker, MarkerArray
 
 from .. import geometry as geo
@@ -79,7 +78,8 @@ class LocalizerNode:
         rospy.Timer(rospy.Duration(out.diagnostics_period), self.publish_diagnostics, reset=True)
         rospy.Timer(rospy.Duration(out.markers_period), self.publish_markers, reset=True)
         self._tf_child: Optional[str] = None   # the child frame we last put on tf
-        rospy.Timer(rospy.Duration(1.0), self.check_tf_authority, reset=True)
+        # The tf listener's own /tf subscription: rospy deserializes each message once for both.
+        rospy.Subscriber("/tf", TFMessage, self.check_tf_authority, queue_size=100)
         rospy.loginfo("localizer: %d mapped markers in %s, fusion %s, output %s -> %s, tf %s (%s)",
                       len(marker_map), self.map_frame, config.estimator.fusion, self.map_frame, self.base_frame,
                       out.tf_mode, "on" if out.publish_tf else "off")
@@ -181,27 +181,26 @@ class LocalizerNode:
         self.tf_broadcaster.sendTransform(make_transform_stamped(T_map_base, self.map_frame, self.base_frame, stamp))
         self._tf_child = self.base_frame
 
-    def check_tf_authority(self, _event=None) -> None:
-        """Warn, throttled, when the latest tf of the child frame we publish came from another node.
+    def check_tf_authority(self, msg: TFMessage) -> None:
+        """Warn, throttled, when another node publishes the tf child frame we publish.
 
         Two localizers on the same frames (or ours beside gmapping without beside_gmapping:=true)
-        both publish ``map -> odom``: every tf user then sees the robot jump between two poses. The
-        tf listener records which node sent each frame's latest transform (its authority); sampled
-        once per second, the other publisher shows up within a few seconds.
+        both publish ``map -> odom``: every tf user then sees the robot jump between two poses and
+        tf2 logs TF_REPEATED_DATA. The sender of each /tf message is in its connection header.
         """
         child = self._tf_child
         if child is None:
             return
-        try:
-            frames = yaml.safe_load(self.tf_buffer.all_frames_as_yaml()) or {}
-        except yaml.YAMLError:
+        sender = msg._connection_header.get("callerid", "") if hasattr(msg, "_connection_header") else ""
+        if not sender or sender == rospy.get_name():
             return
-        info = frames.get(child) if isinstance(frames, dict) else None
-        other = str(info.get("broadcaster", "")) if isinstance(info, dict) else ""
-        if other and other.strip("/") != rospy.get_name().strip("/"):
-            rospy.logwarn_throttle(WARN_PERIOD, f"localizer: {other} also publishes tf {info.get('parent', '?')} -> "
-                                                f"{child}, as this node does: two localizers on the same frames "
-                                                "(stop one; beside gmapping, use beside_gmapping:=true)")
+        for t in msg.transforms:
+            if t.child_frame_id.lstrip("/") == child:
+                rospy.logwarn_throttle(WARN_PERIOD, f"localizer: {sender} also publishes tf {t.header.frame_id} -> "
+                                                    f"{child}, as this node does: two localizers on the same frames "
+                                                    "(stop one; beside gmapping, use beside_gmapping:=true)")
+                return
+
     def publish_markers(self, _event=None) -> None:
         period = self.config.output.markers_period
         with self.ring_input.lock:
