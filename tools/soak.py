@@ -5,7 +5,10 @@ memory (RSS of each node over time), dropped frames and the position error.
 The simulator node (owning ``/clock``, paced at ``--speed`` simulated seconds per wall second,
 driving the paper's 23 poses again and again, holding each 3 s; its parameters are written to
 ``--out``/simulator.yaml) feeds the localizer; the error compares ``localizer/pose`` with
-``sim/ground_truth`` at the same stamp (the map is the scene's truth). Modes (``--mode``):
+``sim/ground_truth`` at the same stamp (the map is the scene's truth). The lab is the simulator's
+default (its schema's: the demo's and the benchmarks' lab), or the one of ``--simulator-config FILE``
+(config/simulator.yaml format: a harsher or a kinder lab, another scene); the soak sets only the
+mode, rate, route, loop, hold time and clock on top. Modes (``--mode``):
 
 * ``images`` — the simulator renders images for 8 detector nodes (lockstep: the clock waits for
   them, so no frame is lost and the real-time ratio says how fast the chain runs);
@@ -22,6 +25,7 @@ of the run) is below 5 MB per simulated hour, extrapolated.
 ``--report results/soak/soak.json`` rewrites the summary of a finished run.
 
 Usage: tools/soak.py [--minutes 30] [--rate 10] [--speed 1.0] [--sample 30] [--mode auto]
+                     [--simulator-config FILE]
 """
 from __future__ import annotations
 
@@ -44,7 +48,6 @@ import numpy as np
 REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
 sys.path.insert(0, os.path.join(REPO, "src"))
 
-TRUTH_MAP = os.path.join(REPO, "test", "data", "lab_truth_map.yaml")
 #: The first part of the run counted as warm-up (Python allocator pools, tf and connection
 #: buffers fill up over minutes); memory must be flat after it.
 WARMUP_FRACTION = 0.5
@@ -85,17 +88,28 @@ def node_pids(master_uri: str) -> Dict[str, int]:
     return out
 
 
-def simulator_config(mode: str, speed: float, rate: float):
-    """The simulator's parameters for the soak: the paper's 23 poses in a loop, 3 s each."""
-    from aruco_ring_localization.config import with_overrides
+def simulator_config(mode: str, speed: float, rate: float, base_file: Optional[str] = None):
+    """The simulator's parameters for the soak: the lab of ``base_file`` (or the default lab), the
+    paper's 23 poses in a loop, 3 s each."""
+    from aruco_ring_localization.config import load_yaml_config, with_overrides
     from aruco_ring_localization.simulation.params import SimulatorConfig
 
-    return with_overrides(SimulatorConfig(), {"mode": mode, "rate": rate, "robot.waypoints": "paper",
-                                              "robot.loop": True, "robot.hold_time": 3.0,
-                                              "clock.publish": True, "clock.speed": speed})
+    base = load_yaml_config(SimulatorConfig, base_file) if base_file else SimulatorConfig()
+    return with_overrides(base, {"mode": mode, "rate": rate, "robot.waypoints": "paper", "robot.plan": [],
+                                 "robot.loop": True, "robot.hold_time": 3.0, "clock.publish": True,
+                                 "clock.speed": speed})
 
 
-def launch_text(mode: str, sim_config: str) -> str:
+def write_truth_map(config, path: str) -> str:
+    """The true map of the configured scene (what the localizer localizes against), at ``path``."""
+    from aruco_ring_localization.simulation.scene import Scene
+
+    scene = Scene.load(config.scene.file) if config.scene.file else Scene.default()
+    scene.truth_map().save(path, backups=0)
+    return path
+
+
+def launch_text(mode: str, sim_config: str, truth_map: str) -> str:
     return f"""<launch>
   <include file="$(find aruco_ring_localization)/launch/simulation.launch">
     <arg name="config" value="{sim_config}"/>
@@ -105,7 +119,7 @@ def launch_text(mode: str, sim_config: str) -> str:
   <include file="$(find aruco_ring_localization)/launch/ring_tf.launch"/>
   <node pkg="aruco_ring_localization" type="localizer" name="localizer" output="log">
     <rosparam command="load" file="$(find aruco_ring_localization)/config/localization.yaml"/>
-    <param name="map_file" value="{TRUTH_MAP}"/>
+    <param name="map_file" value="{truth_map}"/>
   </node>
 </launch>
 """
@@ -118,6 +132,9 @@ def main(argv=None) -> int:
     ap.add_argument("--speed", type=float, default=1.0, help="simulated s per wall s, at most (default 1)")
     ap.add_argument("--sample", type=float, default=30.0, help="sampling period, simulated s (default 30)")
     ap.add_argument("--mode", choices=("auto", "corners", "images"), default="auto")
+    ap.add_argument("--simulator-config", metavar="FILE", default=None,
+                    help="the lab: simulator parameters (config/simulator.yaml format); default: the simulator's "
+                         "default lab")
     ap.add_argument("--out", default=os.path.join(REPO, "results", "soak"))
     ap.add_argument("--report", metavar="SOAK_JSON", help="only summarise a finished run's soak.json")
     args = ap.parse_args(argv)
@@ -144,14 +161,16 @@ def main(argv=None) -> int:
     tmp = tempfile.mkdtemp(prefix="soak_")
     os.makedirs(args.out, exist_ok=True)
     sim_config = os.path.join(args.out, "simulator.yaml")
+    config = simulator_config(mode, args.speed, args.rate, args.simulator_config)
     with open(sim_config, "w") as handle:
         import yaml
 
         from aruco_ring_localization.config import to_dict
-        yaml.safe_dump(to_dict(simulator_config(mode, args.speed, args.rate)), handle, sort_keys=False)
+        yaml.safe_dump(to_dict(config), handle, sort_keys=False)
+    truth_map = write_truth_map(config, os.path.join(args.out, "truth_map.yaml"))
     launch_file = os.path.join(tmp, "soak.launch")
     with open(launch_file, "w") as handle:
-        handle.write(launch_text(mode, sim_config))
+        handle.write(launch_text(mode, sim_config, truth_map))
     log = open(os.path.join(tmp, "roslaunch.log"), "w")
     proc = subprocess.Popen(["roslaunch", "-p", str(port), launch_file], stdout=log, stderr=subprocess.STDOUT,
                             start_new_session=True)
