@@ -262,6 +262,7 @@ def run(args, mode: str, master_uri: str, proc: subprocess.Popen) -> int:
                   "err_cm_median": round(100 * float(np.median(errs)), 2) if errs else None,
                   "err_cm_max": round(100 * max(errs), 2) if errs else None,
                   "rss_mb": {k: round(v, 1) for k, v in rss.items() if v is not None},
+                  "load_average": round(os.getloadavg()[0], 2),
                   "frames": d.get("frames"), "dropped_stale": d.get("dropped_stale"),
                   "latency_ms_median": d.get("latency_ms_median")}
         samples.append(sample)
@@ -281,6 +282,15 @@ def error_line(err: np.ndarray, samples: List[dict]) -> str:
     mx = [s["err_cm_max"] for s in samples if s.get("err_cm_max") is not None]
     return (f"- position error over the run (from the per-sample figures): median of the sample medians "
             f"{np.median(med):.2f} cm, max {max(mx):.2f} cm" if med else "- position error: no poses")
+
+
+def load_line(samples: List[dict]) -> str:
+    """The machine's 1-minute load average over the run (the run's own nodes included)."""
+    loads = [s["load_average"] for s in samples if s.get("load_average") is not None]
+    if not loads:
+        return "- load average: not recorded"
+    return (f"- load average (1 min, this run's nodes included) over the samples: median {np.median(loads):.1f}, "
+            f"min {min(loads):.1f}, max {max(loads):.1f}")
 
 
 def report(args, mode, samples, errors, frames_total, wall) -> int:
@@ -320,6 +330,7 @@ def report(args, mode, samples, errors, frames_total, wall) -> int:
         f"localizer's own count of stale frames dropped: {dropped}; latency median "
         f"{last.get('latency_ms_median')} ms",
         error_line(err, samples),
+        load_line(samples),
         f"- memory flat after warm-up (the first {100 * WARMUP_FRACTION:.0f}% of the run; localizer growth < "
         f"{FLAT_MB_PER_H:g} MB/h): {'yes' if flat else 'NO'}",
     ])
