@@ -406,12 +406,50 @@ def _fast_safe_load(text: str) -> Any:
 
 _NO_KEY = object()
 
+#: Most values a YAML document may expand to, aliases counted at every use (a 32 MiB map holds about
+#: 4 million). A "billion laughs" file (aliases of aliases) is small on disk but expands to far more:
+#: the first numpy call on it would try to allocate terabytes.
+MAX_YAML_VALUES = 10_000_000
+
+
+def _expanded_size(root: Any, limit: int) -> Optional[str]:
+    """Why the document ``root`` must not be used (it expands beyond ``limit`` values, or refers to
+    itself), or None. Linear in the distinct lists and dicts (shared ones are counted once, with
+    their size, at every use)."""
+    sizes: Dict[int, int] = {}
+    entered = set()
+    stack = [(root, False)]
+    while stack:
+        obj, done = stack.pop()
+        kind = type(obj)
+        if kind is not list and kind is not dict:
+            continue
+        oid = id(obj)
+        children = obj.values() if kind is dict else obj
+        if done:
+            entered.discard(oid)
+            n = 1 + (len(obj) if kind is dict else 0) + sum(
+                sizes[id(c)] if type(c) is list or type(c) is dict else 1 for c in children)
+            if n > limit:
+                return f"its aliases expand it to more than {limit:,} values (a YAML bomb?)"
+            sizes[oid] = n
+            continue
+        if oid in sizes:
+            continue
+        if oid in entered:
+            return "it contains itself (a recursive alias)"
+        entered.add(oid)
+        stack.append((obj, True))
+        stack.extend((c, False) for c in children if (type(c) is list or type(c) is dict) and id(c) not in sizes)
+    return None
+
 
 def load_yaml_file(path: str, max_bytes: int = MAX_YAML_FILE_BYTES) -> Any:
     """Read a YAML file; any failure becomes a ConfigError naming the file (and line, if known).
 
     A key repeated in one mapping is an error too (naming the key and its line), and so is a file
-    larger than ``max_bytes`` (refused before it is parsed: parse time and memory grow with it).
+    larger than ``max_bytes`` (refused before it is parsed: parse time and memory grow with it) or
+    one whose aliases expand it beyond :data:`MAX_YAML_VALUES` values or make it recursive.
     YAML's safe subset only (no Python objects); the common case takes the fast route
     (:func:`_fast_safe_load`), with the same result.
     """
@@ -438,6 +476,9 @@ def load_yaml_file(path: str, max_bytes: int = MAX_YAML_FILE_BYTES) -> Any:
         raise ConfigError("invalid YAML: nested too deeply", path=str(path)) from None
     if data is None:
         raise ConfigError("file is empty", path=str(path))
+    problem = _expanded_size(data, MAX_YAML_VALUES)
+    if problem:
+        raise ConfigError(f"refused: {problem}", path=str(path))
     return data
 
 

@@ -110,6 +110,18 @@ def test_every_cam0_message_100s_ahead_for_5s_changes_nothing(world, caplog):
     assert len(_lines(caplog, "future stamp")) == 1 and p.warn.counts["cam0.future stamp"] == 50
 
 
+def test_stamps_at_zero_or_not_finite_are_dropped_where_they_enter(world):
+    p = _pipeline(world)
+    _track(p, world, range(10))
+    frame, now = _frame(world, 10)
+    for stamp, reason in ((0.0, pl.SKIP_STALE_STAMP), (float("nan"), pl.SKIP_BAD_STAMP),
+                          (float("inf"), pl.SKIP_BAD_STAMP)):
+        assert p.on_detections("cam0", stamp, frame.cameras["cam0"].observations, now) == []
+        assert p.input.skipped["cam0"][reason] >= 1
+    assert p.time_jumps == 0 and p.input.assembler.time_jumps == 0
+    assert len(feed_ring_frame(p, frame, now=now)) == 1
+
+
 def test_a_late_camera_message_neither_resets_the_assembly_nor_the_filter(world):
     p = _pipeline(world)
     _track(p, world, range(20))

@@ -219,3 +219,32 @@ def test_backups_follow_the_umask(tmp_path):
         os.umask(old)
     modes = {p: os.stat(p).st_mode & 0o777 for p in [path] + backup_paths(path, 2)}
     assert set(modes.values()) == {0o644}, modes
+
+
+# --- YAML bombs ---------------------------------------------------------------------------------
+
+def _bomb(levels: int) -> str:
+    lines = ["format_version: 1", "a0: &a0 [1.0, 1.0, 1.0]"]
+    lines += [f"a{k}: &a{k} [*a{k - 1}, *a{k - 1}, *a{k - 1}]" for k in range(1, levels + 1)]
+    return "\n".join(lines + ["markers:", f"- {{id: 1, size: 0.2, translation: *a{levels}, rotation: [0, 0, 0, 1]}}"])
+
+
+@pytest.mark.parametrize("text,needle", [
+    (_bomb(24), "YAML bomb"),                        # 3^25 values: numpy would ask for terabytes
+    ("format_version: 1\nmarkers: &m [*m]\n", "recursive"),
+    ("format_version: 1\nx: &x !!python/none [*x]\nmarkers: []\n", ""),   # the full loader's own error
+])
+def test_yaml_bombs_and_recursive_aliases_are_refused_naming_the_file(tmp_path, text, needle):
+    path = tmp_path / "bomb.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=needle) as info:
+        MarkerMap.load(str(path))
+    assert info.value.path == str(path)
+
+
+def test_shared_aliases_of_reasonable_size_still_load(tmp_path):
+    path = tmp_path / "map.yaml"
+    _map(3).save(str(path))
+    text = path.read_text().replace("position_std: [", "position_std: &s [", 1)
+    path.write_text(text + "extra: [*s, *s]\n")
+    assert len(MarkerMap.load(str(path))) == 3
