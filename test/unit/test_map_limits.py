@@ -248,3 +248,40 @@ def test_shared_aliases_of_reasonable_size_still_load(tmp_path):
     text = path.read_text().replace("position_std: [", "position_std: &s [", 1)
     path.write_text(text + "extra: [*s, *s]\n")
     assert len(MarkerMap.load(str(path))) == 3
+
+
+# --- what held in the trials (kept holding) ---------------------------------------------------
+
+def test_a_full_disk_is_a_clear_error_and_leaves_the_map_and_no_temporary(tmp_path, monkeypatch):
+    import errno
+
+    path = tmp_path / "map.yaml"
+    _map(3).save(str(path))
+    before = path.read_bytes()
+
+    def full(_fd):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "fsync", full)
+    with pytest.raises(ConfigError) as info:
+        _map(4).save(str(path))
+    assert str(path) in str(info.value) and "No space left on device" in str(info.value)
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["map.yaml"]
+
+
+def test_symlinked_and_impossible_map_paths(tmp_path):
+    real = tmp_path / "real.yaml"
+    _map(3).save(str(real))
+    link = tmp_path / "link.yaml"
+    link.symlink_to(real)
+    assert len(MarkerMap.load(str(link))) == 3
+    loop = tmp_path / "loop.yaml"
+    loop.symlink_to(loop)
+    for bad in (tmp_path, loop, real / "below_a_file.yaml", tmp_path / "missing" / "map.yaml"):
+        with pytest.raises(ConfigError) as info:
+            MarkerMap.load(str(bad))
+        assert str(bad) in str(info.value)
+    with pytest.raises(ConfigError) as info:
+        _map(3).save(str(real / "below_a_file.yaml"))
+    assert "below_a_file.yaml" in str(info.value)
