@@ -153,6 +153,17 @@ class HostileSession:
                 worst = (step - allowed, a, b)
         return worst  # type: ignore[return-value]
 
+    def check_windows(self, windows: Dict[str, Tuple[float, float]]) -> None:
+        """The checks of every hostile rostest, per window: no pose more than MAX_ERROR_M off the
+        truth, no step more than STEP_NOISE_M beyond the robot's motion (AssertionError naming it)."""
+        for name, (t0, t1) in windows.items():
+            worst = self.worst(t0, t1)
+            assert worst.error < MAX_ERROR_M, (f"{name}: {100 * worst.error:.1f} cm off at {worst.stamp:.2f} "
+                                               f"({self.summary(t0, t1)})")
+            excess, a, b = self.worst_step(t0, t1)
+            assert excess < STEP_NOISE_M, (f"{name}: a step {100 * excess:.1f} cm beyond the robot's motion between "
+                                           f"{getattr(a, 'stamp', 0):.2f} and {getattr(b, 'stamp', 0):.2f}")
+
     def recovered_at(self, t0: float, t1: float, tol: float = MAX_ERROR_M) -> Optional[float]:
         """The first stamp in [t0, t1) from which every pose is within ``tol`` of the truth."""
         poses = [p for p in self.poses(t0, t1) if p.truth is not None]

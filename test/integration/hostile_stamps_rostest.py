@@ -34,7 +34,7 @@ from nav_msgs.msg import Odometry
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "faults"))
 
-from hostile_session import MAX_ERROR_M, STEP_NOISE_M, HostileSession  # noqa: E402
+from hostile_session import HostileSession  # noqa: E402
 
 PKG = "aruco_ring_localization"
 SETTLE = 2.0   # s after a fault that still belongs to its window
@@ -172,17 +172,8 @@ class HostileStamps(unittest.TestCase):
 
     # --- the checks -------------------------------------------------------------------------------
 
-    def test_1_no_pose_more_than_10cm_off(self):
-        for name, (t0, t1) in self.windows.items():
-            worst = self.s.worst(t0, t1)
-            self.assertLess(worst.error, MAX_ERROR_M, f"{name}: {100 * worst.error:.1f} cm off at {worst.stamp:.2f} "
-                                                      f"({self.s.summary(t0, t1)})")
-
-    def test_2_no_step_beyond_the_motion(self):
-        for name, (t0, t1) in self.windows.items():
-            excess, a, b = self.s.worst_step(t0, t1)
-            self.assertLess(excess, STEP_NOISE_M, f"{name}: a step {100 * excess:.1f} cm beyond the robot's motion "
-                                                  f"between {getattr(a, 'stamp', 0):.2f} and {getattr(b, 'stamp', 0):.2f}")
+    def test_1_no_pose_more_than_10cm_off_and_no_step_beyond_the_motion(self):
+        self.s.check_windows(self.windows)
 
     def test_3_poses_keep_coming(self):
         clean = self.s.posed_fraction(*self.clean)
