@@ -155,10 +155,11 @@ NODE_TITLES = {
     "detector": "`detector` (`config/detector.yaml`)",
     "comparison": "`comparison` (`config/comparison.yaml`)",
     "ring_tf": "`ring_tf` (launch arguments)",
+    "apriltag_relay": "`apriltag_relay` (launch arguments)",
     "simulator": "`simulator` (`config/simulator.yaml`)",
 }
 
-NODE_ORDER = ("mapper", "localizer", "detector", "ring_tf", "comparison", "simulator")
+NODE_ORDER = ("mapper", "localizer", "detector", "ring_tf", "apriltag_relay", "comparison", "simulator")
 
 
 def _cell(text: str) -> str:

@@ -8,16 +8,19 @@ Unknowns (all in one frame W, the robot's base frame at the reference station):
 
 Measurements: every detected corner of every observation. A corner ``X`` (marker frame) is seen by
 camera ``c`` of station ``s`` at ``p_c = T_base_cam^-1 · T_W_base^-1 · T_W_marker · X``, and the
-residual is ``f · (p_c.xy / p_c.z - xy_obs) / pixel_noise`` where ``xy_obs`` are the observed
-corners undistorted to normalised coordinates (``CameraModel.normalize``) and ``f`` the focal
-length in pixels: the pixel reprojection error of an ideal pinhole camera, in units of the
-expected corner noise. Undistorting once keeps the lens model out of the solver; near the
-image centre it equals the raw pixel error, at the border it differs by the local lens scale.
+residual is ``A · (p_c.xy / p_c.z - xy_obs) / pixel_noise`` where ``xy_obs`` are the observed
+corners undistorted to normalised coordinates (``CameraModel.normalize``) and ``A`` the 2x2
+Jacobian of the raw pixels with respect to them at the observed corner (``obs_lens``; by default
+``diag(f)``, the ideal pinhole camera): the raw pixel reprojection error to first order, in units
+of the expected corner noise. Undistorting once keeps the lens model out of the solver, and the
+local lens scale keeps a fisheye's border corners weighted as what they are.
 
 Each pose is a perturbation of its initial value, ``R = exp(w) R0``, ``t = t0 + dt`` (w in the
 parent frame), so the parameters stay near zero. The Jacobian is analytic (left Jacobian of
-SO(3) included) and sparse; the solver is :func:`scipy.optimize.least_squares` (``trf``, ``lsmr``
-on the sparse Jacobian, ``x_scale='jac'``, a robust loss).
+SO(3) included) and sparse; the solver is Levenberg-Marquardt on the sparse normal equations with
+a direct sparse solve and the robust loss by reweighting (``solver: lm``, :func:`_solve_lm`), or
+:func:`scipy.optimize.least_squares` (``solver: trf``: ``lsmr`` on the sparse Jacobian,
+``x_scale='jac'``, a robust loss).
 
 Uncertainty: the Gauss–Newton information ``H = JᵀJ`` at the solution (with the robust loss's
 weights), scaled by the residual variance factor. Markers only touch stations and cameras, so
@@ -39,8 +42,8 @@ from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 
 from . import geometry as geo
-from .config import in_radians, param
-from .errors import GeometryError
+from .config import in_radians, param, require_positive
+from .errors import ConfigError, GeometryError
 from .markers import marker_corners
 
 logger = logging.getLogger(__name__)
@@ -62,6 +65,12 @@ class BAProblem:
         fixed_station: index of a station held fixed, or None.
         T_base_cams_start: (C, 4, 4) starting extrinsics when they are refined (default: the
             calibration ``T_base_cams``, which stays the centre of their prior).
+        obs_lens: optional (N, 4, 2, 2) Jacobian of the raw pixels with respect to the undistorted
+            normalised coordinates at each observed corner (:meth:`CameraModel.pixel_jacobian`).
+            Given, the residuals are first-order *raw* pixel errors: a wide-angle or fisheye lens
+            compresses the image towards its border (a corner 60 deg off-axis moves ~4x fewer raw
+            pixels than pinhole pixels), and without it those corners would count as 4x noisier.
+            Default: ``diag(obs_focal)``, the ideal pinhole camera.
     """
 
     T_W_markers: np.ndarray
@@ -76,6 +85,7 @@ class BAProblem:
     fixed_marker: Optional[int] = 0
     fixed_station: Optional[int] = None
     T_base_cams_start: Optional[np.ndarray] = None
+    obs_lens: Optional[np.ndarray] = None
 
 
 @dataclass(frozen=True)
@@ -90,15 +100,25 @@ class BAOptions:
     extrinsics_rot_sigma_deg: float = param(0.5, "prior std of the calibrated camera rotations", unit="deg")
     max_nfev: int = param(200, "solver iteration cap (function evaluations)")
     dense_max_params: int = param(300, "up to this many unknowns the trust-region steps are solved densely "
-                                       "(tr_solver exact), above with LSMR on the sparse Jacobian")
+                                       "(tr_solver exact), above with LSMR on the sparse Jacobian (solver trf)")
     ftol: float = param(1e-8, "solver tolerance on the cost")
     xtol: float = param(1e-10, "solver tolerance on the step")
     gtol: float = param(1e-10, "solver tolerance on the gradient")
     lsmr_tol: float = param(1e-10, "LSMR's atol/btol for the sparse trust-region steps (looser is faster per "
                                    "iteration, enough for quick adjustments of an initialisation)")
     covariance: bool = param(True, "compute per-marker covariances")
+    solver: str = param("lm", "lm = Levenberg-Marquardt on the sparse normal equations (direct sparse solve, "
+                              "robust loss by iterative reweighting); trf = scipy's trust region with LSMR steps "
+                              "(slow to converge on long, weakly coupled problems)")
 
     extrinsics_rot_sigma = in_radians("extrinsics_rot_sigma_deg")
+
+    def __post_init__(self) -> None:
+        if self.loss not in ("huber", "soft_l1", "cauchy", "linear", "arctan"):
+            raise ConfigError(f"expected huber, soft_l1, cauchy, arctan or linear, got {self.loss!r}", key="loss")
+        if self.solver not in ("lm", "trf"):
+            raise ConfigError(f"expected lm or trf, got {self.solver!r}", key="solver")
+        require_positive(self, "pixel_noise", "robust_scale", "extrinsics_trans_sigma", "extrinsics_rot_sigma_deg")
 
 
 @dataclass
@@ -174,7 +194,12 @@ class _Model:
         # Corner coordinates in the marker frame, per observation: (N, 4, 3).
         unit = marker_corners(1.0)
         self.X = unit[None, :, :] * np.asarray(prob.sizes, dtype=float)[prob.obs_marker][:, None, None]
-        self.scale = prob.obs_focal / opts.pixel_noise            # (N, 2)
+        if prob.obs_lens is not None:
+            self.A = np.asarray(prob.obs_lens, dtype=float) / opts.pixel_noise     # (N, 4, 2, 2)
+        else:
+            self.A = np.zeros((N, 4, 2, 2))
+            self.A[..., 0, 0] = (prob.obs_focal[:, 0] / opts.pixel_noise)[:, None]
+            self.A[..., 1, 1] = (prob.obs_focal[:, 1] / opts.pixel_noise)[:, None]
         self.n_obs_res = 8 * N
         self.n_prior_res = 6 * C if opts.refine_extrinsics else 0
         self.n_res = self.n_obs_res + self.n_prior_res
@@ -230,12 +255,12 @@ class _Model:
     def _forward(self, x: np.ndarray):
         (wm, Rm, tm), (ws, Rs, ts, Es), (wc, Rc, tc, Ec) = self.poses(x)
         im, is_, ic = self.p.obs_marker, self.p.obs_station, self.p.obs_camera
-        a = np.einsum("nij,nkj->nki", Rm[im], self.X)                # R_m X, (N, 4, 3)
+        a = self.X @ np.transpose(Rm[im], (0, 2, 1))                 # R_m X, (N, 4, 3)
         pW = a + tm[im][:, None, :]
         q = pW - ts[is_][:, None, :]                                  # p_W - t_s
-        pb = np.einsum("nji,nkj->nki", Rs[is_], q)                    # R_s^T q
+        pb = q @ Rs[is_]                                              # R_s^T q
         q2 = pb - tc[ic][:, None, :]
-        pc = np.einsum("nji,nkj->nki", Rc[ic], q2)                    # R_c^T q2
+        pc = q2 @ Rc[ic]                                              # R_c^T q2
         return (wm, Rm, tm), (ws, Rs, ts, Es), (wc, Rc, tc, Ec), a, q, q2, pc
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
@@ -243,7 +268,7 @@ class _Model:
         z = pc[..., 2]
         z = np.where(np.abs(z) < 1e-9, 1e-9, z)
         proj = pc[..., :2] / z[..., None]
-        r = (proj - self.p.obs_xy) * self.scale[:, None, :]
+        r = (self.A @ (proj - self.p.obs_xy)[..., None])[..., 0]
         out = r.ravel()
         if self.n_prior_res:
             prior = x[self._prior_cols].reshape(self.C, 6).copy()
@@ -263,38 +288,143 @@ class _Model:
         D[..., 1, 1] = 1.0 / z
         D[..., 0, 2] = -pc[..., 0] / z ** 2
         D[..., 1, 2] = -pc[..., 1] / z ** 2
-        D *= self.scale[:, None, :, None]
+        D = self.A @ D
         RcT = np.transpose(Rc[ic], (0, 2, 1))                         # (N, 3, 3)
         RsT = np.transpose(Rs[is_], (0, 2, 1))
-        DRc = np.einsum("nkij,njl->nkil", D, RcT)                     # d r / d p_b, (N, 4, 2, 3)
-        DRcRs = np.einsum("nkij,njl->nkil", DRc, RsT)                 # d r / d p_W
+        DRc = D @ RcT[:, None]                                        # d r / d p_b, (N, 4, 2, 3)
+        DRcRs = DRc @ RsT[:, None]                                    # d r / d p_W
         data = []
         # Marker: dp_W/dw = -[R_m X]x J_l(w_m), dp_W/dt = I.
         Jl_m = geo.so3_left_jacobian(wm)[im]                         # (N, 3, 3)
-        dpw_dw = -np.einsum("nkij,njl->nkil", geo.skew(a), Jl_m)     # (N, 4, 3, 3)
-        jm = np.concatenate([np.einsum("nkij,nkjl->nkil", DRcRs, dpw_dw), DRcRs], axis=-1)
+        dpw_dw = -(geo.skew(a) @ Jl_m[:, None])                      # (N, 4, 3, 3)
+        jm = np.concatenate([DRcRs @ dpw_dw, DRcRs], axis=-1)
         data.append(jm[self._blk_masks[0]])
         # Station: dp_b/dv = R_s0^T [exp(-v) q]x J_l(-v), dp_b/dt_s = -R_s^T.
         Einv = np.transpose(Es, (0, 2, 1))[is_]                        # exp(-v)
         Jl_s = geo.so3_left_jacobian(-ws)[is_]
-        u = np.einsum("nij,nkj->nki", Einv, q)
+        u = q @ np.transpose(Einv, (0, 2, 1))
         R0T = np.transpose(self.R_s0[is_], (0, 2, 1))
-        dpb_dv = np.einsum("nij,nkjl->nkil", R0T, np.einsum("nkij,njl->nkil", geo.skew(u), Jl_s))
-        js = np.concatenate([np.einsum("nkij,nkjl->nkil", DRc, dpb_dv), -DRcRs], axis=-1)
+        dpb_dv = R0T[:, None] @ (geo.skew(u) @ Jl_s[:, None])
+        js = np.concatenate([DRc @ dpb_dv, -DRcRs], axis=-1)
         data.append(js[self._blk_masks[1]])
         if self.o.refine_extrinsics:
             Einv_c = np.transpose(Ec, (0, 2, 1))[ic]
             Jl_c = geo.so3_left_jacobian(-wc)[ic]
-            u2 = np.einsum("nij,nkj->nki", Einv_c, q2)
+            u2 = q2 @ np.transpose(Einv_c, (0, 2, 1))
             Rc0T = np.transpose(self.R_c0[ic], (0, 2, 1))
-            dpc_de = np.einsum("nij,nkjl->nkil", Rc0T, np.einsum("nkij,njl->nkil", geo.skew(u2), Jl_c))
-            jc = np.concatenate([np.einsum("nkij,nkjl->nkil", D, dpc_de), -DRc], axis=-1)
+            dpc_de = Rc0T[:, None] @ (geo.skew(u2) @ Jl_c[:, None])
+            jc = np.concatenate([D @ dpc_de, -DRc], axis=-1)
             data.append(jc[self._blk_masks[2]])
         if self.n_prior_res:
             pd = np.tile(np.r_[np.full(3, 1.0 / self.o.extrinsics_rot_sigma),
                                np.full(3, 1.0 / self.o.extrinsics_trans_sigma)], self.C)
             data.append(pd)
         return sp.csr_matrix((np.concatenate(data), (self.rows, self.cols)), shape=(self.n_res, self.n_params))
+
+
+def _loss_weights(z: np.ndarray, loss: str) -> np.ndarray:
+    """IRLS weights rho'(z) of scipy's robust losses at z = (r / f_scale)^2."""
+    if loss == "huber":
+        return np.where(z <= 1.0, 1.0, 1.0 / np.sqrt(np.maximum(z, 1.0)))
+    if loss == "soft_l1":
+        return 1.0 / np.sqrt(1.0 + z)
+    if loss == "cauchy":
+        return 1.0 / (1.0 + z)
+    if loss == "arctan":
+        return 1.0 / (1.0 + z * z)
+    return np.ones_like(z)
+
+
+def _loss_cost(z: np.ndarray, loss: str) -> float:
+    """sum rho(z) of scipy's robust losses (the cost is 0.5 f_scale^2 times it)."""
+    if loss == "huber":
+        return float(np.sum(np.where(z <= 1.0, z, 2.0 * np.sqrt(np.maximum(z, 1.0)) - 1.0)))
+    if loss == "soft_l1":
+        return float(np.sum(2.0 * (np.sqrt(1.0 + z) - 1.0)))
+    if loss == "cauchy":
+        return float(np.sum(np.log1p(z)))
+    if loss == "arctan":
+        return float(np.sum(np.arctan(z)))
+    return float(np.sum(z))
+
+
+class _LMResult:
+    def __init__(self, x, nfev, message, jac):
+        self.x, self.nfev, self.message, self.jac = x, nfev, message, jac
+
+
+def _solve_lm(model: _Model, x0: np.ndarray, f_scale: float, opts: BAOptions, max_nfev: int) -> _LMResult:
+    """Levenberg-Marquardt on the sparse normal equations, robust loss by reweighting.
+
+    Each iteration: the Jacobian at ``x``, weights ``rho'((r/f_scale)^2)`` on the corner residuals
+    (the priors stay quadratic), ``(H + lambda diag(H)) dx = -g`` solved directly (SuperLU on the
+    sparse ``H = J^T W J``: markers, stations and cameras couple sparsely, so the factorisation is
+    cheap where LSMR's unpreconditioned iterations crawl along the long, weakly constrained
+    directions of a chain of stations). A step is kept when the robust cost decreases.
+    Stops on ``ftol`` (relative cost decrease), ``xtol`` (step), ``gtol`` (gradient) or ``max_nfev``.
+    """
+    from scipy.sparse.linalg import splu
+
+    n_obs = model.n_obs_res
+    s2 = f_scale * f_scale
+
+    def cost_of(r: np.ndarray) -> float:
+        return 0.5 * s2 * _loss_cost(r[:n_obs] ** 2 / s2, opts.loss) + 0.5 * float(r[n_obs:] @ r[n_obs:])
+
+    x = x0.copy()
+    r = model.residuals(x)
+    cost = cost_of(r)
+    nfev = 1
+    lam = 1e-4
+    message = "the maximum number of function evaluations is exceeded"
+    Jw = None
+    while nfev < max_nfev:
+        J = model.jacobian(x)
+        w = np.ones_like(r)
+        w[:n_obs] = _loss_weights(r[:n_obs] ** 2 / s2, opts.loss)
+        sw = np.sqrt(w)
+        Jw = sp.diags(sw) @ J
+        g = Jw.T @ (sw * r)
+        if float(np.max(np.abs(g))) <= opts.gtol * max(1.0, cost):
+            message = "`gtol` termination condition is satisfied"
+            break
+        H = (Jw.T @ Jw).tocsc()
+        d = np.maximum(H.diagonal(), 1e-12)
+        accepted = False
+        while nfev < max_nfev:
+            try:
+                dx = splu((H + sp.diags(lam * d)).tocsc()).solve(-g)
+            except RuntimeError:        # singular: damp harder
+                lam *= 10.0
+                continue
+            x_new = x + dx
+            r_new = model.residuals(x_new)
+            nfev += 1
+            cost_new = cost_of(r_new)
+            if np.isfinite(cost_new) and cost_new < cost:
+                accepted = True
+                break
+            lam *= 4.0
+            if lam > 1e10:
+                break
+        if not accepted:
+            message = "no step decreases the cost further"
+            break
+        decrease = cost - cost_new
+        small_step = float(np.linalg.norm(dx)) <= opts.xtol * (opts.xtol + float(np.linalg.norm(x_new)))
+        x, r, cost = x_new, r_new, cost_new
+        lam = max(lam / 3.0, 1e-10)
+        if decrease <= opts.ftol * cost:
+            message = "`ftol` termination condition is satisfied"
+            break
+        if small_step:
+            message = "`xtol` termination condition is satisfied"
+            break
+    # The Jacobian returned is the reweighted one at the solution (the covariance uses it).
+    J = model.jacobian(x)
+    w = np.ones_like(r)
+    w[:n_obs] = _loss_weights(r[:n_obs] ** 2 / s2, opts.loss)
+    return _LMResult(x, nfev, message, sp.diags(np.sqrt(w)) @ J)
 
 
 def _marker_covariances(model: _Model, J: sp.csr_matrix, variance_factor: float) -> np.ndarray:
@@ -368,6 +498,8 @@ def _bundle_adjust(prob: BAProblem, opts: Optional[BAOptions] = None) -> BAResul
         jac = model.jacobian if tr_solver == "lsmr" else (lambda x: model.jacobian(x).toarray())
 
         def solve(x_start: np.ndarray, f_scale: float, max_nfev: int):
+            if opts.solver == "lm":
+                return _solve_lm(model, x_start, f_scale, opts, max_nfev)
             return least_squares(model.residuals, x_start, jac=jac, method="trf", loss=opts.loss,
                                  f_scale=f_scale, x_scale="jac", tr_solver=tr_solver,
                                  tr_options={"atol": opts.lsmr_tol, "btol": opts.lsmr_tol} if tr_solver == "lsmr" else {},
@@ -412,6 +544,16 @@ def _bundle_adjust(prob: BAProblem, opts: Optional[BAOptions] = None) -> BAResul
     return BAResult(T_W_markers=T_m, T_W_stations=T_s, T_base_cams=T_c, marker_cov=cov, rms_px_before=rms0,
                     rms_px_after=rms1, per_obs_rms_px=per_obs, variance_factor=vf, seconds=seconds, nfev=nfev,
                     status=status, n_residuals=model.n_res, n_params=model.n_params)
+
+
+def observation_rms_px(prob: BAProblem) -> np.ndarray:
+    """(N,) RMS corner reprojection error (px, undistorted) of every observation at the problem's poses.
+
+    What a map that is not adjusted (method ``paper``) reports as its reprojection error.
+    """
+    model = _Model(prob, BAOptions(pixel_noise=1.0))
+    r = model.residuals(np.zeros(model.n_params))[: model.n_obs_res]
+    return np.sqrt(np.mean(r.reshape(model.N, 8) ** 2, axis=1))
 
 
 def marker_std_in_frame(cov6: np.ndarray, T_W_marker: np.ndarray, T_W_frame: np.ndarray):

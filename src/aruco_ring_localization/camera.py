@@ -241,6 +241,20 @@ class CameraModel:
             out = cv2.undistortPointsIter(px, K, self._D_full, None, None, crit)
         return out.reshape(-1, 2)
 
+    def pixel_jacobian(self, xy, step: float = 1e-6) -> np.ndarray:
+        """(N, 2, 2) Jacobian of the raw pixels with respect to undistorted normalised coordinates
+        ``xy`` (N, 2), by central differences: how far a raw pixel moves per unit of x/z and y/z
+        (``diag(fx, fy)`` for a camera without distortion)."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        out = np.zeros((len(xy), 2, 2))
+        for j in range(2):
+            d = np.zeros(2)
+            d[j] = step
+            hi = self.pixels_from_normalized(self.distort_normalized(xy + d))
+            lo = self.pixels_from_normalized(self.distort_normalized(xy - d))
+            out[:, :, j] = (hi - lo) / (2.0 * step)
+        return out
+
     def undistort_pixels(self, pixels) -> np.ndarray:
         """Raw pixels -> pixels of the ideal (distortion-free) pinhole camera with the same K."""
         xy = self.normalize(pixels)

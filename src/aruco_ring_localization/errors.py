@@ -6,7 +6,7 @@ for people: they name the file, the key or the field, and say what was expected.
 """
 from __future__ import annotations
 
-from typing import Optional
+from typing import List, Optional, Sequence
 
 
 class ArucoRingError(Exception):
@@ -40,3 +40,18 @@ class ConfigError(ArucoRingError, ValueError):
 
 class MeasurementError(ArucoRingError, ValueError):
     """A runtime measurement (detected corners, a camera_info message) is unusable."""
+
+
+class MapSanityError(ArucoRingError):
+    """A map failed its sanity checks (:func:`marker_map.check_map`) and was not written.
+
+    Attributes:
+        problems: one line per failed check, naming it, the markers involved and what to do.
+        path: the file that was not written (the previous version, if any, is untouched).
+    """
+
+    def __init__(self, problems: Sequence[str], path: Optional[str] = None):
+        self.problems: List[str] = list(problems)
+        self.path = path
+        where = f"map not written to {path}" if path else "map not written"
+        super().__init__(f"{where} (the previous file, if any, is kept): " + "; ".join(self.problems))

@@ -309,6 +309,25 @@ def average_transforms(transforms: Iterable, weights: Optional[Sequence[float]] 
     return out
 
 
+def rigid_fit(P, Q, weights: Optional[Sequence[float]] = None) -> np.ndarray:
+    """Weighted least-squares rigid transform ``T`` (4x4) with ``Q ≈ T · P`` for (K, 3) point sets.
+
+    The closed-form SVD solution (Kabsch / Umeyama without scale), with the reflection case
+    excluded. Needs three non-collinear points for a unique rotation.
+    """
+    P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
+    Q = np.asarray(Q, dtype=np.float64).reshape(-1, 3)
+    if P.shape != Q.shape or len(P) < 1:
+        raise GeometryError(f"rigid_fit: point sets must have the same shape (K, 3), got {P.shape} and {Q.shape}")
+    w = _check_weights(len(P), weights)
+    pc, qc = w @ P, w @ Q
+    H = ((P - pc) * w[:, None]).T @ (Q - qc)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    return make_transform(R, qc - R @ pc)
+
+
 def pose_distance(T_a, T_b) -> Tuple[float, float]:
     """(translation distance in m, rotation angle in rad) between two poses."""
     D = inverse(T_a) @ np.asarray(T_b, dtype=np.float64)

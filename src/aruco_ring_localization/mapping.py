@@ -21,21 +21,28 @@ base_link z = 0, x along the reference marker's x made horizontal).
 * Ambiguity: a detection whose IPPE ambiguity ratio (best/second reprojection error) exceeds
   ``max_ambiguity`` is not used to initialise poses (a flipped pose would corrupt the average).
   A marker seen *only* ambiguously is resolved by consensus across different viewpoints (the
-  candidate pose that other views agree with); when nothing agrees it is reported, not mapped.
-* Multi-station: frames are grouped into *stations* (robot placements). A station is given by
-  the caller, or detected automatically: a frame whose detections moved less than ``still_px``
-  from the previous frame's belongs to the same station. Stations enter the map greedily, most
-  co-visible mapped markers first; each station's pose is the weighted average of what its
-  mapped markers imply, and its new markers are chained from it. Markers never seen together
-  with the mapped set (at the same instant, through any camera) are :meth:`unlinked_markers`.
-  A few alternating passes then re-average markers over all stations and stations over all
-  markers. A marker whose per-station estimates disagree by more than ``max_marker_spread``
-  (a wrong ``fiducial_len_override`` size, a marker that moved, the same id printed twice) is
-  rejected with a warning.
+  candidate pose that other views agree with, better supported than its rival); when the views
+  do not decide it is mapped with the better solution, flagged ``ambiguous`` with a rotation
+  uncertainty covering the other one, until another view resolves it.
+* Multi-station: frames are grouped into *stations* (ring poses). A station is given by the
+  caller, or detected automatically: a frame whose detections moved less than ``still_px`` from
+  the station's first frame belongs to it; a moving ring starts a new station once they moved
+  ``min_station_motion_px`` (the frames in between are left out). Stations enter the map
+  greedily, most co-visible mapped markers first; each station's pose is fitted to its mapped
+  markers (planar for a ground robot, SE(3) otherwise: :meth:`MapBuilder._station_model` tests
+  the planar prior on the data), and its new markers are chained from it. Markers never seen
+  together with the mapped set (at the same instant, through any camera) are
+  :meth:`unlinked_markers`. A few alternating passes then re-average markers over all stations
+  and stations over all markers. A marker whose per-station estimates disagree by more than
+  ``max_marker_spread`` (a wrong ``fiducial_len_override`` size, a marker that moved, the same id
+  printed twice) is rejected with a warning.
 * ``refined``: the paper initialisation followed by :mod:`bundle_adjustment` over every corner
-  of every observation (the paper's future work), with per-marker uncertainty.
+  of every observation (the paper's future work), with 6-DOF stations and per-marker uncertainty.
+* The map frame is ``floor`` (below the reference marker, z up) or ``marker`` (the reference
+  marker's own frame), ``MappingOptions.frame``; the map records it, its quality (reprojection
+  RMS, stations, station model) and passes :func:`marker_map.check_map` before any save.
 
-Frames: ``W`` is the robot's base frame at the reference station; ``T_W_*`` poses live there
+Frames: ``W`` is the ring's base frame at the reference station; ``T_W_*`` poses live there
 until :meth:`build` expresses them in the map frame.
 """
 from __future__ import annotations
@@ -49,12 +56,13 @@ from typing import Any, Dict, Hashable, List, Optional, Tuple
 import numpy as np
 
 from . import geometry as geo
+from .bundle_adjustment import (BAOptions, BAProblem, BAResult, bundle_adjust, marker_std_in_frame,
+                                observation_rms_px)
 from .config import in_radians, param, section
-from .bundle_adjustment import BAOptions, BAProblem, BAResult, bundle_adjust, marker_std_in_frame
-from .errors import ArucoRingError, GeometryError, MeasurementError
+from .errors import ArucoRingError, ConfigError, GeometryError, MeasurementError
 from .detections import RingFrame
-from .marker_map import MarkerEntry, MarkerMap, map_frame_from_reference
-from .markers import MarkerSizes
+from .marker_map import MapSanityLimits, MarkerEntry, MarkerMap, map_frame_from_reference
+from .markers import MarkerSizes, marker_corners
 from .camera import CameraModel
 from .pnp import MarkerPoseCandidates, solve_marker_ippe_undistorted
 from .ring import CameraRing
@@ -62,6 +70,9 @@ from .ring import CameraRing
 logger = logging.getLogger(__name__)
 
 METHODS = ("paper", "refined")
+
+
+FRAMES = ("floor", "marker")
 
 
 @dataclass(frozen=True)
@@ -76,6 +87,11 @@ class MappingOptions:
     still_px: float = param(1.5, "automatic stations: consecutive frames whose common detections moved less than "
                                  "this (median of the largest corner motion) belong to one robot placement", unit="px")
     max_frames_per_station: int = param(30, "frames kept per station (more add little and cost time)")
+    min_station_motion_px: float = param(10.0, "automatic stations of a moving ring (handheld, driving): a "
+                                               "frame starts a new station only once its detections moved this "
+                                               "far (median) from the current station's first frame; frames "
+                                               "in between are left out (0: every moving frame is a station)",
+                                         unit="px")
     min_views_for_consensus: int = param(2, "distinct (station, camera) views needed to resolve a marker seen only "
                                             "ambiguously")
     consensus_angle_deg: float = param(10.0, "agreement tolerance of that consensus, rotation", unit="deg")
@@ -83,6 +99,8 @@ class MappingOptions:
     max_marker_spread: float = param(0.25, "a marker whose per-station positions disagree by more is rejected (a "
                                            "wrong fiducial_len_override, a moved marker, an id printed twice)",
                                      unit="m")
+    max_marker_rms_px: float = param(3.0, "refined maps: a marker still reprojecting worse than this after the "
+                                          "adjustment is rejected and the adjustment redone without it", unit="px")
     refine_passes: int = param(3, "alternating marker/station re-averaging passes in multi-station maps")
     refined_reference: bool = param(True, "refined maps without a reference_marker: fix the frame to the marker "
                                           "whose heading the adjustment determines best, not the paper's reference")
@@ -94,11 +112,28 @@ class MappingOptions:
                                          "stations are linked (with ba.refine_extrinsics), again each time the "
                                          "linked set doubles")
     init_calibrate_max: int = param(96, "... up to this many stations (all linked stations adjusted)")
+    planar: bool = param(True, "ground robot: the initialisation moves stations in x, y and yaw only (the ring "
+                               "base frame's z is up and the floor flat); the bundle adjustment always "
+                               "estimates full 6-DOF stations. Turned off automatically, with a warning, when the "
+                               "detections show the ring tilting or changing height between stations")
+    planar_max_tilt_deg: float = param(5.0, "the planar prior is contradicted when the ring tilts by more than this "
+                                            "between stations (median)", unit="deg")
+    planar_max_height_change: float = param(0.10, "... or changes height by more than this (median)", unit="m")
+    frame: str = param("floor", "map frame: floor = origin on the floor below the reference marker, z up (the "
+                                "ring base frame's z), x the marker's x made horizontal; marker = the reference "
+                                "marker's own frame (fiducial_slam's convention)")
     ba: BAOptions = section(BAOptions, "bundle adjustment of method refined; the ring extrinsics are refined too, "
                                        "with priors around the calibration (several stations make them observable)",
                             refine_extrinsics=True)
+    sanity: MapSanityLimits = section(MapSanityLimits, "checks every map passes before it is saved (a map failing one "
+                                                       "is not written, the previous file stays)")
 
     consensus_angle = in_radians("consensus_angle_deg")
+    planar_max_tilt = in_radians("planar_max_tilt_deg")
+
+    def __post_init__(self) -> None:
+        if self.frame not in FRAMES:
+            raise ConfigError(f"expected one of {', '.join(FRAMES)}, got {self.frame!r}", key="frame")
 
 
 @dataclass
@@ -113,6 +148,7 @@ class _Obs:
     focal: np.ndarray            # (2,) fx, fy px
     T_base_cam: np.ndarray       # extrinsics in force
     model: CameraModel
+    lens: np.ndarray             # (4, 2, 2) d raw px / d xy at each corner (CameraModel.pixel_jacobian)
 
 
 @dataclass
@@ -136,6 +172,7 @@ class _Group:
     T_base_cam: np.ndarray
     xy: np.ndarray                # (4, 2) mean corners, undistorted normalised
     focal: np.ndarray             # (2,) fx, fy px
+    lens: np.ndarray              # (4, 2, 2) mean lens Jacobian of the members
 
     def T_base_marker(self, k: int = 0) -> np.ndarray:
         return self.T_base_cam @ self.candidates[k]
@@ -150,6 +187,22 @@ def _candidates(xy: np.ndarray, size: float, focal: np.ndarray) -> MarkerPoseCan
     refined from the IPPE poses and their mirrors, errors in undistorted px (see
     :func:`pnp.solve_marker_ippe_undistorted`)."""
     return solve_marker_ippe_undistorted(xy, size, focal, mirror=True, min_separation=_MIN_SEPARATION)
+
+
+def _robust_fit(fit, P: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """``fit(keep)`` (a transform from the markers flagged in ``keep``), refitted without the
+    markers whose centre ``P`` (station frame) lands farther than max(5 cm, 4 x the median) from
+    its mapped centre ``Q``: a bad link (a wrong size, a moved marker, a flipped pose)."""
+    keep = np.ones(len(P), dtype=bool)
+    for _ in range(3):
+        T = fit(keep)
+        res = np.linalg.norm(geo.transform_points(T, P) - Q, axis=1)
+        lim = max(0.05, 4.0 * float(np.median(res[keep])))
+        new = res <= lim
+        if keep.sum() < 3 or np.array_equal(new, keep) or new.sum() < 2:
+            break
+        keep = new
+    return T
 
 
 def heading_std(T_W_marker: np.ndarray, cov6: np.ndarray) -> float:
@@ -179,6 +232,9 @@ class _Init:
     unlinked: List[int]
     rejected: Dict[int, str]
     extrinsics: Dict[str, np.ndarray] = field(default_factory=dict)   # refined during growth
+    ambiguous: Dict[int, Tuple[float, float]] = field(default_factory=dict)  # id -> (rad, m) between candidates
+    planar: bool = True                                                # station model of the initialisation
+    station_note: str = ""                                             # why the planar prior was dropped
 
 
 class MapBuilder:
@@ -222,15 +278,18 @@ class MapBuilder:
         self._obs: List[_Obs] = []
         self._station_keys: Dict[Hashable, int] = {}
         self._station_frames: List[int] = []
-        self._last_corners: Dict[Tuple[str, int], np.ndarray] = {}
+        self._anchor_corners: Dict[Tuple[str, int], np.ndarray] = {}
         self._last_station: Optional[int] = None
         self.frames = 0
+        #: frames left out because the ring was moving but had not moved min_station_motion_px yet.
+        self.skipped_moving = 0
         self.seen: Dict[int, int] = defaultdict(int)          # marker -> detections (all, kept or not)
         self.rejected_detections: Dict[str, int] = defaultdict(int)
         self._version = getattr(self, "_version", 0) + 1
         self._init_cache: Optional[Tuple[int, _Init]] = None
         self._last_groups: List[_Group] = []
         self.last_ba: Optional[BAResult] = None
+        self._refine_rejected: Tuple[int, Dict[int, str]] = (-1, {})
 
     @property
     def version(self) -> int:
@@ -247,7 +306,8 @@ class MapBuilder:
         Args:
             ring_frame: detections of the ring's cameras at one instant.
             station: any hashable naming the robot placement (frames with the same key share one
-                robot pose), or None to detect placements automatically (``still_px``).
+                robot pose), or None to detect placements automatically (``still_px``,
+                ``min_station_motion_px``).
         """
         self.frames += 1
         opts = self.options
@@ -265,8 +325,9 @@ class MapBuilder:
         if not detections:
             return -1
         st = self._station_for(detections, station)
-        self._last_corners = {(name, o.marker_id): o.corners for name, o, _, _ in detections}
-        self._last_station = st
+        if st < 0:
+            self.skipped_moving += 1
+            return -1
         if self._station_frames[st] >= opts.max_frames_per_station:
             return st
         self._station_frames[st] += 1
@@ -289,7 +350,8 @@ class MapBuilder:
             if distance > opts.max_distance:
                 self._reject("too far", name)
                 continue
-            self._obs.append(_Obs(st, name, int(o.marker_id), o.corners, xy, focal, np.array(T_base_cam), model))
+            self._obs.append(_Obs(st, name, int(o.marker_id), o.corners, xy, focal, np.array(T_base_cam), model,
+                                  model.pixel_jacobian(xy)))
         self._version += 1
         return st
 
@@ -308,15 +370,22 @@ class MapBuilder:
                 self._station_frames.append(0)
             return self._station_keys[station]
         if self._last_station is not None:
+            # Motion of the detections since the first frame of the current station.
             moves = []
             for name, o, _, _ in detections:
-                prev = self._last_corners.get((name, o.marker_id))
+                prev = self._anchor_corners.get((name, o.marker_id))
                 if prev is not None:
                     moves.append(float(np.max(np.linalg.norm(o.corners - prev, axis=1))))
-            if moves and float(np.median(moves)) <= self.options.still_px:
-                return self._last_station
+            if moves:
+                move = float(np.median(moves))
+                if move <= self.options.still_px:
+                    return self._last_station
+                if move < self.options.min_station_motion_px:
+                    return -1       # moving, but still close to the last station: adds little
         self._station_frames.append(0)
-        return len(self._station_frames) - 1
+        self._anchor_corners = {(name, o.marker_id): o.corners for name, o, _, _ in detections}
+        self._last_station = len(self._station_frames) - 1
+        return self._last_station
 
     # --- initialisation (paper's chaining, generalised to several stations) ------------------
 
@@ -336,8 +405,9 @@ class MapBuilder:
             T = cand.T_cam_marker
             dist = float(np.linalg.norm(T[:3, 3]))
             cosf = float(-T[:3, 2] @ (T[:3, 3] / dist))
+            lens = np.mean([self._obs[i].lens for i in idxs], axis=0)
             out.append(_Group(st, cam, mid, idxs, cand.poses, cand.errors, cand.ambiguity, dist, cosf,
-                              first.T_base_cam, xy, first.focal))
+                              first.T_base_cam, xy, first.focal, lens))
         return out
 
     def _unambiguous(self, g: _Group) -> bool:
@@ -348,10 +418,14 @@ class MapBuilder:
 
         Paper: the marker closest to its camera whose z axis is most parallel to the camera
         axis. Score ``distance / cos(angle)`` (angle between the marker's z and the line of sight),
-        lowest wins, among the unambiguous detections of the first placement.
+        lowest wins, among the unambiguous detections of the first placement *of the largest
+        co-visibility component* (markers linked through stations that saw them together): when the
+        data fall apart into groups never seen together, the map is the largest one, not whichever
+        the first frame happened to see.
         """
+        comp = self._largest_component(groups)
         scored = [(g.distance / max(g.cos_facing, 0.05), g.station, g.marker_id) for g in groups
-                  if self._unambiguous(g)]
+                  if self._unambiguous(g) and (self.reference_marker is not None or g.marker_id in comp)]
         if not scored:
             return None, None
         if self.reference_marker is not None:
@@ -363,6 +437,30 @@ class MapBuilder:
             first = min(s[1] for s in scored)
             best = min(s for s in scored if s[1] == first)
         return best[2], best[1]
+
+    @staticmethod
+    def _largest_component(groups: List[_Group]) -> set:
+        """Marker ids of the largest set linked by co-visibility (seen at a common station)."""
+        parent: Dict[int, int] = {}
+
+        def find(a: int) -> int:
+            while parent.setdefault(a, a) != a:
+                parent[a] = parent[parent[a]]
+                a = parent[a]
+            return a
+
+        by_station: Dict[int, set] = defaultdict(set)
+        for g in groups:
+            by_station[g.station].add(g.marker_id)
+            find(g.marker_id)
+        for ids in by_station.values():
+            ids = sorted(ids)
+            for a, b in zip(ids, ids[1:]):
+                parent[find(a)] = find(b)
+        comps: Dict[int, set] = defaultdict(set)
+        for m in parent:
+            comps[find(m)].add(m)
+        return max(comps.values(), key=lambda c: (len(c), -min(c))) if comps else set()
 
     def _initialize(self) -> _Init:
         if self._init_cache is not None and self._init_cache[0] == self._version:
@@ -397,14 +495,17 @@ class MapBuilder:
         est = self._station_marker_estimates(groups, self._unambiguous)
         # Positions are good even when the orientation is ambiguous: link stations with them too.
         est_pos = self._station_marker_estimates(groups, lambda g: True)
+        planar, note = self._station_model(est)
         T_W_s: Dict[int, np.ndarray] = {ref_st: np.eye(4)}
         T_W_m: Dict[int, np.ndarray] = {m: v[0] for m, v in est[ref_st].items()}
         # Long chains of stations (halls): chaining alone drifts (a 0.2 deg calibration error of
         # the ring turns a 40 m hall by degrees), so the growth is interleaved with adjustments:
         # the ring extrinsics are refined once enough stations are linked, and the latest
         # stations are adjusted together every few stations (a sliding window).
-        windowed = len(est_pos) > opts.init_window_stations
-        calibrated = not (windowed and opts.ba.refine_extrinsics)
+        # Not for a rig that keeps seeing the same markers from stations far apart in time (moving
+        # about a room): there the alternating re-averaging below is enough, and windows are costly.
+        windowed = len(est_pos) > opts.init_window_stations and not self._revisits(est_pos, sorted(est_pos))
+        calibrated = not (windowed and self._refines_extrinsics)
         next_calibration = opts.init_calibrate_after
         calib0 = {g.camera: g.T_base_cam for g in groups}
         order = [ref_st]
@@ -417,7 +518,7 @@ class MapBuilder:
             s = max(pending, key=lambda k: (len(links[k]), sum(est_pos[k][m][1] for m in links[k]), -k))
             if not links[s]:
                 break
-            T_W_s[s] = self._station_pose(est_pos[s], est.get(s, {}), T_W_m, links[s])
+            T_W_s[s] = self._station_pose(est_pos[s], est.get(s, {}), T_W_m, links[s], planar)
             for m, (T, _) in est.get(s, {}).items():
                 if m not in T_W_m:
                     T_W_m[m] = T_W_s[s] @ T
@@ -442,41 +543,60 @@ class MapBuilder:
             elif len(order) >= opts.init_calibrate_after and since_ba >= opts.init_ba_every:
                 self._init_adjust(groups, order[-opts.init_window_stations:], T_W_m, T_W_s)
                 since_ba = 0
-        if windowed:
-            if since_ba:
-                self._init_adjust(groups, order[-opts.init_window_stations:], T_W_m, T_W_s)
-        else:
+        if windowed and since_ba:
+            self._init_adjust(groups, order[-opts.init_window_stations:], T_W_m, T_W_s)
+        if not windowed or self._revisits(est_pos, order):
             # Alternating re-averaging (no-op with one station): markers over stations, stations
-            # over markers.
+            # over markers. After a windowed growth too when stations far apart in the growth
+            # order see the same markers (a hall driven twice): the window adjustments moved
+            # markers that earlier stations, outside the window, see.
             if len(T_W_s) > 1:
                 for _ in range(opts.refine_passes):
                     T_W_m = self._average_markers(est, T_W_s, T_W_m)
                     for s in T_W_s:
                         if s != ref_st:
                             T_W_s[s] = self._station_pose(est_pos[s], est.get(s, {}), T_W_m,
-                                                          [m for m in est_pos[s] if m in T_W_m])
+                                                          [m for m in est_pos[s] if m in T_W_m], planar)
             T_W_m = self._average_markers(est, T_W_s, T_W_m)
         rejected = self._check_spread(est_pos, T_W_s, ref)
         for m in rejected:
             T_W_m.pop(m, None)
-        # Markers seen only ambiguously at linked stations: consensus across viewpoints.
+        # Markers seen only ambiguously at linked stations: consensus across viewpoints; when the
+        # views do not decide (one viewpoint), the better solution with a large uncertainty.
         linked_ids = {g.marker_id for g in groups if g.station in T_W_s}
+        ambiguous: Dict[int, Tuple[float, float]] = {}
         for mid in all_ids:
             if mid in T_W_m or mid in rejected or mid not in linked_ids:
                 continue
-            T = self._resolve_by_consensus([g for g in groups if g.marker_id == mid and g.station in T_W_s], T_W_s)
+            mine = [g for g in groups if g.marker_id == mid and g.station in T_W_s]
+            T = self._resolve_by_consensus(mine, T_W_s)
             if T is not None:
                 T_W_m[mid] = T
-            else:
-                rejected[mid] = ("orientation ambiguous (seen nearly face-on or far, from one viewpoint): "
-                                 "add a view from another angle")
-                logger.warning("mapping: marker %d not mapped: %s", mid, rejected[mid])
+                continue
+            T_W_m[mid], ambiguous[mid] = self._better_solution(mine, T_W_s)
+            logger.info("mapping: marker %d mapped with its better IPPE solution (orientation ambiguous from "
+                        "one viewpoint: the two solutions differ by %.1f deg); another view resolves it", mid,
+                        np.degrees(ambiguous[mid][0]))
         marker_obs: Dict[int, List[int]] = defaultdict(list)
         for i, o in enumerate(self._obs):
             if o.marker_id in T_W_m and o.station in T_W_s:
                 marker_obs[o.marker_id].append(i)
         unlinked = [m for m in all_ids if m not in T_W_m and m not in rejected]
-        return _Init(ref, ref_st, T_W_m, T_W_s, dict(marker_obs), unlinked, rejected, init_extr)
+        return _Init(ref, ref_st, T_W_m, T_W_s, dict(marker_obs), unlinked, rejected, init_extr, ambiguous,
+                     planar, note)
+
+    def _revisits(self, est_pos, order: List[int]) -> bool:
+        """Whether some marker is seen from stations more than two windows apart in ``order``
+        (time, or the growth order): not a chain of stations along a hall."""
+        w = self.options.init_window_stations
+        rank = {s: k for k, s in enumerate(order)}
+        first: Dict[int, int] = {}
+        last: Dict[int, int] = {}
+        for s in order:
+            for m in est_pos.get(s, {}):
+                first.setdefault(m, rank[s])
+                last[m] = rank[s]
+        return any(last[m] - first[m] > 2 * w for m in first)
 
     def _init_adjust(self, groups: List[_Group], stations: List[int], T_W_m: Dict[int, np.ndarray],
                      T_W_s: Dict[int, np.ndarray], refine_extrinsics: bool = False,
@@ -512,6 +632,7 @@ class MapBuilder:
             obs_camera=np.array([ci[g.camera] for g in use], dtype=int),
             obs_xy=np.stack([g.xy for g in use]),
             obs_focal=np.stack([g.focal for g in use]),
+            obs_lens=np.stack([g.lens for g in use]),
             fixed_marker=None,
             fixed_station=0,
             T_base_cams_start=np.stack([current[c] for c in cams]),
@@ -527,9 +648,80 @@ class MapBuilder:
             T_W_s[s] = res.T_W_stations[k]
         return {c: res.T_base_cams[k] for k, c in enumerate(cams)}
 
-    @staticmethod
-    def _station_pose(est_pos_s, est_s, T_W_m, mids) -> np.ndarray:
+    def _station_model(self, est) -> Tuple[bool, str]:
+        """(planar, note): whether the initialisation may use the ground robot's planar prior.
+
+        Data test, no chaining needed: a ring that only drives on a flat floor (x, y, yaw) sees
+        every marker at the same *elevation* in its base frame at every station: the base's z axis
+        expressed in the marker frame, and the marker's height above the base, do not change. The
+        medians over all (marker, station) pairs of the change of the first (angle) and of the
+        second (m) are compared with ``planar_max_tilt`` / ``planar_max_height_change``.
+        """
+        opts = self.options
+        if not opts.planar:
+            return False, "planar prior off (planar: false)"
+        tilts, heights = [], []
+        per_marker: Dict[int, List[Tuple[np.ndarray, float]]] = defaultdict(list)
+        for st, markers in est.items():
+            for m, (T, _) in markers.items():
+                per_marker[m].append((T[:3, :3].T[:, 2], float(T[2, 3])))
+        for m, vals in per_marker.items():
+            if len(vals) < 2:
+                continue
+            U = np.array([v[0] for v in vals])
+            u = np.median(U, axis=0)
+            u /= max(float(np.linalg.norm(u)), 1e-12)
+            tilts.extend(np.arccos(np.clip(U @ u, -1.0, 1.0)).tolist())
+            h = np.array([v[1] for v in vals])
+            heights.extend(np.abs(h - np.median(h)).tolist())
+        if not tilts:
+            return True, ""
+        tilt, dz = float(np.median(tilts)), float(np.median(heights))
+        if tilt <= opts.planar_max_tilt and dz <= opts.planar_max_height_change:
+            return True, ""
+        note = (f"the ring tilts by {np.degrees(tilt):.1f} deg and changes height by {dz:.3f} m between stations "
+                f"(medians; a ground robot on a flat floor: below {opts.planar_max_tilt_deg:.1f} deg and "
+                f"{opts.planar_max_height_change:.2f} m): stations initialised in SE(3) instead of the planar prior "
+                f"(set planar: false for a handheld or flying rig)")
+        if note.split(":")[0] != getattr(self, "_last_station_note", "").split(":")[0]:
+            logger.warning("mapping: %s", note)
+        self._last_station_note = note
+        return False, note
+
+    def _station_pose(self, est_pos_s, est_s, T_W_m, mids, planar: bool = True) -> np.ndarray:
         """Station pose from its mapped markers.
+
+        ``planar`` (a ground robot): a planar motion of W (x, y, yaw), see :meth:`_planar_station_pose`.
+        Otherwise SE(3): a weighted rigid fit of the marker centres (all markers, also those seen
+        ambiguously: their positions are good) and the corners of the unambiguous ones (their
+        orientation decides the rotation when few markers are in view), robust to a marker whose
+        mapped position disagrees with the others.
+        """
+        if planar:
+            return self._planar_station_pose(est_pos_s, est_s, T_W_m, mids)
+        P, Q, w, owner = [], [], [], []
+        for k, m in enumerate(mids):
+            T_b, wt = est_pos_s[m]
+            P.append(T_b[:3, 3])
+            Q.append(T_W_m[m][:3, 3])
+            w.append(wt)
+            owner.append(k)
+            # Corners: full weight for an unambiguous view, a token weight otherwise (they only
+            # matter when nothing else fixes the rotation).
+            T_c, wc = (est_s[m][0], wt) if m in est_s else (T_b, 1e-3 * wt)
+            c = marker_corners(self.sizes(m))
+            P.extend(geo.transform_points(T_c, c))
+            Q.extend(geo.transform_points(T_W_m[m], c))
+            w.extend([wc] * 4)
+            owner.extend([k] * 4)
+        P, Q, w, owner = np.array(P), np.array(Q), np.array(w), np.array(owner)
+        centre = np.array([np.flatnonzero(owner == k)[0] for k in range(len(mids))])
+        return _robust_fit(lambda keep: geo.rigid_fit(P[keep[owner]], Q[keep[owner]], w[keep[owner]]),
+                           P[centre], Q[centre])
+
+    @staticmethod
+    def _planar_station_pose(est_pos_s, est_s, T_W_m, mids) -> np.ndarray:
+        """Planar station pose (ground robot) from its mapped markers.
 
         The robot drives on the floor, so a station is a planar motion of W (x, y, yaw). With two
         or more markers it is fitted to the marker *centres* (weighted 2D Kabsch): single-marker
@@ -545,18 +737,7 @@ class MapBuilder:
             src = est_s if all(m in est_s for m in full) else est_pos_s
             Ts = [T_W_m[m] @ geo.inverse(src[m][0]) for m in full]
             return geo.average_transforms(Ts, [src[m][1] for m in full]) if len(Ts) > 1 else Ts[0]
-        keep = np.ones(len(mids), dtype=bool)
-        for _ in range(3):
-            T = MapBuilder._planar_fit(P[keep], Q[keep], w[keep])
-            # Robust: a marker whose mapped position disagrees with the others (a bad link: a
-            # wrong size, a moved marker, a flipped pose) is left out and the fit redone.
-            res = np.linalg.norm(geo.transform_points(T, P) - Q, axis=1)
-            lim = max(0.05, 4.0 * float(np.median(res[keep])))
-            new = res <= lim
-            if keep.sum() < 3 or np.array_equal(new, keep) or new.sum() < 2:
-                break
-            keep = new
-        return T
+        return _robust_fit(lambda keep: MapBuilder._planar_fit(P[keep], Q[keep], w[keep]), P, Q)
 
     @staticmethod
     def _planar_fit(P: np.ndarray, Q: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -585,6 +766,12 @@ class MapBuilder:
         return out
 
     def _check_spread(self, est_pos, T_W_s, ref: int) -> Dict[int, str]:
+        """Markers whose per-station positions disagree by more than ``max_marker_spread``.
+
+        The spread is robust to a few badly placed stations (a moving rig has hundreds): with
+        five or more stations, twice the 80th percentile of the distances to the median position;
+        with fewer, the largest distance between two of them.
+        """
         out: Dict[int, str] = {}
         pos: Dict[int, List[np.ndarray]] = defaultdict(list)
         for s, T_ws in T_W_s.items():
@@ -594,18 +781,29 @@ class MapBuilder:
             if len(ps) < 2 or m == ref:
                 continue
             P = np.array(ps)
-            spread = float(np.max(np.linalg.norm(P[:, None] - P[None], axis=-1)))
-            if spread > self.options.max_marker_spread:
+            if len(P) >= 5:
+                spread = 2.0 * float(np.percentile(np.linalg.norm(P - np.median(P, axis=0), axis=1), 80))
+            else:
+                spread = float(np.max(np.linalg.norm(P[:, None] - P[None], axis=-1)))
+            if not spread <= self.options.max_marker_spread:
                 out[m] = (f"inconsistent between stations ({1000 * spread:.0f} mm apart): wrong size "
                           f"{self.sizes(m)} m (fiducial_len_override?), moved, or the id is printed twice")
                 logger.warning("mapping: marker %d rejected: %s", m, out[m])
         return out
 
+    #: at most this many views (the most decisive ones) enter a consensus: it compares all pairs.
+    _CONSENSUS_VIEWS = 48
+
     def _resolve_by_consensus(self, groups: List[_Group], T_W_s: Dict[int, np.ndarray]) -> Optional[np.ndarray]:
-        """The candidate orientation that distinct viewpoints agree on, averaged; None if none."""
+        """The candidate orientation that distinct viewpoints agree on, averaged; None if none.
+
+        None too when the best-supported candidate has a rival (a candidate it does not agree
+        with) supported as well: views from nearly one viewpoint agree on both solutions.
+        """
         opts = self.options
         if len({(g.station, g.camera) for g in groups}) < opts.min_views_for_consensus:
             return None
+        groups = sorted(groups, key=lambda g: (g.ambiguity, -len(g.members)))[: self._CONSENSUS_VIEWS]
         cands = [(T_W_s[g.station] @ g.T_base_marker(k), (g.station, g.camera))
                  for g in groups for k in range(len(g.candidates))]
 
@@ -613,15 +811,27 @@ class MapBuilder:
             dp, dr = geo.pose_distance(Ta, Tb)
             return dp <= opts.consensus_distance and dr <= opts.consensus_angle
 
-        best, best_support = None, 0
-        for Ta, view in cands:
-            support = len({v for Tb, v in cands if v != view and agrees(Ta, Tb)})
-            if support > best_support:
-                best, best_support = Ta, support
-        if best is None or best_support + 1 < opts.min_views_for_consensus:
+        support = [len({v for Tb, v in cands if v != view and agrees(Ta, Tb)}) for Ta, view in cands]
+        k = int(np.argmax(support)) if support else -1
+        if k < 0 or support[k] + 1 < opts.min_views_for_consensus:
+            return None
+        best = cands[k][0]
+        rival = max((n for (Ta, _), n in zip(cands, support) if not agrees(best, Ta)), default=0)
+        if rival >= support[k]:
             return None
         members = [Tb for Tb, _ in cands if agrees(best, Tb)]
         return geo.average_transforms(members)
+
+    def _better_solution(self, groups: List[_Group], T_W_s: Dict[int, np.ndarray]) -> Tuple[np.ndarray, Tuple[float, float]]:
+        """A marker the views do not resolve: its better IPPE solution from its most decisive view,
+        and how far the other solution is from it (rad, m: the uncertainty it keeps)."""
+        g = min(groups, key=lambda g: (g.ambiguity, -len(g.members)))
+        T = T_W_s[g.station] @ g.T_base_marker(0)
+        if len(g.candidates) > 1:
+            dp, dr = geo.pose_distance(g.candidates[0], g.candidates[1])
+        else:
+            dp, dr = 0.0, 0.0
+        return T, (float(dr), float(dp))
 
     # --- output -----------------------------------------------------------------------------
 
@@ -639,20 +849,28 @@ class MapBuilder:
         return self._initialize().reference
 
     def summary(self) -> Dict[str, Any]:
-        """Progress: frames, stations, mapped markers, observations per marker, unlinked, rejected."""
+        """Progress: frames, stations, mapped markers, observations per marker, unlinked, rejected,
+        ambiguous (mapped with the better of two solutions), the station model in use."""
         init = self._initialize()
         per_marker = defaultdict(int)
         for o in self._obs:
             per_marker[o.marker_id] += 1
+        # Markers the last refined build rejected after its adjustment (same observations).
+        after_ba = self._refine_rejected[1] if self._refine_rejected[0] == self._version else {}
+        mapped = sorted(m for m in init.T_W_markers if m not in after_ba)
         return {
             "frames": self.frames,
             "stations": self.station_count,
             "linked_stations": len(init.T_W_stations),
+            "skipped_moving_frames": self.skipped_moving,
             "reference_marker": init.reference,
-            "mapped": sorted(init.T_W_markers),
+            "mapped": mapped,
             "observations": {m: per_marker[m] for m in sorted(per_marker)},
             "unlinked": list(init.unlinked),
-            "rejected": dict(init.rejected),
+            "rejected": {**init.rejected, **after_ba},
+            "ambiguous": sorted(m for m in init.ambiguous if m not in after_ba),
+            "station_model": "planar" if init.planar else "se3",
+            "station_note": init.station_note,
             "rejected_detections": dict(self.rejected_detections),
         }
 
@@ -660,18 +878,40 @@ class MapBuilder:
         s = self.summary()
         obs = ", ".join(f"{m}:{n}" for m, n in s["observations"].items() if m in s["mapped"])
         text = (f"{len(s['mapped'])} markers mapped (reference {s['reference_marker']}) from {s['frames']} frames, "
-                f"{s['linked_stations']}/{s['stations']} stations; observations per marker {{{obs}}}")
+                f"{s['linked_stations']}/{s['stations']} stations ({s['station_model']}); observations per marker "
+                f"{{{obs}}}")
+        if s["ambiguous"]:
+            text += (f"; orientation ambiguous (one viewpoint, better solution kept, large uncertainty): "
+                     f"{s['ambiguous']}")
         if s["unlinked"]:
             text += f"; seen but not linked: {s['unlinked']}"
         if s["rejected"]:
             text += f"; rejected: {sorted(s['rejected'])}"
         return text
 
+    def _frame(self, T_W_ref: np.ndarray, ref: int) -> Tuple[np.ndarray, str]:
+        """``T_W_map`` and the frame's definition for the reference marker's pose ``T_W_ref``."""
+        if self.options.frame == "marker":
+            return np.array(T_W_ref, dtype=float), f"marker {ref}'s own frame (fiducial_slam's convention)"
+        try:
+            T = map_frame_from_reference(T_W_ref)
+        except GeometryError as exc:
+            raise ArucoRingError(f"map frame 'floor': {exc} (in the ring's base frame '{self.ring.base_frame}'; "
+                                 f"use frame: marker, or another reference_marker)") from None
+        return T, (f"origin on the floor below marker {ref}'s centre, z up (the z of base frame "
+                   f"'{self.ring.base_frame}' at the reference station), x along marker {ref}'s x made horizontal")
+
     def build(self, method: Optional[str] = None) -> MarkerMap:
         """The map (``paper`` or ``refined``; default the builder's method).
 
+        The map frame is ``options.frame`` (``floor`` or ``marker``). The map records its quality
+        (reprojection RMS overall and per marker, stations, station model) and, for markers whose
+        orientation no second viewpoint resolved, ``ambiguous`` with a rotation (and position)
+        uncertainty that covers the other IPPE solution.
+
         Raises:
-            ArucoRingError: no usable detection yet (or the reference marker was never seen).
+            ArucoRingError: no usable detection yet (or the reference marker was never seen), or
+                the reference marker cannot fix a ``floor`` frame.
         """
         method = method or self.method
         if method not in METHODS:
@@ -681,51 +921,68 @@ class MapBuilder:
             if self.reference_marker is not None:
                 raise ArucoRingError(f"reference marker {self.reference_marker} was never seen unambiguously")
             raise ArucoRingError("no usable marker detection yet: nothing to map")
-        def new_map(ref: int) -> MarkerMap:
-            definition = (f"origin on the floor below marker {ref}'s centre, z up, x along marker "
-                          f"{ref}'s x made horizontal")
-            return MarkerMap(frame_id=self.frame_id, reference_marker=ref, frame_definition=definition,
-                             method=method)
-
         if method == "paper":
-            out = new_map(init.reference)
-            T_W_map = map_frame_from_reference(init.T_W_markers[init.reference])
-            T_map_W = geo.inverse(T_W_map)
-            for m, T in init.T_W_markers.items():
-                pstd, rstd = self._paper_std(m, init, T_W_map)
-                out.add(MarkerEntry(m, T_map_W @ T, self.sizes(m), pstd, rstd, len(init.marker_obs.get(m, []))))
-            return out
-        res, mids = self._refine(init)
-        ref = self._refined_reference(init, res, mids)
-        out = new_map(ref)
-        # The map frame is fixed to the *refined* reference marker (W's z stays up: the gauge of
-        # the adjustment is the robot at the reference station).
-        T_W_map = map_frame_from_reference(res.T_W_markers[mids.index(ref)])
+            res, mids = None, sorted(init.T_W_markers)
+            ref = init.reference
+            T_W = {m: init.T_W_markers[m] for m in mids}
+            per_obs = observation_rms_px(self._problem(init, mids))
+        else:
+            res, mids, init = self._refine(init)
+            ref = self._refined_reference(init, res, mids)
+            T_W = {m: res.T_W_markers[k] for k, m in enumerate(mids)}
+            per_obs = res.per_obs_rms_px
+        # The map frame is fixed to the (refined) reference marker; W is the ring's base frame at
+        # the reference station (the gauge of the adjustment).
+        T_W_map, definition = self._frame(T_W[ref], ref)
         T_map_W = geo.inverse(T_W_map)
+        out = MarkerMap(frame_id=self.frame_id, reference_marker=ref, frame_definition=definition, method=method,
+                        frame_convention=self.options.frame)
+        obs_k = np.array([k for k, m in enumerate(mids) for _ in init.marker_obs.get(m, [])], dtype=int)
+        n_k = np.bincount(obs_k, minlength=len(mids))
+        ss_k = np.bincount(obs_k, weights=np.square(per_obs), minlength=len(mids))
+        rms = {m: float(np.sqrt(ss_k[k] / n_k[k])) for k, m in enumerate(mids) if n_k[k]}
         for k, m in enumerate(mids):
-            T = res.T_W_markers[k]
-            if res.marker_cov is not None:
-                pstd, rstd = marker_std_in_frame(res.marker_cov[k], T, T_W_map)
+            if res is None:
+                pstd, rstd = self._paper_std(m, init, T_W_map)
+            elif res.marker_cov is not None:
+                pstd, rstd = marker_std_in_frame(res.marker_cov[k], T_W[m], T_W_map)
             else:
                 pstd, rstd = np.zeros(3), np.zeros(3)
-            out.add(MarkerEntry(m, T_map_W @ T, self.sizes(m), pstd, rstd, len(init.marker_obs.get(m, []))))
-        if self.options.ba.refine_extrinsics:
+            amb = m in init.ambiguous
+            if amb:
+                angle, dist = init.ambiguous[m]
+                rstd = np.maximum(rstd, angle)
+                pstd = np.maximum(pstd, dist)
+            out.add(MarkerEntry(m, T_map_W @ T_W[m], self.sizes(m), pstd, rstd, len(init.marker_obs.get(m, [])),
+                                ambiguous=amb, rms_px=rms.get(m)))
+        out.quality = {"reprojection_rms_px": float(np.sqrt(np.mean(np.square(per_obs)))) if len(per_obs) else 0.0,
+                       "frames": int(self.frames), "stations": len(init.T_W_stations),
+                       "station_model": "planar" if init.planar else "se3"}
+        if init.station_note and not init.planar:
+            out.quality["station_note"] = init.station_note
+        if res is not None and self._refines_extrinsics:
             # The markers were estimated through these extrinsics: localizing with them removes the
             # ring's calibration error from every pose (ring_tf publishes them given the map file).
             out.ring_extrinsics = {c: res.T_base_cams[k] for k, c in enumerate(self.ring.names)}
             out.ring_base_frame = self.ring.base_frame
+            out.ring_prior_sigma = {"translation": float(self.options.ba.extrinsics_trans_sigma),
+                                    "rotation": float(self.options.ba.extrinsics_rot_sigma)}
+            out.ring_moved = {c: geo.pose_distance(self.ring[c].T_base_cam, T) for c, T in out.ring_extrinsics.items()}
         return out
 
     def save_map(self, path: str, method: Optional[str] = None, backups: int = 1) -> MarkerMap:
         """Build the map (:meth:`build`) and write it to ``path`` atomically (previous file kept as
         ``<path>.bak``, ``backups`` generations: :meth:`MarkerMap.save`): what the mapper's ``~save_map`` and
         ``save_on_shutdown`` do. A crash at any instant leaves the old file or the new one whole.
+        The map must pass the sanity checks (``options.sanity``, :func:`marker_map.check_map`);
+        when it does not, nothing is written.
 
         Raises:
-            ArucoRingError: nothing to map yet; OSError: the file cannot be written.
+            ArucoRingError: nothing to map yet; MapSanityError: a check failed (the message names
+            it, the markers and what to do); ConfigError: the file cannot be written.
         """
         m = self.build(method)
-        m.save(path, backups=backups)
+        m.save(path, self.options.sanity, backups=backups)
         return m
 
     def _refined_reference(self, init: _Init, res: BAResult, mids: List[int]) -> int:
@@ -776,8 +1033,8 @@ class MapBuilder:
         n = len(Ts)
         return P.std(axis=0, ddof=1) / np.sqrt(n), rv.std(axis=0, ddof=1) / np.sqrt(n)
 
-    def _refine(self, init: _Init) -> Tuple[BAResult, List[int]]:
-        mids = sorted(init.T_W_markers)
+    def _problem(self, init: _Init, mids: List[int]) -> BAProblem:
+        """The adjustment problem of the initialisation: every kept observation of ``mids``."""
         sts = sorted(init.T_W_stations)
         cams = self.ring.names
         mi = {m: k for k, m in enumerate(mids)}
@@ -787,7 +1044,7 @@ class MapBuilder:
         obs = [self._obs[i] for i in idx]
         # Each observation carries the extrinsics in force when it was taken; the solver keeps one
         # per camera: the ring's current one.
-        prob = BAProblem(
+        return BAProblem(
             T_W_markers=np.stack([init.T_W_markers[m] for m in mids]),
             sizes=np.array([self.sizes(m) for m in mids]),
             T_W_stations=np.stack([init.T_W_stations[s] for s in sts]),
@@ -797,10 +1054,76 @@ class MapBuilder:
             obs_camera=np.array([ci[o.camera] for o in obs], dtype=int),
             obs_xy=np.stack([o.xy for o in obs]),
             obs_focal=np.stack([o.focal for o in obs]),
+            obs_lens=np.stack([o.lens for o in obs]),
             fixed_marker=None,
             fixed_station=si[init.ref_station],
             T_base_cams_start=np.stack([init.extrinsics.get(c, self.ring[c].T_base_cam) for c in cams]),
         )
-        res = bundle_adjust(prob, self.options.ba)
+
+    def _refine(self, init: _Init) -> Tuple[BAResult, List[int], _Init]:
+        """The bundle adjustment, and again without the markers that do not fit it.
+
+        A marker whose observations still reproject worse than ``max_marker_rms_px`` after the
+        adjustment (a flipped initial pose the adjustment could not leave, tiny tags at grazing
+        angles, a wrong size) is rejected with the reason and the adjustment redone without it
+        (twice at most): a map of the markers that fit rather than a map that fails its checks.
+        Returns (result, marker ids, the initialisation without the rejected markers).
+        """
+        opts = self.options.ba
+        if opts.refine_extrinsics and not self._refines_extrinsics:
+            opts = dataclasses.replace(opts, refine_extrinsics=False)
+        rejected: Dict[int, str] = {}
+        for attempt in range(3):
+            mids = sorted(init.T_W_markers)
+            res = bundle_adjust(self._problem(init, mids), opts)
+            obs_k = np.array([k for k, m in enumerate(mids) for _ in init.marker_obs.get(m, [])], dtype=int)
+            n_k = np.maximum(np.bincount(obs_k, minlength=len(mids)), 1)
+            rms = np.sqrt(np.bincount(obs_k, weights=np.square(res.per_obs_rms_px), minlength=len(mids)) / n_k)
+            bad = [m for k, m in enumerate(mids) if rms[k] > self.options.max_marker_rms_px and m != init.reference]
+            if not bad or attempt == 2 or len(bad) >= len(mids) - 1:
+                break
+            for m in bad:
+                rejected[m] = (f"reprojects at {rms[mids.index(m)]:.1f} px RMS after the adjustment (limit "
+                               f"{self.options.max_marker_rms_px:g} px): a flipped pose, a tag too small or seen "
+                               f"too obliquely, or a wrong size")
+                logger.warning("mapping: marker %d rejected: %s", m, rejected[m])
+            keep = {m: T for m, T in init.T_W_markers.items() if m not in rejected}
+            init = dataclasses.replace(init, T_W_markers=keep,
+                                       marker_obs={m: v for m, v in init.marker_obs.items() if m in keep},
+                                       ambiguous={m: v for m, v in init.ambiguous.items() if m in keep},
+                                       rejected={**init.rejected, **rejected})
+        if opts.refine_extrinsics:
+            self._remove_common_extrinsics_motion(res)
         self.last_ba = res
-        return res, mids
+        self._refine_rejected = (self._version, dict(rejected))
+        return res, mids, init
+
+    @property
+    def _refines_extrinsics(self) -> bool:
+        """``ba.refine_extrinsics``, for a ring of two cameras or more: only the cameras' poses
+        relative to each other are observable, a single camera's extrinsics are not at all."""
+        return bool(self.options.ba.refine_extrinsics) and len(self.ring) > 1
+
+    def _remove_common_extrinsics_motion(self, res: BAResult) -> None:
+        """Take out of the refined extrinsics the motion common to all cameras (in place).
+
+        Moving every camera by the same ``D`` in the base frame while the world moves by ``D`` too
+        (markers ``D T_W_m``, stations ``D T_W_s D^-1``; the reference station stays the identity)
+        changes no projection: only the extrinsics *relative to each other* are observable, the
+        common part is the priors' pull alone, where the solver stops short (a single camera
+        "moved" 5 mm, pure gauge, and the localizer then shifted every pose by it). Choosing ``D``
+        so that the cameras' mean motion from the calibration is zero keeps the base frame the
+        calibration's; the map relative to its reference marker is unchanged.
+        """
+        calib = [self.ring[c].T_base_cam for c in self.ring.names]
+        motions = [res.T_base_cams[k] @ geo.inverse(E) for k, E in enumerate(calib)]
+        D = geo.inverse(geo.average_transforms(motions))
+        D_inv = geo.inverse(D)
+        res.T_base_cams[:] = D @ res.T_base_cams
+        res.T_W_markers[:] = D @ res.T_W_markers
+        res.T_W_stations[:] = D @ res.T_W_stations @ D_inv
+        if res.marker_cov is not None:
+            # Covariances (w, t) in W: rotated with W (D's translation does not change them).
+            R = np.zeros((6, 6))
+            R[:3, :3] = R[3:, 3:] = D[:3, :3]
+            res.marker_cov[:] = R @ res.marker_cov @ R.T

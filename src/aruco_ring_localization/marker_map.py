@@ -38,7 +38,7 @@ import datetime
 import logging
 import math
 from dataclasses import dataclass, field, replace
-from typing import Any, Dict, Iterable, Iterator, List, Mapping, Optional
+from typing import Any, Dict, Iterable, Iterator, List, Mapping, Optional, Tuple
 
 import numpy as np
 import yaml
@@ -46,7 +46,8 @@ from scipy.spatial.transform import Rotation
 
 from . import geometry as geo
 from .camera import load_yaml_file
-from .errors import ConfigError, GeometryError
+from .config import param
+from .errors import ConfigError, GeometryError, MapSanityError
 from .fileio import atomic_write_text
 from .markers import marker_corners
 
@@ -62,6 +63,32 @@ MAX_MAP_FILE_BYTES = 32 * 1024 * 1024
 #: beyond it is a corrupt or hostile file: refused, naming the key, before any product overflows.
 MAX_COORDINATE = 1.0e5
 
+#: Map frame conventions (``frame_convention`` in the file).
+FRAME_CONVENTIONS = {
+    "floor": "origin on the floor below the reference marker's centre, z up (the ring base frame's z while "
+             "mapping), x the reference marker's x made horizontal",
+    "marker": "the reference marker's own frame (fiducial_slam's convention)",
+}
+
+
+@dataclass(frozen=True)
+class MapSanityLimits:
+    """What a map must satisfy before it is written (:func:`marker_map.check_map`)."""
+
+    max_extent: float = param(5000.0, "every marker within this distance of the map origin (a box larger "
+                                      "than any hall or site; a diverged adjustment puts markers at 1e14 m)",
+                              unit="m")
+    max_rms_px: float = param(5.0, "largest reprojection RMS of the whole map and of any one marker (when "
+                                   "the map records it)", unit="px")
+    max_extrinsics_sigmas: float = param(6.0, "refined ring extrinsics may move at most this many prior "
+                                              "standard deviations from the calibration")
+
+    def __post_init__(self) -> None:
+        for name in ("max_extent", "max_rms_px", "max_extrinsics_sigmas"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"must be positive, got {getattr(self, name)!r}", key=name)
+
+
 
 @dataclass(frozen=True)
 class MarkerEntry:
@@ -74,6 +101,9 @@ class MarkerEntry:
         position_std: (3,) 1-sigma position uncertainty along the map axes, m.
         rotation_std: (3,) 1-sigma rotation uncertainty about the marker's axes, rad.
         observations: number of corner observations that went into the estimate.
+        ambiguous: the orientation is one of the two IPPE solutions of views from one viewpoint
+            (its rotation_std covers the other solution); another view resolves it.
+        rms_px: reprojection RMS of its observations in the map (None: not recorded).
     """
 
     marker_id: int
@@ -82,6 +112,8 @@ class MarkerEntry:
     position_std: np.ndarray = field(default_factory=lambda: np.zeros(3))
     rotation_std: np.ndarray = field(default_factory=lambda: np.zeros(3))
     observations: int = 0
+    ambiguous: bool = False
+    rms_px: Optional[float] = None
 
     def corners_in_map(self) -> np.ndarray:
         """(4, 3) corners in the map frame, aruco_detect order."""
@@ -102,12 +134,20 @@ class MarkerMap:
     def __init__(self, entries: Iterable[MarkerEntry] = (), frame_id: str = "map",
                  reference_marker: Optional[int] = None, frame_definition: str = "", method: str = "",
                  created: str = "", ring_extrinsics: Optional[Mapping[str, np.ndarray]] = None,
-                 ring_base_frame: str = "base_link"):
+                 ring_base_frame: str = "base_link", frame_convention: str = ""):
         self._entries: Dict[int, MarkerEntry] = {}
         #: camera name -> refined ``T_base_cam`` (4x4), empty when the map carries no calibration.
         self.ring_extrinsics: Dict[str, np.ndarray] = {
             str(k): geo.validate_transform(v, f"ring extrinsics of {k}") for k, v in (ring_extrinsics or {}).items()}
         self.ring_base_frame = ring_base_frame
+        #: prior std of the calibration the extrinsics were refined from: {"translation": m, "rotation": rad}.
+        self.ring_prior_sigma: Dict[str, float] = {}
+        #: camera -> (translation m, rotation rad) the refinement moved it from the calibration.
+        self.ring_moved: Dict[str, Tuple[float, float]] = {}
+        #: ``floor`` / ``marker`` (:data:`FRAME_CONVENTIONS`), "" when the file does not say.
+        self.frame_convention = frame_convention
+        #: how the map came about: reprojection_rms_px, stations, station_model, notes (free-form).
+        self.quality: Dict[str, Any] = {}
         self._corners: Dict[int, np.ndarray] = {}
         self.frame_id = frame_id
         self.reference_marker = reference_marker
@@ -122,9 +162,6 @@ class MarkerMap:
         T = geo.validate_transform(entry.T_map_marker, f"marker {entry.marker_id} pose")
         if not (isinstance(entry.size, (int, float)) and math.isfinite(entry.size) and entry.size > 0):
             raise GeometryError(f"marker {entry.marker_id}: size must be a positive length, got {entry.size!r}")
-        if np.abs(T[:3, 3]).max() > MAX_COORDINATE:
-            raise GeometryError(f"marker {entry.marker_id}: position {T[:3, 3].tolist()} lies more than "
-                                f"{MAX_COORDINATE:g} m from the map origin")
         entry = replace(entry, marker_id=int(entry.marker_id), T_map_marker=T,
                         position_std=np.asarray(entry.position_std, dtype=float).reshape(3),
                         rotation_std=np.asarray(entry.rotation_std, dtype=float).reshape(3))
@@ -175,27 +212,44 @@ class MarkerMap:
                 "rotation_std": [float(v) for v in e.rotation_std],
                 "observations": int(e.observations),
             })
+            if e.rms_px is not None:
+                markers[-1]["rms_px"] = float(e.rms_px)
+            if e.ambiguous:
+                markers[-1]["ambiguous"] = True
         out: Dict[str, Any] = {
             "format_version": MAP_FORMAT_VERSION,
             "frame_id": self.frame_id,
             "reference_marker": self.reference_marker,
             "frame_definition": self.frame_definition,
+            "frame_convention": self.frame_convention,
             "method": self.method,
             "created": self.created or _now_iso(),
             "markers": markers,
         }
+        if self.quality:
+            out["quality"] = _plain(self.quality)
         if self.ring_extrinsics:
-            out["ring_calibration"] = {
-                "base_frame": self.ring_base_frame,
-                "cameras": {name: {"translation": [float(v) for v in T[:3, 3]],
-                                   "rotation": [float(v) for v in geo.quaternion_from_matrix(T)]}
-                            for name, T in sorted(self.ring_extrinsics.items())},
-            }
+            cams: Dict[str, Any] = {}
+            for name, T in sorted(self.ring_extrinsics.items()):
+                cams[name] = {"translation": [float(v) for v in T[:3, 3]],
+                              "rotation": [float(v) for v in geo.quaternion_from_matrix(T)]}
+                if name in self.ring_moved:
+                    cams[name]["moved"] = [float(v) for v in self.ring_moved[name]]
+            out["ring_calibration"] = {"base_frame": self.ring_base_frame, "cameras": cams}
+            if self.ring_prior_sigma:
+                out["ring_calibration"]["prior_sigma"] = {k: float(v) for k, v in self.ring_prior_sigma.items()}
         return out
 
-    def save(self, path: str, backups: int = 1) -> None:
+    def save(self, path: str, limits: Optional["MapSanityLimits"] = None, backups: int = 1) -> None:
         """Write the map as YAML, atomically; the previous file is kept as ``<path>.bak`` (and the
-        ``backups - 1`` before it as ``.bak.2`` ...: :func:`fileio.atomic_write_text`)."""
+        ``backups - 1`` before it as ``.bak.2`` ...: :func:`fileio.atomic_write_text`).
+
+        The map must pass :func:`check_map` first (``limits``: default :class:`MapSanityLimits`);
+        when it does not, nothing is written and :class:`errors.MapSanityError` says why.
+        """
+        problems = check_map(self, limits)
+        if problems:
+            raise MapSanityError(problems, path=str(path))
         text = "# aruco_ring_localization marker map (docs/formats.md)\n" + \
             yaml.safe_dump(self.to_dict(), sort_keys=False, default_flow_style=None)
         atomic_write_text(path, text, backups=backups)
@@ -230,9 +284,18 @@ class MarkerMap:
         markers = data.get("markers")
         if not isinstance(markers, list):
             raise ConfigError("expected a list of markers", path=source, key="markers")
+        convention = data.get("frame_convention", "") or ""
+        if not isinstance(convention, str) or (convention and convention not in FRAME_CONVENTIONS):
+            raise ConfigError(f"expected one of {', '.join(FRAME_CONVENTIONS)}, got {convention!r}", path=source,
+                              key="frame_convention")
         out = cls(frame_id=frame_id, reference_marker=ref,
                   frame_definition=str(data.get("frame_definition", "")),
-                  method=str(data.get("method", "")), created=str(data.get("created", "")))
+                  method=str(data.get("method", "")), created=str(data.get("created", "")),
+                  frame_convention=str(convention))
+        quality = data.get("quality")
+        if quality is not None and not isinstance(quality, Mapping):
+            raise ConfigError("expected a mapping", path=source, key="quality")
+        out.quality = dict(quality or {})
         if not _add_all_vectorised(out, markers):
             # Something is wrong (or unusual) in the list: one marker at a time, naming the key.
             for i, m in enumerate(markers):
@@ -244,6 +307,7 @@ class MarkerMap:
             raise ConfigError(f"reference marker {ref} is not among the markers", path=source, key="reference_marker")
         if data.get("ring_calibration") is not None:
             out.ring_base_frame, out.ring_extrinsics = _read_ring_calibration(data["ring_calibration"], source)
+            out.ring_prior_sigma, out.ring_moved = _read_ring_refinement(data["ring_calibration"], source)
         return out
 
     # --- fiducial_slam ------------------------------------------------------------------------
@@ -331,7 +395,13 @@ def _entry_from_dict(m: Any, source: str, key: str) -> MarkerEntry:
     nobs = m.get("observations", 0)
     if isinstance(nobs, bool) or not isinstance(nobs, int) or nobs < 0:
         raise ConfigError(f"expected a non-negative integer, got {nobs!r}", path=source, key=f"{key}.observations")
-    return MarkerEntry(mid, T, float(size), pos_std, rot_std, nobs)
+    ambiguous = m.get("ambiguous", False)
+    if not isinstance(ambiguous, bool):
+        raise ConfigError(f"expected true or false, got {ambiguous!r}", path=source, key=f"{key}.ambiguous")
+    rms = m.get("rms_px")
+    if rms is not None and (isinstance(rms, bool) or not isinstance(rms, (int, float)) or not rms >= 0):
+        raise ConfigError(f"expected a non-negative number of pixels, got {rms!r}", path=source, key=f"{key}.rms_px")
+    return MarkerEntry(mid, T, float(size), pos_std, rot_std, nobs, ambiguous, None if rms is None else float(rms))
 
 
 def _add_all_vectorised(out: MarkerMap, markers: List[Any]) -> bool:
@@ -347,9 +417,13 @@ def _add_all_vectorised(out: MarkerMap, markers: List[Any]) -> bool:
     ids = [m.get("id") for m in markers]
     sizes = [m.get("size") for m in markers]
     nobs = [m.get("observations", 0) for m in markers]
+    ambiguous = [m.get("ambiguous", False) for m in markers]
+    rms = [m.get("rms_px") for m in markers]
     if not (all(type(i) is int and i >= 0 for i in ids) and len(set(ids)) == n
             and all(type(v) is int and v >= 0 for v in nobs)
-            and all(type(v) in (int, float) for v in sizes)):
+            and all(type(v) in (int, float) for v in sizes)
+            and all(type(v) is bool for v in ambiguous)
+            and all(v is None or (type(v) in (int, float) and v >= 0) for v in rms)):
         return False
     fields = {}
     for name, width, dflt in (("translation", 3, None), ("rotation", 4, None), ("position_std", 3, _ZERO3),
@@ -380,7 +454,8 @@ def _add_all_vectorised(out: MarkerMap, markers: List[Any]) -> bool:
     for k in range(n):
         mid = ids[k]
         out._entries[mid] = MarkerEntry(mid, T[k], float(size[k]), fields["position_std"][k],
-                                        fields["rotation_std"][k], nobs[k])
+                                        fields["rotation_std"][k], nobs[k], ambiguous[k],
+                                        None if rms[k] is None else float(rms[k]))
         out._corners[mid] = corners[k]
     return True
 
@@ -410,6 +485,109 @@ def _read_std(m: Mapping[str, Any], name: str, source: str, key: str) -> np.ndar
     if arr.shape != (3,) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
         raise ConfigError(f"expected three non-negative numbers, got {value!r}", path=source, key=f"{key}.{name}")
     return arr
+
+
+def _read_ring_refinement(node: Mapping[str, Any], source: str):
+    """(prior_sigma, moved) of a ``ring_calibration`` block (both optional)."""
+    key = "ring_calibration"
+    sigma: Dict[str, float] = {}
+    ps = node.get("prior_sigma")
+    if ps is not None:
+        if not isinstance(ps, Mapping):
+            raise ConfigError("expected {translation: m, rotation: rad}", path=source, key=f"{key}.prior_sigma")
+        for k in ("translation", "rotation"):
+            v = ps.get(k)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
+                raise ConfigError(f"expected a positive number, got {v!r}", path=source, key=f"{key}.prior_sigma.{k}")
+            sigma[k] = float(v)
+    moved: Dict[str, Tuple[float, float]] = {}
+    for name, cam in node["cameras"].items():
+        v = cam.get("moved") if isinstance(cam, Mapping) else None
+        if v is None:
+            continue
+        try:
+            arr = np.asarray(v, dtype=np.float64)
+        except (TypeError, ValueError):
+            arr = np.zeros(0)
+        if arr.shape != (2,) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
+            raise ConfigError(f"expected [translation m, rotation rad], got {v!r}", path=source,
+                              key=f"{key}.cameras.{name}.moved")
+        moved[str(name)] = (float(arr[0]), float(arr[1]))
+    return sigma, moved
+
+
+def _plain(value: Any) -> Any:
+    """numpy scalars / tuples -> plain YAML types (recursively)."""
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def _ids_text(ids: List[int], n: int = 12) -> str:
+    return ", ".join(str(i) for i in ids[:n]) + (f" and {len(ids) - n} more" if len(ids) > n else "")
+
+
+def check_map(m: "MarkerMap", limits: Optional[MapSanityLimits] = None, ring: Any = None) -> List[str]:
+    """The sanity checks every map passes before it is written; the problems found (empty: OK).
+
+    Each problem names the check, the markers (or cameras) involved and what to do:
+
+    * ``finite``: every pose and uncertainty is a finite number;
+    * ``extent``: every marker lies within ``max_extent`` of the origin (a hall-sized box);
+    * ``reprojection``: the map's recorded reprojection RMS (``quality.reprojection_rms_px``) and
+      every marker's (``rms_px``) are within ``max_rms_px``;
+    * ``extrinsics``: refined ring extrinsics moved at most ``max_extrinsics_sigmas`` prior standard
+      deviations from the calibration (recorded ``moved``; and against ``ring``'s calibration,
+      a :class:`~aruco_ring_localization.ring.CameraRing`, when given: what ``check-config`` does).
+    """
+    lim = limits or MapSanityLimits()
+    problems: List[str] = []
+    bad = [e.marker_id for e in m if not (np.all(np.isfinite(e.T_map_marker)) and np.all(np.isfinite(e.position_std))
+                                          and np.all(np.isfinite(e.rotation_std)))]
+    if bad:
+        problems.append(f"finite: markers {_ids_text(bad)} have a non-finite pose or covariance (the adjustment "
+                        f"could not determine them): record more views of them or list them in ignore_fiducials")
+    far = [e for e in m if e.marker_id not in bad and float(np.linalg.norm(e.T_map_marker[:3, 3])) > lim.max_extent]
+    if far:
+        e = max(far, key=lambda e: float(np.linalg.norm(e.T_map_marker[:3, 3])))
+        t = e.T_map_marker[:3, 3]
+        problems.append(f"extent: markers {_ids_text([x.marker_id for x in far])} lie more than {lim.max_extent:g} m "
+                        f"from the map origin (marker {e.marker_id} at ({t[0]:.3g}, {t[1]:.3g}, {t[2]:.3g}) m): the "
+                        f"estimate diverged; check the ring file (extrinsics, base frame), the marker sizes "
+                        f"(fiducial_len_override) and, for a handheld rig, planar: false")
+    rms = m.quality.get("reprojection_rms_px") if isinstance(m.quality, Mapping) else None
+    if isinstance(rms, (int, float)) and not rms <= lim.max_rms_px:
+        problems.append(f"reprojection: the map reprojects its observations with {rms:.2f} px RMS (limit "
+                        f"{lim.max_rms_px:g} px): the ring calibration (intrinsics, extrinsics) or the marker sizes "
+                        f"do not fit the detections")
+    worst = sorted((e for e in m if e.rms_px is not None and not e.rms_px <= lim.max_rms_px),
+                   key=lambda e: -float(e.rms_px))
+    if worst:
+        problems.append(f"reprojection: markers {_ids_text([e.marker_id for e in worst])} reproject worse than "
+                        f"{lim.max_rms_px:g} px RMS (marker {worst[0].marker_id}: {worst[0].rms_px:.2f} px): a wrong "
+                        f"size, a marker that moved or an id printed twice; fix its size or ignore it")
+    sigma_t = m.ring_prior_sigma.get("translation")
+    sigma_r = m.ring_prior_sigma.get("rotation")
+    moved = dict(m.ring_moved)
+    if ring is not None:
+        for name, T in m.ring_extrinsics.items():
+            if name in ring.names:
+                dp, dr = geo.pose_distance(ring[name].T_base_cam, T)
+                moved[name] = (dp, dr)
+    if sigma_t and sigma_r:
+        over = [n for n, (dp, dr) in sorted(moved.items())
+                if dp > lim.max_extrinsics_sigmas * sigma_t or dr > lim.max_extrinsics_sigmas * sigma_r]
+        if over:
+            desc = ", ".join(f"{n} {1000 * moved[n][0]:.0f} mm / {np.degrees(moved[n][1]):.1f} deg" for n in over)
+            problems.append(f"extrinsics: the refinement moved cameras {desc} from the calibration, more than "
+                            f"{lim.max_extrinsics_sigmas:g} prior sigmas ({1000 * sigma_t:.0f} mm, "
+                            f"{np.degrees(sigma_r):.2f} deg): check the ring file (base frame, extrinsics) or map "
+                            f"with refine_extrinsics: false")
+    return problems
 
 
 def _now_iso() -> str:

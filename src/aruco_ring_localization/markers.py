@@ -26,6 +26,18 @@ _CORNER_SIGNS = np.array([[-1.0, 1.0], [1.0, 1.0], [1.0, -1.0], [-1.0, -1.0]])
 MAX_MARKER_ID = 4095
 
 
+#: AprilTag detectors (the AprilTag library, apriltag_msgs, TagSLAM) give the corners counter-clockwise
+#: in the image from the tag's bottom-left, i.e. (-L/2, -L/2), (+L/2, -L/2), (+L/2, +L/2), (-L/2, +L/2)
+#: in the marker frame above; aruco_detect corner k is AprilTag corner ``APRILTAG_TO_ARUCO[k]``.
+#: Checked by reprojection of TagSLAM's tag and camera poses onto its detections (test_apriltag.py).
+APRILTAG_TO_ARUCO = (3, 2, 1, 0)
+
+
+def aruco_corners_from_apriltag(corners_px) -> np.ndarray:
+    """(4, 2) AprilTag-order corners -> aruco_detect order (0 top-left, 1 top-right, 2 bottom-right, 3 bottom-left)."""
+    return np.asarray(corners_px, dtype=np.float64).reshape(4, 2)[list(APRILTAG_TO_ARUCO)]
+
+
 def marker_corners(length: float) -> np.ndarray:
     """(4, 3) corners of a marker of side ``length`` (m) in its own frame, aruco_detect order."""
     if not np.isfinite(length) or length <= 0.0:

@@ -320,6 +320,29 @@ class RingTfConfig:
                               "mapping), those are published instead of the ring file's; empty: none")
 
 
+# --- apriltag_relay ------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class ApriltagRelayConfig:
+    """Parameters of the apriltag_relay node (set by launch/apriltag_relay.launch's arguments)."""
+
+    ring_file: str = param("", "ring YAML (cameras, namespaces, frame_ids; intrinsics for apriltag_ros poses when "
+                               "no camera_info); empty: the package's config/ring.yaml")
+    cameras: Tuple[str, ...] = param([], "ring cameras to relay (cam0 cam1); empty: all of the ring")
+    input_topics: Tuple[str, ...] = param(["tags", "tag_detections"], "detection topics relative to each camera's "
+                                                                      "namespace (either message type on any)")
+    ignore_fiducials: str = param("", "ids never relayed, aruco_detect syntax \"1,4,9-12\"")
+    fiducial_len: float = param(0.2, "tag side the mapper / localizer use (apriltag_ros's sizes are checked "
+                                     "against it)", unit="m")
+    fiducial_len_override: str = param("", "per-id sizes, aruco_detect syntax \"1-10: 0.05, 12: 0.1\"")
+    tagslam_file: str = param("", "a TagSLAM tagslam.yaml whose tag sizes are used (fiducial_len_override still "
+                                  "wins)")
+
+    def __post_init__(self) -> None:
+        require_positive(self, "fiducial_len")
+        parse_id_list(self.ignore_fiducials, key="ignore_fiducials")
+
+
 # --- comparison ----------------------------------------------------------------------------------
 
 def _cmp(name: str):
@@ -390,5 +413,6 @@ NODE_SCHEMAS = {
     "mapper": (MapperConfig, "mapping.yaml"),
     "detector": (DetectorConfig, "detector.yaml"),
     "ring_tf": (RingTfConfig, None),
+    "apriltag_relay": (ApriltagRelayConfig, None),
     "comparison": (ComparisonConfig, "comparison.yaml"),
 }

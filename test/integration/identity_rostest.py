@@ -8,7 +8,7 @@ time) in a subprocess under the namespace ``sim_raw`` and relays its topics (the
 they are) to their usual names. The relay is what makes the start identical for the node and
 for ``rosbag record``: it passes nothing on until both are connected to every relayed topic (a
 ROS 1 subscriber misses what is published before its connection is made, and each subscriber
-connects at its own time), and it stops passing on at one instant at the end. Before the first
+connects at its own time), and it opens and closes between two ring frames, never inside one. Before the first
 detection it publishes each camera's camera_info once (latched, the simulator's content), so
 both have the intrinsics first (which topic's callback runs first is up to ROS, not to us).
 
@@ -31,6 +31,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import unittest
 from typing import Dict, List, Optional
@@ -108,6 +109,17 @@ class IdentityTest(unittest.TestCase):
         cls.holding = -1
         rospy.Subscriber(f"{RAW}/sim/at_waypoint", Int32, cls._on_waypoint, queue_size=10)
         cls.relaying = False
+        # The relay opens and closes at ring-frame boundaries: a camera's detections pass on only
+        # if their stamp is after the newest stamp seen before the opening and not after the newest
+        # stamp passed on before the closing. Switching at one instant instead split the ring frame
+        # in flight (some cameras' messages passed on, the others not): the node waited
+        # input/timeout for the rest and assembled a frame the recording cannot reproduce.
+        cls.lock = threading.Lock()
+        cls.newest_seen = float("-inf")
+        cls.newest_relayed = float("-inf")
+        cls.open_after: Optional[float] = None
+        cls.close_at: Optional[float] = None
+        cls.newest_by_topic: Dict[str, float] = {}
 
     @classmethod
     def _on_diag(cls, msg):
@@ -134,7 +146,18 @@ class IdentityTest(unittest.TestCase):
         pubs = {t: rospy.Publisher(t, typ, queue_size=20, latch=typ is CameraInfo) for t, typ in self._relayed().items()}
 
         def relay(msg, topic):
-            if self.relaying:
+            if isinstance(msg, FiducialArray):
+                stamp = msg.header.stamp.to_sec()
+                with self.lock:
+                    if self.open_after is None:
+                        self.newest_seen = max(self.newest_seen, stamp)
+                        return
+                    if stamp <= self.open_after or (self.close_at is not None and stamp > self.close_at):
+                        return
+                    self.newest_relayed = max(self.newest_relayed, stamp)
+                    self.newest_by_topic[topic] = max(self.newest_by_topic.get(topic, stamp), stamp)
+                    pubs[topic].publish(msg)
+            elif self.relaying:
                 pubs[topic].publish(msg)
         subs = [rospy.Subscriber(RAW + t, typ, relay, callback_args=t, queue_size=20)
                 for t, typ in self._relayed().items()]
@@ -163,14 +186,26 @@ class IdentityTest(unittest.TestCase):
             for cam in self.ring.cameras:
                 pubs[f"/{cam.namespace}/camera_info"].publish(model_to_camera_info(cam.model, cam.frame_id))
             time.sleep(1.0)
-            self.relaying = True
+            with self.lock:
+                self.open_after = self.newest_seen
+                self.relaying = True
             run_until()
         finally:
-            self.relaying = False
-            # The last relayed messages delivered and incomplete ring frames timed out (input/timeout
-            # 0.25 s), but the recording stops before the localizer's predict-only output for
-            # silent cameras starts (input/silent_after 1 s): that one follows the node's timer,
-            # which no bag records.
+            with self.lock:
+                self.close_at = self.newest_relayed
+                self.relaying = False
+            # Every camera's message of the last ring frame passed on (on a loaded machine some
+            # were still in the relay's queues), then delivered:
+            detection_topics = [t for t, typ in self._relayed().items() if typ is FiducialArray]
+            def last_frame_out() -> bool:
+                newest = self.newest_by_topic
+                return all(newest.get(t, float("-inf")) >= self.close_at - 0.015 for t in detection_topics)
+            end = time.monotonic() + 10.0
+            while time.monotonic() < end and not last_frame_out():
+                time.sleep(0.05)
+            # The last relayed messages delivered, and the recording stops before the localizer's
+            # predict-only output for silent cameras starts (the .test files set input/silent_after
+            # to 5 s): that one follows the node's timer, which no bag records.
             time.sleep(0.6)
             recorder.stop()
             sim.stop()

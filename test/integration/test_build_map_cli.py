@@ -4,6 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import fiducial_msgs.msg as fiducial_msgs
+import numpy as np
 import pytest
 import rosbag
 import rospy
@@ -57,6 +58,26 @@ def test_build_map_from_bag(bag_path, tmp_path, method, max_rms_mm):
     err = map_error(m, truth, best_fit=True)
     assert err["position_rms_mm"] < max_rms_mm, f"{method}: best-fit RMS {err['position_rms_mm']:.2f} mm"
     assert m.method == method
+
+
+def test_build_map_frame_option(bag_path, tmp_path, capsys):
+    """--frame marker: the reference marker's own frame, recorded in the file; floor (the default
+    config's): the reference marker stands upright above the origin."""
+    maps = {}
+    for frame in ("marker", "floor"):
+        out = tmp_path / f"{frame}.yaml"
+        assert main(["build-map", str(bag_path), "--ring", RING, "--out", str(out), "--frame", frame]) == 0
+        assert f"({frame})" in capsys.readouterr().out
+        maps[frame] = MarkerMap.load(str(out))
+        assert maps[frame].frame_convention == frame
+    ref = maps["marker"].reference_marker
+    assert ref == maps["floor"].reference_marker
+    np.testing.assert_allclose(maps["marker"][ref].T_map_marker, np.eye(4), atol=1e-9)
+    T_floor = maps["floor"][ref].T_map_marker
+    assert abs(T_floor[0, 3]) < 1e-9 and abs(T_floor[1, 3]) < 1e-9 and T_floor[2, 3] > 0.1
+    # The same map in both frames: the markers' relative poses agree.
+    err = map_error(maps["marker"], maps["floor"], best_fit=True)
+    assert err["position_rms_mm"] < 1e-6
 
 
 def test_build_map_without_ring_topics_is_an_error(tmp_path, capsys):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -16,7 +17,7 @@ from aruco_ring_localization import camera as camera_mod
 from aruco_ring_localization import geometry as geo
 from aruco_ring_localization import marker_map as mm
 from aruco_ring_localization.camera import _UniqueKeyLoader, _fast_safe_load, _Unusual, load_yaml_file
-from aruco_ring_localization.errors import ConfigError, GeometryError
+from aruco_ring_localization.errors import ConfigError, MapSanityError
 from aruco_ring_localization.fileio import atomic_write_text, backup_paths
 from aruco_ring_localization.marker_map import MarkerEntry, MarkerMap
 
@@ -158,13 +159,19 @@ def test_a_marker_at_absurd_coordinates_is_refused_naming_the_key(tmp_path, valu
     with pytest.raises(ConfigError) as info:
         MarkerMap.load(str(path))
     assert info.value.key in ("markers[3].translation", "markers[3]"), info.value
-    with pytest.raises(GeometryError, match="from the map origin"):
-        MarkerMap().add(MarkerEntry(1, geo.make_transform(t=[0.0, 2e5, 0.0]), 0.2))
+    # A map built in memory (a diverged adjustment) is refused when saved, by the sanity checks.
+    far = _map(5)
+    far.add(MarkerEntry(1, geo.make_transform(t=[0.0, 2e5, 0.0]), 0.2))
+    with pytest.raises(MapSanityError, match="extent"):
+        far.save(str(path))
 
 
 def test_vectorised_marker_list_gives_exactly_the_one_by_one_map(tmp_path, monkeypatch):
     path = tmp_path / "map.yaml"
-    _map(300, seed=4).save(str(path))
+    m = _map(300, seed=4)
+    for i in (3, 7):   # the optional keys the mapper writes
+        m.add(replace(m[i], ambiguous=True, rms_px=0.1 * i))
+    m.save(str(path))
     fast = MarkerMap.load(str(path))
     monkeypatch.setattr(mm, "_add_all_vectorised", lambda out, markers: False)
     slow = MarkerMap.load(str(path))
@@ -173,7 +180,7 @@ def test_vectorised_marker_list_gives_exactly_the_one_by_one_map(tmp_path, monke
         a, b = fast[i], slow[i]
         assert np.allclose(a.T_map_marker, b.T_map_marker, rtol=0, atol=1e-15)
         assert np.allclose(fast.corners(i), slow.corners(i), rtol=0, atol=1e-13)
-        assert (a.size, a.observations) == (b.size, b.observations)
+        assert (a.size, a.observations, a.ambiguous, a.rms_px) == (b.size, b.observations, b.ambiguous, b.rms_px)
         assert np.array_equal(a.position_std, b.position_std) and np.array_equal(a.rotation_std, b.rotation_std)
 
 

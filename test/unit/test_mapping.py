@@ -1,8 +1,6 @@
 """MapBuilder: the paper's mode, the reference rule, multi-station linking (malformed inputs: test_pipeline.py)."""
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -12,21 +10,8 @@ from aruco_ring_localization.detections import CameraFrame, MarkerObservation, R
 from aruco_ring_localization.mapping import MapBuilder
 from aruco_ring_localization.pnp import solve_marker_ippe_undistorted
 from aruco_ring_localization.markers import MarkerSizes, marker_corners
-from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.simulation.ring_sim import RingSimulator
 from aruco_ring_localization.simulation.scene import Scene, SceneMarker, marker_pose
-
-REPO = Path(__file__).resolve().parents[2]
-
-
-@pytest.fixture(scope="module")
-def ring() -> CameraRing:
-    return CameraRing.load(str(REPO / "config" / "ring.yaml"))
-
-
-@pytest.fixture(scope="module")
-def scene() -> Scene:
-    return Scene.default()
 
 
 def _frames(sim, poses, n, t0=0.0):

@@ -29,8 +29,8 @@ _spec.loader.exec_module(doc_tool)
 SCHEMAS = doc_tool.all_schemas()
 #: launch file node ``type`` -> schema node name.
 NODE_TYPES = {"localizer": "localizer", "mapper": "mapper", "detector": "detector", "ring_tf": "ring_tf",
-              "comparison": "comparison", "simulator": "simulator"}
-OURS = {"localizer", "mapper", "detector", "ring_tf", "comparison"}
+              "comparison": "comparison", "simulator": "simulator", "apriltag_relay": "apriltag_relay"}
+OURS = {"localizer", "mapper", "detector", "ring_tf", "comparison", "apriltag_relay"}
 
 
 def _flat_yaml(d, prefix=""):
@@ -81,7 +81,7 @@ PARAMS = list(_launch_params())
 
 def test_launch_files_set_parameters_of_our_nodes():
     nodes = {node for _, node, _, _ in PARAMS}
-    assert {"localizer", "mapper", "detector", "ring_tf", "comparison", "simulator"} <= nodes, nodes
+    assert {"localizer", "mapper", "detector", "ring_tf", "comparison", "simulator", "apriltag_relay"} <= nodes, nodes
 
 
 @pytest.mark.parametrize("launch, node, el, args", PARAMS,

@@ -22,11 +22,13 @@ from ..ring import CameraRing
 from ..schemas import MapperConfig
 
 COMMAND = "build-map"
-HELP = "build a marker map from a bag of fiducial_vertices (or images) + camera_info (+ /tf_static)"
+HELP = ("build a marker map from a bag of fiducial_vertices (or AprilTag detections, or images) + camera_info "
+        "(+ /tf_static)")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("bag", help="rosbag with <ns>/fiducial_vertices (or images) and <ns>/camera_info")
+    parser.add_argument("bag", help="rosbag with <ns>/fiducial_vertices (or AprilTag detections, or images) and "
+                                    "<ns>/camera_info")
     parser.add_argument("--out", required=True, help="map YAML to write (atomically; old one kept as .bak)")
     parser.add_argument("--ring", help="ring YAML file (default: the config's ring_file, else config/ring.yaml)")
     parser.add_argument("--config", help="the mapper's parameter file (default: config/mapping.yaml)")
@@ -37,6 +39,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ignore-fiducials", help='input/ignore_fiducials: ids to ignore "1,4,9-12"')
     parser.add_argument("--slop", type=float, help="input/slop: stamp grouping tolerance, s")
     parser.add_argument("--map-frame", help="map/map_frame")
+    parser.add_argument("--frame", choices=("floor", "marker"),
+                        help="mapping/frame: floor = on the floor below the reference marker, z up (ground "
+                             "robots); marker = the reference marker's own frame (fiducial_slam's; handheld rigs)")
     parser.add_argument("--progress", action="store_true", help="progress bar on stderr even when it is not a terminal")
 
 
@@ -48,7 +53,8 @@ def load_config(args: argparse.Namespace) -> MapperConfig:
     return load_yaml_config(MapperConfig, path, {
         "map.method": args.method, "map.reference_marker": args.reference_marker,
         "markers.fiducial_len": args.fiducial_len, "markers.fiducial_len_override": args.fiducial_len_override,
-        "input.ignore_fiducials": args.ignore_fiducials, "input.slop": args.slop, "map.map_frame": args.map_frame})
+        "input.ignore_fiducials": args.ignore_fiducials, "input.slop": args.slop, "map.map_frame": args.map_frame,
+        "mapping.frame": args.frame})
 
 
 def run(args: argparse.Namespace) -> int:
@@ -72,8 +78,9 @@ def run(args: argparse.Namespace) -> int:
 def _print_summary(pipeline: MappingPipeline, m, path: str) -> None:
     s = pipeline.summary()
     out = sys.stdout
-    out.write(f"map: {path} ({m.method}, frame '{m.frame_id}', reference marker {m.reference_marker})\n")
-    out.write(f"frames {s['frames']}, stations {s['linked_stations']}/{s['stations']}\n")
+    out.write(f"map: {path} ({m.method}, frame '{m.frame_id}' ({m.frame_convention}), reference marker "
+              f"{m.reference_marker})\n")
+    out.write(f"frames {s['frames']}, stations {s['linked_stations']}/{s['stations']} ({s['station_model']})\n")
     out.write(f"{'id':>6} {'x (m)':>9} {'y (m)':>9} {'z (m)':>9} {'std (mm)':>9} {'obs':>6}\n")
     for e in m:
         t = e.T_map_marker[:3, 3]
@@ -81,6 +88,9 @@ def _print_summary(pipeline: MappingPipeline, m, path: str) -> None:
                   f"{1000 * float(np.max(e.position_std)):>9.2f} {e.observations:>6}\n")
     if s["unlinked"]:
         out.write(f"seen but never linked to the map (no common view): {s['unlinked']}\n")
+    if s["ambiguous"]:
+        out.write(f"seen from one viewpoint only, orientation ambiguous (mapped with the better solution and a "
+                  f"large uncertainty; another view fixes it): {s['ambiguous']}\n")
     for mid, why in s["rejected"].items():
         out.write(f"marker {mid} not mapped: {why}\n")
     ba = pipeline.last_ba

@@ -1,4 +1,9 @@
-"""``aruco_ring check-config``: validate a ring file (and a map) and summarise them for people."""
+"""``aruco_ring check-config``: validate a ring file (and a map) and summarise them for people.
+
+A map also goes through the sanity checks every save applies (:func:`marker_map.check_map`:
+finite values, markers inside a hall-sized box, reprojection RMS, refined extrinsics within
+their prior, here also against the ring file's calibration); a failed check is an error.
+"""
 from __future__ import annotations
 
 import argparse
@@ -7,7 +12,7 @@ import sys
 import numpy as np
 
 from ..errors import ConfigError
-from ..marker_map import MarkerMap
+from ..marker_map import MarkerMap, check_map
 from ..ring import CameraRing, ring_summary
 
 COMMAND = "check-config"
@@ -21,6 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     ok = True
+    ring = None
     try:
         ring = CameraRing.load(args.ring)
         sys.stdout.write(f"ring {args.ring}: OK\n" + "\n".join(ring_summary(ring)) + "\n")
@@ -30,8 +36,17 @@ def run(args: argparse.Namespace) -> int:
     if args.map_file:
         try:
             m = MarkerMap.load(args.map_file)
-            sys.stdout.write(f"map {args.map_file}: OK, {len(m)} markers in frame '{m.frame_id}', "
-                             f"reference marker {m.reference_marker}, method '{m.method}'\n")
+            problems = check_map(m, ring=ring if ring is not None and ring.base_frame == m.ring_base_frame else None)
+            status = "OK" if not problems else "ERROR (fails its sanity checks)"
+            sys.stdout.write(f"map {args.map_file}: {status}, {len(m)} markers in frame '{m.frame_id}', "
+                             f"reference marker {m.reference_marker}, method '{m.method}', frame convention "
+                             f"'{m.frame_convention or 'not recorded'}'\n")
+            for p in problems:
+                sys.stdout.write(f"  check failed: {p}\n")
+            ok = ok and not problems
+            ambiguous = [e.marker_id for e in m if e.ambiguous]
+            if ambiguous:
+                sys.stdout.write(f"  orientation ambiguous (one viewpoint; better IPPE solution kept): {ambiguous}\n")
             for e in m:
                 t = e.T_map_marker[:3, 3]
                 sys.stdout.write(f"  marker {e.marker_id:4d} size {e.size:.3f} m at ({t[0]:+.3f}, {t[1]:+.3f}, "

@@ -33,14 +33,15 @@ from ..ring import CameraRing
 from ..schemas import LocalizerConfig
 
 COMMAND = "localize"
-HELP = "run the localizer's pipeline on a bag of detections (or images) and write a TUM trajectory"
+HELP = ("run the localizer's pipeline on a bag of detections (fiducial_vertices, AprilTag, or images) and write a "
+        "TUM trajectory")
 
 CSV_FIELDS = ["stamp", "x", "y", "yaw", "std_x", "std_y", "std_yaw", "meas_x", "meas_y", "meas_yaw", "method",
               "cameras", "markers", "residual_px", "gate", "time_jump", "z", "predicted_only"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("bag", help="rosbag with <ns>/fiducial_vertices (or images) per camera")
+    parser.add_argument("bag", help="rosbag with <ns>/fiducial_vertices (or AprilTag detections, or images) per camera")
     parser.add_argument("--map", dest="map_file", required=True, help="marker map YAML")
     parser.add_argument("--out", required=True, help="output TUM trajectory")
     parser.add_argument("--ring", help="ring YAML file (default: the config's ring_file, else config/ring.yaml)")

@@ -6,8 +6,10 @@ the events the node gets, in the bag's order, with ``now`` = each message's rece
 
 * per ring camera, whose topics live under its ``namespace`` (written ``ring/cam0``,
   ``/ring/cam0`` or ``ring/cam0/`` in the ring file: all the same): the detections, from the
-  best-ranked topic of a type in :data:`DETECTION_CONVERTERS` (``fiducial_vertices`` first, else
-  raw or compressed images run through the detector node's core), and ``camera_info``;
+  best-ranked topic of a type in :data:`DETECTION_CONVERTERS` (``fiducial_vertices`` first, then
+  AprilTag detections, ``apriltag_msgs/ApriltagArrayStamped`` or ``apriltag_ros/AprilTagDetectionArray``
+  (:mod:`.apriltag`: message classes from the bag's stored definitions), else raw or compressed
+  images run through the detector node's core), and ``camera_info``;
 * ``cmd_vel`` and ``odom`` (localization: the gate's motion input);
 * extrinsics, with ``input/use_tf`` (the default): from ``/tf_static`` for each camera the bag
   has ``<base_frame> -> <camera frame>`` for, else the ring file's (the same rule for both
@@ -36,6 +38,7 @@ from ..detections import MarkerObservation
 from ..errors import ArucoRingError, ConfigError
 from ..ring import CameraRing
 from ..schemas import DetectorConfig
+from .apriltag import APRILTAG_MSGS_TYPE, APRILTAG_ROS_TYPE, apriltag_msgs_to_observations, apriltag_ros_to_observations
 from .conversions import camera_info_to_model, fiducial_array_to_observations, msg_to_transform, stamp_to_sec
 
 logger = logging.getLogger(__name__)
@@ -92,6 +95,15 @@ def _from_fiducials(msg, _ctx: CameraContext) -> List[MarkerObservation]:
     return fiducial_array_to_observations(msg)
 
 
+def _from_apriltag_msgs(msg, _ctx: CameraContext) -> List[MarkerObservation]:
+    return [o for obs in apriltag_msgs_to_observations(msg).values() for o in obs]
+
+
+def _from_apriltag_ros(msg, ctx: CameraContext) -> List[MarkerObservation]:
+    # The tags' corners projected from apriltag_ros's poses through the camera's intrinsics in force.
+    return [o for obs in apriltag_ros_to_observations(msg, lambda _frame: ctx.model).values() for o in obs]
+
+
 def _from_image(msg, ctx: CameraContext) -> Optional[List[MarkerObservation]]:
     det = ctx.detector().on_image(msg)
     return None if det is None else det.observations
@@ -100,6 +112,8 @@ def _from_image(msg, ctx: CameraContext) -> Optional[List[MarkerObservation]]:
 #: message type -> converter. One entry per supported detection type.
 DETECTION_CONVERTERS: Dict[str, DetectionConverter] = {
     "fiducial_msgs/FiducialArray": DetectionConverter(_from_fiducials, 0, "fiducial_vertices"),
+    APRILTAG_MSGS_TYPE: DetectionConverter(_from_apriltag_msgs, 10, "AprilTag corners (apriltag_msgs)"),
+    APRILTAG_ROS_TYPE: DetectionConverter(_from_apriltag_ros, 11, "AprilTag poses projected (apriltag_ros)"),
     "sensor_msgs/Image": DetectionConverter(_from_image, 20, "images through the detector"),
     "sensor_msgs/CompressedImage": DetectionConverter(_from_image, 21, "compressed images through the detector"),
 }

@@ -11,11 +11,13 @@ so the node's namespace applies), converts the messages and calls the pipeline's
   ``on_extrinsics``; until tf has it the pipeline skips that camera and says so;
 * fiducial_vertices -> ``on_detections``; a timer calls ``poll`` (timeouts, predict-only output).
 
-Every pipeline call runs under one lock (:meth:`call`, also for the node's other inputs); ``now``
-is read under that lock (:data:`NOW`), so the pipeline never sees its clock go back because a thread
-waited for the lock. What the calls return is queued in call order and handed to ``deliver`` by one
-thread at a time, in that order. A package error (:class:`ArucoRingError`) from a message is logged
-throttled: a bad message never kills the node.
+Every pipeline call runs under one lock (:meth:`call`, also for the node's other inputs), in the
+order the calls arrived, with ``now`` read as they arrive: rospy runs each subscription's callback
+in its own thread, and a lock is not fair, so without this a timer poll that came after a camera's
+message could run before it and time the ring frame out while its cameras wait at the lock (a
+mapper busy with its live preview split ring frames so). What the calls return is queued in call
+order and handed to ``deliver`` by one thread at a time, in that order. A package error
+(:class:`ArucoRingError`) from a message is logged throttled: a bad message never kills the node.
 
 Bounded work per message (issue 14): rospy calls a subscriber's callback on the thread that reads
 its connection, so a slow callback leaves messages in the socket, where ``queue_size`` cannot drop
@@ -45,8 +47,24 @@ WARN_PERIOD = 5.0  # s between repeats of one throttled warning
 #: keeping them (rospy's default, 64 kB, is smaller than such a message).
 BUFF_SIZE = 1 << 24
 
-#: An argument of :meth:`RingSubscriber.call` replaced by :meth:`RingSubscriber.now` under the lock.
-NOW = object()
+
+class _Now:
+    """Placeholder in :meth:`RingSubscriber.call`'s arguments for the node's clock at arrival."""
+
+    def __repr__(self) -> str:
+        return "NOW"
+
+
+NOW = _Now()
+
+
+class _Call:
+    __slots__ = ("fn", "args", "out", "error")
+
+    def __init__(self, fn: Callable[..., Any], args: tuple):
+        self.fn, self.args = fn, args
+        self.out: Any = None
+        self.error: Optional[BaseException] = None
 
 
 class RingSubscriber:
@@ -72,6 +90,8 @@ class RingSubscriber:
         self.lock = threading.Lock()           # guards the pipeline
         self._deliver_lock = threading.Lock()  # one deliver() at a time
         self._queue: "collections.deque[Any]" = collections.deque()  # filled in call order under lock
+        self._inbox_lock = threading.Lock()    # guards the inbox only (held for an append or a pop)
+        self._inbox: "collections.deque[_Call]" = collections.deque()  # calls in arrival order
         self._info_keys: Dict[str, tuple] = {}
         self._tf_frames: Dict[str, str] = {}   # camera -> frame_id its extrinsics were looked up for
         ring = pipeline.input.calibrated_ring
@@ -103,17 +123,30 @@ class RingSubscriber:
         return rospy.get_time()
 
     def call(self, fn: Callable[..., Any], *args: Any) -> Any:
-        """``fn(*args)`` under the pipeline lock (an argument :data:`NOW` becomes :meth:`now`, read
-        under the lock); a non-empty result is delivered in order. Returns it."""
+        """``fn(*args)`` under the pipeline lock, after every call that arrived before it; an
+        argument :data:`NOW` is replaced by the node's clock at arrival. A non-empty result is
+        delivered in order. Returns the result; raises what ``fn`` raised, in the caller's thread."""
+        with self._inbox_lock:
+            item = _Call(fn, tuple(self.now() if a is NOW else a for a in args))
+            self._inbox.append(item)
         with self.lock:
-            if any(a is NOW for a in args):
-                now = self.now()
-                args = tuple(now if a is NOW else a for a in args)
-            out = fn(*args)
-            if out:
-                self._queue.append(out)
+            # Whoever holds the lock runs every call queued so far, so ours has run when we get it.
+            while True:
+                with self._inbox_lock:
+                    if not self._inbox:
+                        break
+                    c = self._inbox.popleft()
+                try:
+                    c.out = c.fn(*c.args)
+                except Exception as exc:  # noqa: BLE001 - handed to the caller's thread below
+                    c.error = exc
+                    continue
+                if c.out:
+                    self._queue.append(c.out)
         self._drain()
-        return out
+        if item.error is not None:
+            raise item.error
+        return item.out
 
     def shutdown(self) -> None:
         """Stop the subscriptions and the timer."""

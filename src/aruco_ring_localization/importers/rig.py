@@ -1,0 +1,314 @@
+"""Camera rigs from Kalibr and TagSLAM files -> :class:`~aruco_ring_localization.ring.CameraRing`.
+
+Two inputs, one per-camera layout (Kalibr's ``camchain.yaml``, which TagSLAM's ``cameras.yaml``
+copies)::
+
+    cam0:
+      camera_model: pinhole                 # the only projection the package has
+      intrinsics: [fx, fy, cx, cy]          # pixels
+      distortion_model: radtan              # radtan | equidistant | plumb_bob | rational_polynomial | none
+      distortion_coeffs: [k1, k2, p1, p2]   # radtan: 4 or 5 (k3 last); equidistant: 4
+      resolution: [width, height]
+      rostopic: /cam0/image_raw             # image topic (its namespace becomes the camera's)
+      tagtopic: /cam0/tags                  # TagSLAM only: the detections' topic
+      T_cam_imu: 4x4                        # Kalibr imu-cam: p_cam = T_cam_imu p_imu
+      T_cn_cnm1: 4x4                        # Kalibr: p_camN = T_cn_cnm1 p_cam(N-1)
+
+Camera poses, in this order of preference:
+
+* TagSLAM's ``camera_poses.yaml`` (``camK: {pose: {position: {x, y, z}, rotation: {x, y, z}}}``,
+  the rotation a rotation vector): the pose of each camera's optical frame in the rig body,
+  ``T_rig_cam``. The rig frame is TagSLAM's body frame (often camera 0's optical frame).
+* Kalibr ``T_cam_imu`` of every camera: the ring's base frame is the IMU's.
+* Kalibr ``T_cn_cnm1`` chained from camera 0: the base frame is camera 0's optical frame.
+* A single camera without any pose: it is the base frame (identity).
+
+A camera none of these places is reported by name (:class:`errors.ConfigError`), never guessed.
+Distortion: ``radtan`` is OpenCV's ``plumb_bob`` (k1 k2 p1 p2 [k3]); ``equidistant`` is the
+fisheye model (k1..k4); ``plumb_bob``, ``rational_polynomial`` pass through; ``none`` is a camera
+without distortion. Kalibr's ``fov`` (ATAN) model and the ``omni``, ``ds``, ``eucm`` projections
+cannot be represented by :class:`~aruco_ring_localization.camera.CameraModel` and are refused with
+a message saying so (calibrate again with radtan or equidistant).
+"""
+from __future__ import annotations
+
+import logging
+import os
+import re
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Mapping, Optional
+
+import numpy as np
+
+from .. import geometry as geo
+from ..camera import CameraModel, load_yaml_file, save_camera_yaml
+from ..errors import ConfigError, GeometryError
+from ..ring import CameraRing, RingCamera
+
+logger = logging.getLogger(__name__)
+
+#: Kalibr / TagSLAM distortion model name -> (CameraModel name, accepted coefficient counts).
+DISTORTION_MODELS = {
+    "radtan": ("plumb_bob", (4, 5)),
+    "plumb_bob": ("plumb_bob", (0, 4, 5)),
+    "rational_polynomial": ("rational_polynomial", (8,)),
+    "equidistant": ("equidistant", (4,)),
+    "fisheye": ("equidistant", (4,)),
+    "none": ("plumb_bob", (0,)),
+}
+#: Models the package cannot represent, with what they are.
+UNSUPPORTED_DISTORTION = {"fov": "Kalibr's FOV (ATAN) model"}
+
+
+@dataclass
+class ImportedCamera:
+    """One camera read from the file.
+
+    Attributes:
+        name: the file's key (``cam0``).
+        model: intrinsics and distortion.
+        T_base_cam: pose of its optical frame in the rig's base frame, None when the files give none.
+        namespace: ROS namespace of its topics (from ``tagtopic`` or ``rostopic``).
+        frame_id: optical frame name (the file's ``frame_id`` or ``<name>_optical_frame``).
+        topic: the detections' topic (``tagtopic``) or the image topic (``rostopic``), "" if neither.
+        pose_source: where the pose came from (``camera_poses.yaml``, ``T_cam_imu``, ...).
+    """
+
+    name: str
+    model: CameraModel
+    T_base_cam: Optional[np.ndarray]
+    namespace: str
+    frame_id: str
+    topic: str = ""
+    pose_source: str = ""
+
+
+@dataclass
+class ImportedRig:
+    """A rig read by :func:`read_rig`.
+
+    Attributes:
+        cameras: in the file's order (``cam0``, ``cam1``, ...).
+        base_frame: name given to the rig's base frame.
+        base_definition: what that frame physically is (for the user and the docs).
+        source: the file(s) read.
+    """
+
+    cameras: List[ImportedCamera]
+    base_frame: str
+    base_definition: str
+    source: str
+    notes: List[str] = field(default_factory=list)
+
+    def missing_poses(self) -> List[str]:
+        return [c.name for c in self.cameras if c.T_base_cam is None]
+
+    def ring(self) -> CameraRing:
+        """The ring; ConfigError naming every camera whose pose the files do not give."""
+        missing = self.missing_poses()
+        if missing:
+            raise ConfigError(f"no pose for camera(s) {', '.join(missing)} in the rig (give a TagSLAM "
+                              f"camera_poses.yaml with --camera-poses, or a Kalibr camchain with T_cn_cnm1 / "
+                              f"T_cam_imu): a camera's extrinsics are never guessed", path=self.source)
+        cams = [RingCamera(c.name, c.frame_id, c.model, np.asarray(c.T_base_cam), c.namespace) for c in self.cameras]
+        try:
+            return CameraRing(cams, self.base_frame)
+        except ConfigError as exc:
+            raise ConfigError(exc.detail, path=self.source, key=exc.key) from None
+
+
+def _camera_order(keys) -> List[str]:
+    def key(k: str):
+        m = re.fullmatch(r"cam(\d+)", str(k))
+        return (0, int(m.group(1)), "") if m else (1, 0, str(k))
+    return sorted((str(k) for k in keys), key=key)
+
+
+def _namespace(entry: Mapping[str, Any], name: str) -> str:
+    """The camera's namespace from its tag topic (``/ns/tags``, ``/ns/left``: the topic's parent) or its
+    image topic (``/ns/image_raw``)."""
+    tag = str(entry.get("tagtopic") or "").strip("/")
+    if tag:
+        return tag.rpartition("/")[0]
+    img = str(entry.get("rostopic") or "").strip("/")
+    if img:
+        parts = img.split("/")
+        while len(parts) > 1 and (parts[-1].startswith("image") or parts[-1] in ("compressed", "theora",
+                                                                                   "compressedDepth")):
+            parts.pop()
+        return "/".join(parts)
+    return f"ring/{name}"
+
+
+def _numbers(entry: Mapping[str, Any], key: str, n: Optional[int], source: str, where: str) -> np.ndarray:
+    value = entry.get(key)
+    if value is None:
+        raise ConfigError("missing", path=source, key=f"{where}.{key}")
+    try:
+        arr = np.asarray(value, dtype=np.float64).ravel()
+    except (TypeError, ValueError):
+        raise ConfigError("expected a list of numbers", path=source, key=f"{where}.{key}") from None
+    if n is not None and arr.size != n:
+        raise ConfigError(f"expected {n} numbers, got {arr.size}", path=source, key=f"{where}.{key}")
+    if not np.all(np.isfinite(arr)):
+        raise ConfigError("contains NaN or infinite values", path=source, key=f"{where}.{key}")
+    return arr
+
+
+def _model(entry: Mapping[str, Any], name: str, source: str) -> CameraModel:
+    projection = str(entry.get("camera_model", "pinhole"))
+    if projection != "pinhole":
+        raise ConfigError(f"camera model {projection!r} cannot be represented (the package's cameras are pinhole "
+                          f"with plumb_bob, rational_polynomial or equidistant distortion): calibrate {name} with "
+                          f"camera_model pinhole", path=source, key=f"{name}.camera_model")
+    fx, fy, cx, cy = _numbers(entry, "intrinsics", 4, source, name)
+    res = _numbers(entry, "resolution", 2, source, name)
+    dist = str(entry.get("distortion_model", "none")).lower()
+    coeffs = _numbers(entry, "distortion_coeffs", None, source, name) if "distortion_coeffs" in entry else np.zeros(0)
+    if dist not in DISTORTION_MODELS:
+        what = UNSUPPORTED_DISTORTION.get(dist, "an unknown model")
+        raise ConfigError(f"distortion model {dist!r} ({what}) cannot be represented by the package's camera model "
+                          f"(plumb_bob = Kalibr radtan, rational_polynomial, equidistant): calibrate {name} again "
+                          f"with radtan or equidistant", path=source, key=f"{name}.distortion_model")
+    model_name, counts = DISTORTION_MODELS[dist]
+    if dist == "none":
+        if np.any(coeffs):
+            raise ConfigError(f"distortion model none with non-zero coefficients {coeffs.tolist()}", path=source,
+                              key=f"{name}.distortion_coeffs")
+        coeffs = np.zeros(0)
+    if coeffs.size not in counts:
+        raise ConfigError(f"{dist} takes {' or '.join(map(str, counts))} coefficients, got {coeffs.size}",
+                          path=source, key=f"{name}.distortion_coeffs")
+    if res[0] != int(res[0]) or res[1] != int(res[1]):
+        raise ConfigError(f"expected integer [width, height], got {res.tolist()}", path=source, key=f"{name}.resolution")
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    try:
+        return CameraModel(K=K, D=coeffs, distortion_model=model_name, width=int(res[0]), height=int(res[1]),
+                           name=name)
+    except ConfigError as exc:
+        raise ConfigError(exc.detail, path=source, key=f"{name}.{exc.key}" if exc.key else name) from None
+
+
+def _matrix(entry: Mapping[str, Any], key: str, name: str, source: str) -> Optional[np.ndarray]:
+    if key not in entry:
+        return None
+    arr = _numbers(entry, key, 16, source, name).reshape(4, 4)
+    try:
+        return geo.validate_transform(arr, f"{name}.{key}")
+    except GeometryError as exc:
+        raise ConfigError(str(exc), path=source, key=f"{name}.{key}") from None
+
+
+def _tagslam_poses(path: str) -> Dict[str, np.ndarray]:
+    """TagSLAM ``camera_poses.yaml``: camera -> ``T_rig_cam`` (position + rotation vector)."""
+    data = load_yaml_file(path)
+    if not isinstance(data, Mapping):
+        raise ConfigError("expected a mapping of cameras", path=path)
+    out = {}
+    for name, node in data.items():
+        pose = node.get("pose") if isinstance(node, Mapping) else None
+        if not isinstance(pose, Mapping):
+            raise ConfigError("expected {pose: {position: {x, y, z}, rotation: {x, y, z}}}", path=path, key=str(name))
+        vec = {}
+        for part in ("position", "rotation"):
+            p = pose.get(part)
+            try:
+                vec[part] = np.array([float(p[a]) for a in ("x", "y", "z")])
+            except (TypeError, KeyError, ValueError):
+                raise ConfigError("expected {x, y, z} numbers", path=path, key=f"{name}.pose.{part}") from None
+            if not np.all(np.isfinite(vec[part])):
+                raise ConfigError("contains NaN or infinite values", path=path, key=f"{name}.pose.{part}")
+        out[str(name)] = geo.transform_from_rvec_tvec(vec["rotation"], vec["position"])
+    return out
+
+
+def read_rig(path: str, camera_poses: Optional[str] = None, base_frame: str = "rig") -> ImportedRig:
+    """Read a Kalibr camchain or a TagSLAM ``cameras.yaml`` (see the module docstring).
+
+    Args:
+        path: the camchain / cameras file.
+        camera_poses: TagSLAM ``camera_poses.yaml``; None = the one beside ``path`` if there is one.
+        base_frame: name of the rig's base frame in the ring file.
+
+    Raises:
+        ConfigError: naming the file and key of anything unreadable or unrepresentable. Cameras
+            without a pose are *not* an error here (:meth:`ImportedRig.ring` reports them).
+    """
+    data = load_yaml_file(path)
+    if not isinstance(data, Mapping) or not data or not all(isinstance(v, Mapping) for v in data.values()):
+        raise ConfigError("expected a mapping camera name -> {intrinsics, distortion_model, ...}", path=path)
+    if camera_poses is None:
+        beside = os.path.join(os.path.dirname(os.path.abspath(path)), "camera_poses.yaml")
+        camera_poses = beside if os.path.exists(beside) and os.path.abspath(beside) != os.path.abspath(path) else None
+    names = _camera_order(data.keys())
+    cams: List[ImportedCamera] = []
+    for name in names:
+        entry = data[name]
+        frame = str(entry.get("frame_id") or f"{name}_optical_frame").strip("/").replace("/", "_")
+        cams.append(ImportedCamera(name, _model(entry, name, path), None, _namespace(entry, name), frame,
+                                   str(entry.get("tagtopic") or entry.get("rostopic") or "")))
+    shared = {ns: [c.name for c in cams if c.namespace == ns] for ns in {c.namespace for c in cams}}
+    shared = {ns: names_ for ns, names_ in shared.items() if len(names_) > 1}
+    if shared:
+        ns, names_ = sorted(shared.items())[0]
+        raise ConfigError(f"cameras {names_} would share the namespace '{ns}' (from their tagtopic / rostopic): the "
+                          f"nodes and the bag source find a camera's topics under its own namespace; give each "
+                          f"camera a topic of its own namespace (e.g. /{ns}/<camera>/tags)", path=path)
+    sources = [path]
+    notes: List[str] = []
+    if camera_poses is not None:
+        poses = _tagslam_poses(camera_poses)
+        sources.append(camera_poses)
+        for c in cams:
+            if c.name in poses:
+                c.T_base_cam, c.pose_source = poses[c.name], os.path.basename(camera_poses)
+        unknown = sorted(set(poses) - set(names))
+        if unknown:
+            notes.append(f"{camera_poses}: poses of cameras not in {path} ignored: {unknown}")
+        bodies = sorted({str(data[n].get("rig_body")) for n in names if data[n].get("rig_body")})
+        definition = (f"TagSLAM's rig body{' ' + bodies[0] if len(bodies) == 1 else ''} "
+                      f"(the frame camera_poses.yaml gives the camera poses in)")
+    else:
+        imu = {c.name: _matrix(data[c.name], "T_cam_imu", c.name, path) for c in cams}
+        chain = {c.name: _matrix(data[c.name], "T_cn_cnm1", c.name, path) for c in cams}
+        if all(imu[c.name] is not None for c in cams):
+            for c in cams:
+                c.T_base_cam, c.pose_source = geo.inverse(imu[c.name]), "T_cam_imu"
+            definition = "the IMU frame of the Kalibr camera-IMU calibration (T_cam_imu)"
+        else:
+            cams[0].T_base_cam, cams[0].pose_source = np.eye(4), "base frame"
+            for prev, c in zip(cams, cams[1:]):
+                T = chain[c.name]
+                if T is not None and prev.T_base_cam is not None:
+                    c.T_base_cam, c.pose_source = prev.T_base_cam @ geo.inverse(T), "T_cn_cnm1"
+            definition = f"camera {cams[0].name}'s optical frame (z forward, x right, y down)"
+            if len(cams) > 1 and any(imu[c.name] is not None for c in cams):
+                notes.append("T_cam_imu is not given for every camera: the cameras are chained with T_cn_cnm1")
+    for n in notes:
+        logger.warning("%s", n)
+    return ImportedRig(cams, base_frame, definition, " + ".join(sources), notes)
+
+
+def write_ring_files(ring: CameraRing, ring_path: str, camera_info_dir: Optional[str] = None) -> List[str]:
+    """Write ``camera_info/<cam>.yaml`` for every camera and the ring file referring to them.
+
+    Args:
+        ring: the ring.
+        ring_path: the ring YAML to write.
+        camera_info_dir: where the camera_info files go (default: ``camera_info/`` beside the ring).
+
+    Returns:
+        The files written (all atomically), ring file last.
+    """
+    ring_path = os.path.abspath(ring_path)
+    base = os.path.dirname(ring_path)
+    info_dir = os.path.abspath(camera_info_dir) if camera_info_dir else os.path.join(base, "camera_info")
+    written, refs = [], {}
+    for cam in ring.cameras:
+        p = os.path.join(info_dir, f"{cam.name}.yaml")
+        save_camera_yaml(cam.model, p)
+        written.append(p)
+        refs[cam.name] = os.path.relpath(p, base)
+    ring.save(ring_path, camera_info_files=refs)
+    written.append(ring_path)
+    return written

@@ -1,0 +1,203 @@
+"""TagSLAM's ``tagslam.yaml``: tag sizes, ignored tags, the tags it fixes, the bodies that move.
+
+TagSLAM describes the world as *bodies* (a list of one-key mappings ``- name: {...}``): static
+ones (the building, a board on the wall) and moving ones (the camera rig, a tumbling block). A
+body has a ``default_tag_size``, explicit ``tags`` (``id``, ``size``, optional ``pose`` with
+``position`` and a rotation-vector ``rotation`` in the body's frame) and, for ``type: board`` /
+``staggered_board``, a grid of ``tag_rows`` x ``tag_columns`` tags from ``tag_start_id`` of
+``tag_size``. ``default_body`` names the body that newly discovered tags join (its
+``default_tag_size`` is the size of every tag not listed). ``ignore_tags`` (per body) are tags
+TagSLAM never uses.
+
+:func:`read_tagslam_tags` returns what mapping needs: :class:`~aruco_ring_localization.markers.MarkerSizes`
+(also as aruco_detect's ``fiducial_len`` / ``fiducial_len_override``), the ids to ignore (TagSLAM's
+ignored tags plus the tags of moving bodies other than the rig: a static map cannot hold them),
+and the poses TagSLAM's file fixes (``known_poses``, body frame, for reference only).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Mapping, Set, Tuple
+
+import numpy as np
+
+from .. import geometry as geo
+from ..camera import load_yaml_file
+from ..errors import ConfigError
+from ..markers import MarkerSizes, parse_size_overrides
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class TagslamTags:
+    """Tags of a ``tagslam.yaml`` (see the module docstring).
+
+    Attributes:
+        default_size: side of a tag not listed (the default body's ``default_tag_size``), m.
+        sizes: id -> side, m, for every listed tag (explicit or on a board).
+        ignore: TagSLAM's ``ignore_tags`` of all bodies.
+        moving: ids of tags on bodies that are not static (not part of a static map).
+        known_poses: id -> ``T_body_tag`` for tags whose pose the file gives, on static bodies.
+        static_bodies, moving_bodies: body names.
+        remaps: TagSLAM's ``tag_id_remap``: (detected id, id it stands for, start s, end s), for one
+            id printed on several tags seen at different times (:meth:`remap`).
+    """
+
+    default_size: float
+    sizes: Dict[int, float] = field(default_factory=dict)
+    ignore: Set[int] = field(default_factory=set)
+    moving: Set[int] = field(default_factory=set)
+    known_poses: Dict[int, np.ndarray] = field(default_factory=dict)
+    static_bodies: List[str] = field(default_factory=list)
+    moving_bodies: List[str] = field(default_factory=list)
+    remaps: List[Tuple[int, int, float, float]] = field(default_factory=list)
+
+    def remap(self, marker_id: int, stamp: float) -> int:
+        """The id a detection of ``marker_id`` at ``stamp`` (s) stands for (``tag_id_remap``)."""
+        for mid, new, start, end in self.remaps:
+            if mid == marker_id and start <= stamp <= end:
+                return new
+        return marker_id
+
+    def marker_sizes(self) -> MarkerSizes:
+        return MarkerSizes(self.default_size, {i: s for i, s in self.sizes.items() if s != self.default_size})
+
+    def fiducial_len_override(self) -> str:
+        """aruco_detect's ``fiducial_len_override`` for the tags whose size is not the default."""
+        return _ranges({i: s for i, s in self.sizes.items() if s != self.default_size})
+
+    def ignore_fiducials(self) -> str:
+        """aruco_detect's ``ignore_fiducials`` for the ignored and the moving tags."""
+        return _ranges({i: 0.0 for i in self.ignore | self.moving}, with_value=False)
+
+
+def _ranges(values: Mapping[int, float], with_value: bool = True) -> str:
+    out: List[str] = []
+    ids = sorted(values)
+    i = 0
+    while i < len(ids):
+        j = i
+        while j + 1 < len(ids) and ids[j + 1] == ids[j] + 1 and values[ids[j + 1]] == values[ids[i]]:
+            j += 1
+        span = str(ids[i]) if i == j else f"{ids[i]}-{ids[j]}"
+        out.append(f"{span}: {values[ids[i]]:g}" if with_value else span)
+        i = j + 1
+    return ", ".join(out)
+
+
+def _positive(value: Any, path: str, key: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
+        raise ConfigError(f"expected a positive length in metres, got {value!r}", path=path, key=key)
+    return float(value)
+
+
+def _pose(node: Any, path: str, key: str) -> np.ndarray:
+    try:
+        t = np.array([float(node["position"][a]) for a in ("x", "y", "z")])
+        r = np.array([float(node["rotation"][a]) for a in ("x", "y", "z")])
+    except (TypeError, KeyError, ValueError):
+        raise ConfigError("expected {position: {x, y, z}, rotation: {x, y, z}}", path=path, key=key) from None
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(r))):
+        raise ConfigError("contains NaN or infinite values", path=path, key=key)
+    return geo.transform_from_rvec_tvec(r, t)
+
+
+def _ids(value: Any, path: str, key: str) -> Set[int]:
+    if value is None:
+        return set()
+    if not isinstance(value, list) or not all(isinstance(v, int) and not isinstance(v, bool) for v in value):
+        raise ConfigError(f"expected a list of tag ids, got {value!r}", path=path, key=key)
+    return set(value)
+
+
+def _bodies(data: Mapping[str, Any], path: str) -> List[Tuple[str, Mapping[str, Any]]]:
+    bodies = data.get("bodies")
+    if not isinstance(bodies, list):
+        raise ConfigError("expected a list of bodies (- name: {...})", path=path, key="bodies")
+    out = []
+    for i, b in enumerate(bodies):
+        if not isinstance(b, Mapping) or len(b) != 1 or not isinstance(next(iter(b.values())), Mapping):
+            raise ConfigError("expected a one-key mapping name: {...}", path=path, key=f"bodies[{i}]")
+        name, body = next(iter(b.items()))
+        out.append((str(name), body))
+    return out
+
+
+def read_tagslam_tags(path: str, rig_bodies: Tuple[str, ...] = ()) -> TagslamTags:
+    """Read the tags of a ``tagslam.yaml``; ConfigError names the file and key of a bad entry.
+
+    Args:
+        rig_bodies: names of the bodies that carry the cameras (their tags, if any, are
+            ``moving`` too); bodies that are not ``is_static`` are moving whatever their name.
+    """
+    data = load_yaml_file(path)
+    if not isinstance(data, Mapping):
+        raise ConfigError("expected a mapping", path=path)
+    bodies = _bodies(data, path)
+    default_body = data.get("default_body")
+    names = [n for n, _ in bodies]
+    if default_body is not None and default_body not in names:
+        raise ConfigError(f"names no body of 'bodies' ({', '.join(names)})", path=path, key="default_body")
+    default_size = None
+    out = TagslamTags(default_size=0.0)
+    for i, (name, body) in enumerate(bodies):
+        key = f"bodies[{i}].{name}"
+        static = bool(body.get("is_static", False)) and name not in rig_bodies
+        (out.static_bodies if static else out.moving_bodies).append(name)
+        out.ignore |= _ids(body.get("ignore_tags"), path, f"{key}.ignore_tags")
+        size = body.get("default_tag_size")
+        if size is not None:
+            size = _positive(size, path, f"{key}.default_tag_size")
+            if name == default_body or (default_body is None and default_size is None and static):
+                default_size = size
+        ids: Dict[int, float] = {}
+        for j, tag in enumerate(body.get("tags") or []):
+            tkey = f"{key}.tags[{j}]"
+            if not isinstance(tag, Mapping) or isinstance(tag.get("id"), bool) or not isinstance(tag.get("id"), int):
+                raise ConfigError("expected {id: N, size: L, pose: ...}", path=path, key=tkey)
+            tsize = tag.get("size", size)
+            if tsize is None:
+                raise ConfigError("no size and no default_tag_size in its body", path=path, key=f"{tkey}.size")
+            ids[tag["id"]] = _positive(tsize, path, f"{tkey}.size")
+            if static and tag.get("pose") is not None and body.get("pose") is not None:
+                T_w_body = _pose(body["pose"], path, f"{key}.pose")
+                out.known_poses[tag["id"]] = T_w_body @ _pose(tag["pose"], path, f"{tkey}.pose")
+        kind = str(body.get("type", "simple"))
+        if kind in ("board", "staggered_board"):
+            grid = body.get(kind)
+            if not isinstance(grid, Mapping):
+                raise ConfigError(f"expected the {kind} description", path=path, key=f"{key}.{kind}")
+            try:
+                start, rows, cols = (int(grid[k]) for k in ("tag_start_id", "tag_rows", "tag_columns"))
+            except (KeyError, TypeError, ValueError):
+                raise ConfigError("expected tag_start_id, tag_rows, tag_columns", path=path, key=f"{key}.{kind}") from None
+            bsize = _positive(grid.get("tag_size", size), path, f"{key}.{kind}.tag_size")
+            for k in range(rows * cols):
+                ids[start + k] = bsize
+        out.sizes.update(ids)
+        if not static:
+            out.moving |= set(ids)
+    for i, r in enumerate(data.get("tag_id_remap") or []):
+        key = f"tag_id_remap[{i}]"
+        try:
+            mid = int(r["id"])
+            for j, m in enumerate(r["remaps"]):
+                out.remaps.append((mid, int(m["remap_id"]), float(m["start_time"]), float(m["end_time"])))
+        except (TypeError, KeyError, ValueError):
+            raise ConfigError("expected {id, remaps: [{remap_id, start_time, end_time}]}", path=path, key=key) from None
+    if default_size is None:
+        raise ConfigError("no default_tag_size in the default body (or in any static body)", path=path,
+                          key="default_body")
+    out.default_size = default_size
+    return out
+
+
+def marker_sizes_from(fiducial_len: float, fiducial_len_override: str = "", tagslam_file: str = "") -> MarkerSizes:
+    """Marker sides from aruco_detect's parameters, or a ``tagslam.yaml`` (its sizes, then the
+    ``fiducial_len_override`` entries on top; ``fiducial_len`` is the default only without a file)."""
+    if not tagslam_file:
+        return MarkerSizes.parse(fiducial_len, fiducial_len_override)
+    base = read_tagslam_tags(tagslam_file).marker_sizes()
+    return MarkerSizes(base.default, {**base.overrides, **parse_size_overrides(fiducial_len_override)})

@@ -1,0 +1,163 @@
+"""Importers: Kalibr camchains, TagSLAM cameras.yaml + camera_poses.yaml, tagslam.yaml; import-kalibr."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from aruco_ring_localization import geometry as geo
+from aruco_ring_localization.cli import main
+from aruco_ring_localization.errors import ConfigError
+from aruco_ring_localization.importers import read_rig, read_tagslam_tags, write_ring_files
+from aruco_ring_localization.ring import CameraRing
+
+DATA = Path(__file__).resolve().parents[1] / "data" / "tagslam"
+
+
+def _camchain(tmp_path: Path, cams: dict) -> str:
+    p = tmp_path / "camchain.yaml"
+    p.write_text(yaml.safe_dump(cams))
+    return str(p)
+
+
+def _cam(**extra) -> dict:
+    c = {"camera_model": "pinhole", "intrinsics": [460.0, 461.0, 640.0, 512.0], "distortion_model": "equidistant",
+         "distortion_coeffs": [-0.01, 0.002, -0.001, 0.0003], "resolution": [1280, 1024],
+         "rostopic": "/rig/left/image_raw"}
+    c.update(extra)
+    return c
+
+
+def _T(rvec, t) -> np.ndarray:
+    return geo.transform_from_rvec_tvec(np.array(rvec, dtype=float), np.array(t, dtype=float))
+
+
+def test_tagslam_cameras_and_poses_of_a_stereo_rig():
+    rig = read_rig(str(DATA / "test_11" / "cameras.yaml"))
+    ring = rig.ring()
+    assert ring.names == ["cam0", "cam1"] and ring.base_frame == "rig"
+    # camera_poses.yaml: position + rotation vector of each camera in the rig body (T_rig_cam).
+    want = _T([0.00040784, -0.00929578, 0.00284823], [0.20031766, 0.00166686, 0.00093769])
+    dp, dr = geo.pose_distance(ring["cam1"].T_base_cam, want)
+    assert dp < 1e-9 and dr < 1e-9
+    assert ring["cam0"].namespace == "fla/ovc_node/left"      # from tagtopic /fla/ovc_node/left/tags
+    m = ring["cam0"].model
+    assert m.distortion_model == "equidistant" and (m.fx, m.fy, m.cx, m.cy) == (603.924, 603.166, 665.041, 554.34)
+    assert (m.width, m.height) == (1280, 1024)
+    assert "rig body" in rig.base_definition
+
+
+def test_cameras_without_a_pose_are_named_never_guessed():
+    rig = read_rig(str(DATA / "test_5" / "cameras.yaml"))     # camera_poses.yaml has cam0 only
+    assert rig.missing_poses() == ["cam1", "cam2", "cam3"]
+    with pytest.raises(ConfigError) as err:
+        rig.ring()
+    assert "cam1, cam2, cam3" in str(err.value) and "never guessed" in str(err.value)
+
+
+def test_mixed_fisheye_and_radtan_models(tmp_path):
+    """test_21: two equidistant fisheyes and two ToF cameras with 5-coefficient radtan."""
+    rig = read_rig(str(DATA / "test_21" / "cameras.yaml"))
+    models = {c.name: c.model for c in rig.cameras}
+    assert models["cam0"].distortion_model == "equidistant" and models["cam0"].D.size == 4
+    assert models["cam2"].distortion_model == "plumb_bob" and models["cam2"].D.size == 5
+    assert models["cam2"].D[4] == pytest.approx(7.789391040802002)    # k3 last, as OpenCV's plumb_bob
+
+
+def test_kalibr_chain_from_camera_0(tmp_path):
+    T_c1_c0 = _T([0.01, -0.02, 0.03], [-0.11, 0.002, 0.001])   # p_cam1 = T_cn_cnm1 p_cam0
+    T_c2_c1 = _T([0.0, 1.5, 0.0], [0.05, 0.0, -0.08])
+    path = _camchain(tmp_path, {"cam0": _cam(), "cam1": _cam(T_cn_cnm1=T_c1_c0.tolist(), rostopic="/rig/right/image_raw"),
+                                "cam2": _cam(T_cn_cnm1=T_c2_c1.tolist(), distortion_model="radtan",
+                                             distortion_coeffs=[-0.2, 0.05, 0.001, 0.0], rostopic="/c2/image_raw/compressed")})
+    rig = read_rig(path, camera_poses=None)
+    ring = rig.ring()
+    np.testing.assert_allclose(ring["cam0"].T_base_cam, np.eye(4))
+    np.testing.assert_allclose(ring["cam1"].T_base_cam, geo.inverse(T_c1_c0), atol=1e-12)
+    np.testing.assert_allclose(ring["cam2"].T_base_cam, geo.inverse(T_c1_c0) @ geo.inverse(T_c2_c1), atol=1e-12)
+    assert ring["cam2"].model.distortion_model == "plumb_bob"
+    assert [c.namespace for c in ring.cameras] == ["rig/left", "rig/right", "c2"]
+    # A tag topic's namespace is its parent (/detector/tags/left: TagSLAM's test_22); two cameras
+    # in one namespace are refused, naming them.
+    one = _camchain(tmp_path, {"cam0": _cam(tagtopic="/detector/tags/left")})
+    assert read_rig(one, camera_poses=None).ring()["cam0"].namespace == "detector/tags"
+    two = _camchain(tmp_path, {"cam0": _cam(tagtopic="/detector/tags/left"),
+                               "cam1": _cam(tagtopic="/detector/tags/right")})
+    with pytest.raises(ConfigError, match=r"\['cam0', 'cam1'\] would share the namespace 'detector/tags'"):
+        read_rig(two, camera_poses=None)
+    assert "cam0's optical frame" in rig.base_definition
+
+
+def test_kalibr_imu_frame_when_every_camera_has_T_cam_imu(tmp_path):
+    T0 = _T([1.2, -1.2, 1.2], [0.05, 0.01, -0.02])
+    T1 = _T([1.2, -1.1, 1.25], [-0.06, 0.01, -0.02])
+    rig = read_rig(_camchain(tmp_path, {"cam0": _cam(T_cam_imu=T0.tolist()),
+                                        "cam1": _cam(T_cam_imu=T1.tolist(), rostopic="/rig/right/image_raw")}))
+    ring = rig.ring()
+    np.testing.assert_allclose(ring["cam1"].T_base_cam, geo.inverse(T1), atol=1e-12)
+    assert "IMU" in rig.base_definition
+
+
+def test_a_second_camera_without_T_cn_cnm1_is_reported(tmp_path):
+    rig = read_rig(_camchain(tmp_path, {"cam0": _cam(), "cam1": _cam(rostopic="/rig/right/image_raw")}))
+    with pytest.raises(ConfigError, match="cam1"):
+        rig.ring()
+
+
+@pytest.mark.parametrize("change, key, needle", [
+    ({"distortion_model": "fov", "distortion_coeffs": [0.9]}, "cam0.distortion_model", "FOV"),
+    ({"camera_model": "omni"}, "cam0.camera_model", "omni"),
+    ({"distortion_model": "radtan", "distortion_coeffs": [0.1, 0.2, 0.3]}, "cam0.distortion_coeffs", "4 or 5"),
+    ({"intrinsics": [460.0, 461.0, 640.0]}, "cam0.intrinsics", "4 numbers"),
+    ({"resolution": [1280.5, 1024]}, "cam0.resolution", "integer"),
+    ({"T_cn_cnm1": [[1, 0, 0, 0]] * 4}, "cam0.T_cn_cnm1", "rotation"),
+])
+def test_unrepresentable_or_bad_cameras_are_refused_by_key(tmp_path, change, key, needle):
+    path = _camchain(tmp_path, {"cam0": _cam(**change)})
+    with pytest.raises(ConfigError) as err:
+        read_rig(path).ring()
+    assert err.value.key == key and needle in str(err.value), str(err.value)
+
+
+def test_written_ring_files_load_back(tmp_path):
+    rig = read_rig(str(DATA / "test_11" / "cameras.yaml"))
+    files = write_ring_files(rig.ring(), str(tmp_path / "out" / "ring.yaml"))
+    assert [Path(f).name for f in files] == ["cam0.yaml", "cam1.yaml", "ring.yaml"]
+    back = CameraRing.load(str(tmp_path / "out" / "ring.yaml"))
+    for a, b in zip(rig.ring().cameras, back.cameras):
+        assert a.model == b.model and a.namespace == b.namespace and a.frame_id == b.frame_id
+        np.testing.assert_allclose(a.T_base_cam, b.T_base_cam, atol=1e-12)
+
+
+def test_import_kalibr_command(tmp_path, capsys):
+    out = tmp_path / "ring.yaml"
+    assert main(["import-kalibr", str(DATA / "test_11" / "cameras.yaml"), "--out", str(out),
+                 "--tagslam", str(DATA / "test_12" / "tagslam.yaml")]) == 0
+    text = capsys.readouterr().out
+    assert "base frame 'rig'" in text and "fiducial_len 0.15" in text and '"166, 213' in text
+    assert CameraRing.load(str(out)).names == ["cam0", "cam1"]
+    assert main(["import-kalibr", str(DATA / "test_5" / "cameras.yaml"), "--out", str(tmp_path / "r5.yaml")]) == 1
+    assert "cam1, cam2, cam3" in capsys.readouterr().err and not (tmp_path / "r5.yaml").exists()
+
+
+def test_tagslam_tags_sizes_ignored_moving_and_remaps():
+    t12 = read_tagslam_tags(str(DATA / "test_12" / "tagslam.yaml"))
+    assert t12.default_size == 0.15 and t12.marker_sizes()(6) == 0.15
+    assert {166, 381, 585} <= t12.ignore
+    assert 6 in t12.known_poses                          # the tag test_12 fixes
+    assert t12.remap(20, 1541686900.0) == 420 and t12.remap(20, 1541687200.0) == 520 and t12.remap(20, 0.0) == 20
+    t18 = read_tagslam_tags(str(DATA / "test_18" / "tagslam.yaml"))
+    assert t18.moving == set(range(100, 110)) and "block" in t18.moving_bodies   # the tumbling block
+    assert t18.fiducial_len_override() == "100-109: 0.05" and t18.ignore_fiducials() == "100-109"
+    t24 = read_tagslam_tags(str(DATA / "test_24" / "tagslam.yaml"))      # staggered boards
+    assert t24.marker_sizes()(2080) == 0.06 and t24.marker_sizes()(72) == 0.05
+
+
+def test_tagslam_tags_bad_file_names_the_key(tmp_path):
+    p = tmp_path / "tagslam.yaml"
+    p.write_text("bodies:\n - lab:\n     is_static: true\n     default_tag_size: -1\n")
+    with pytest.raises(ConfigError) as err:
+        read_tagslam_tags(str(p))
+    assert err.value.key == "bodies[0].lab.default_tag_size"
