@@ -33,7 +33,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Dict, Optional
+from typing import Dict, Optional, Tuple
 
 import numpy as np
 import scipy.sparse as sp
@@ -129,6 +129,8 @@ class BAResult:
         T_W_markers, T_W_stations, T_base_cams: refined poses (same shapes as the problem's).
         marker_cov: (M, 6, 6) covariance of (w, t) per marker (w rotation in W, rad; t in W, m);
             zeros for the fixed marker. None when not computed.
+        camera_cov: (6C, 6C) covariance of the cameras' (w, t) (``R = exp(w) R0``, ``t = t0 + t``,
+            in the base frame) when the extrinsics are refined and covariances computed, else None.
         rms_px_before, rms_px_after: RMS corner reprojection error (px, undistorted).
         per_obs_rms_px: (N,) RMS error per observation after the refinement, px.
         variance_factor: residual variance / pixel_noise^2 (≈ (true noise / pixel_noise)^2).
@@ -149,6 +151,7 @@ class BAResult:
     n_residuals: int = 0
     n_params: int = 0
     extra: Dict[str, float] = field(default_factory=dict)
+    camera_cov: Optional[np.ndarray] = None
 
 
 # --- the problem as residual + Jacobian functions -----------------------------------------------
@@ -427,13 +430,21 @@ def _solve_lm(model: _Model, x0: np.ndarray, f_scale: float, opts: BAOptions, ma
     return _LMResult(x, nfev, message, sp.diags(np.sqrt(w)) @ J)
 
 
-def _marker_covariances(model: _Model, J: sp.csr_matrix, variance_factor: float) -> np.ndarray:
-    """(M, 6, 6) marginal covariances of the markers' (w, t) via the Schur complement."""
+def _marker_covariances(model: _Model, J: sp.csr_matrix, variance_factor: float
+                        ) -> Tuple[np.ndarray, Optional[np.ndarray]]:
+    """(M, 6, 6) marginal covariances of the markers' (w, t) via the Schur complement, and the
+    (6C, 6C) covariance of the cameras' (w, t) when they are refined (the cameras' block of the
+    reduced system's inverse: markers and stations marginalised), else None."""
     H = (J.T @ J).tocsr()
     nm = model.n_marker_params
     out = np.zeros((model.M, 6, 6))
+    cam_cols = np.concatenate([model.col_c[i] + np.arange(6) for i in range(model.C)]) if model.o.refine_extrinsics \
+        else None
     if nm == 0:
-        return out
+        if cam_cols is None:
+            return out, None
+        Hinv = np.linalg.pinv(H.toarray(), hermitian=True)
+        return out, variance_factor * Hinv[np.ix_(cam_cols, cam_cols)]
     # A is block diagonal (6x6 per free marker): invert block by block.
     Ainv_blocks = []
     idx = [i for i in range(model.M) if model.col_m[i] >= 0]
@@ -455,11 +466,13 @@ def _marker_covariances(model: _Model, J: sp.csr_matrix, variance_factor: float)
             c = model.col_m[i]
             Ki = Kd[c:c + 6].toarray()
             out[i] = Ainv_blocks[k] + G[c:c + 6] @ Ki.T
+        cam_cov = None if cam_cols is None else variance_factor * Sinv[np.ix_(cam_cols - nm, cam_cols - nm)]
     else:
         for k, i in enumerate(idx):
             out[i] = Ainv_blocks[k]
+        cam_cov = None
     out *= variance_factor
-    return 0.5 * (out + np.transpose(out, (0, 2, 1)))
+    return 0.5 * (out + np.transpose(out, (0, 2, 1))), cam_cov
 
 
 def bundle_adjust(prob: BAProblem, opts: Optional[BAOptions] = None) -> BAResult:
@@ -533,17 +546,25 @@ def _bundle_adjust(prob: BAProblem, opts: Optional[BAOptions] = None) -> BAResul
     T_s[:, :3, :3], T_s[:, :3, 3] = Rs, ts
     T_c = np.tile(np.eye(4), (model.C, 1, 1))
     T_c[:, :3, :3], T_c[:, :3, 3] = Rc, tc
-    cov = None
+    cov = cam_cov = None
     if opts.covariance and J is not None:
         Jm = J if sp.issparse(J) else sp.csr_matrix(J)
-        cov = _marker_covariances(model, Jm.tocsr(), vf)
+        if model.n_prior_res:
+            # The priors' sigmas are absolute: only the corner rows carry the variance factor (else
+            # what only the priors determine -- a turn of the whole ring against the robot -- would
+            # shrink with a small pixel noise).
+            rows = np.ones(model.n_res)
+            rows[: model.n_obs_res] = 1.0 / np.sqrt(max(vf, 1e-12))
+            cov, cam_cov = _marker_covariances(model, (sp.diags(rows) @ Jm).tocsr(), 1.0)
+        else:
+            cov, cam_cov = _marker_covariances(model, Jm.tocsr(), vf)
     seconds = time.perf_counter() - t0
     logger.info("bundle adjustment: %d markers, %d stations, %d observations, %d params: RMS %.3f -> %.3f px "
                 "in %.2f s (%d evaluations; %s)", model.M, model.S, model.N, model.n_params, rms0, rms1,
                 seconds, nfev, status)
     return BAResult(T_W_markers=T_m, T_W_stations=T_s, T_base_cams=T_c, marker_cov=cov, rms_px_before=rms0,
                     rms_px_after=rms1, per_obs_rms_px=per_obs, variance_factor=vf, seconds=seconds, nfev=nfev,
-                    status=status, n_residuals=model.n_res, n_params=model.n_params)
+                    status=status, n_residuals=model.n_res, n_params=model.n_params, camera_cov=cam_cov)
 
 
 def observation_rms_px(prob: BAProblem) -> np.ndarray:
@@ -566,3 +587,20 @@ def marker_std_in_frame(cov6: np.ndarray, T_W_marker: np.ndarray, T_W_frame: np.
     R_mW = T_W_marker[:3, :3].T
     Cr = R_mW @ cov6[:3, :3] @ R_mW.T
     return np.sqrt(np.clip(np.diag(Ct), 0.0, None)), np.sqrt(np.clip(np.diag(Cr), 0.0, None))
+
+
+def camera_cov_in_optical_frames(camera_cov: np.ndarray, T_base_cams: np.ndarray) -> np.ndarray:
+    """:attr:`BAResult.camera_cov` in the convention of the ring file's ``extrinsics_std``.
+
+    The adjustment moves camera c by ``R = exp(w) R_c``, ``t = t_c + dt`` (base frame); the same
+    motion in the camera's own optical frame is ``T_base_cam · D`` with ``D = (exp(R_c^T w),
+    R_c^T dt)``, so each 6x6 block (c, d) becomes ``B_c C_cd B_d^T`` with ``B_c = diag(R_c^T, R_c^T)``.
+    """
+    C = len(T_base_cams)
+    B = np.zeros((6 * C, 6 * C))
+    for k in range(C):
+        Rt = np.asarray(T_base_cams[k])[:3, :3].T
+        B[6 * k:6 * k + 3, 6 * k:6 * k + 3] = Rt
+        B[6 * k + 3:6 * k + 6, 6 * k + 3:6 * k + 6] = Rt
+    out = B @ camera_cov @ B.T
+    return 0.5 * (out + out.T)

@@ -339,6 +339,18 @@ def so3_exp(w) -> np.ndarray:
     return rotation_from_rvec(w)
 
 
+def se3_adjoint(T) -> np.ndarray:
+    """(6, 6) adjoint of ``T`` for motions ordered (w, v): ``T · exp(xi) = exp(Ad_T xi) · T``, i.e.
+    a small motion in ``T``'s child frame expressed in its parent frame."""
+    T = np.asarray(T, dtype=np.float64)
+    R, t = T[:3, :3], T[:3, 3]
+    A = np.zeros((6, 6))
+    A[:3, :3] = R
+    A[3:, 3:] = R
+    A[3:, :3] = skew(t) @ R
+    return A
+
+
 def se3_perturb(T, delta) -> np.ndarray:
     """Left-multiply ``T`` by a small motion ``delta = (wx, wy, wz, tx, ty, tz)``: used by solvers."""
     d = np.asarray(delta, dtype=np.float64).ravel()

@@ -56,8 +56,8 @@ from typing import Any, Dict, Hashable, List, Optional, Tuple
 import numpy as np
 
 from . import geometry as geo
-from .bundle_adjustment import (BAOptions, BAProblem, BAResult, bundle_adjust, marker_std_in_frame,
-                                observation_rms_px)
+from .bundle_adjustment import (BAOptions, BAProblem, BAResult, bundle_adjust, camera_cov_in_optical_frames,
+                                marker_std_in_frame, observation_rms_px)
 from .config import in_radians, param, section
 from .errors import ArucoRingError, ConfigError, GeometryError, MeasurementError
 from .detections import RingFrame
@@ -968,6 +968,9 @@ class MapBuilder:
             out.ring_prior_sigma = {"translation": float(self.options.ba.extrinsics_trans_sigma),
                                     "rotation": float(self.options.ba.extrinsics_rot_sigma)}
             out.ring_moved = {c: geo.pose_distance(self.ring[c].T_base_cam, T) for c, T in out.ring_extrinsics.items()}
+            if res.camera_cov is not None:  # their uncertainty, for the localizer's noise model
+                out.ring_covariance_cameras = list(self.ring.names)
+                out.ring_extrinsics_covariance = camera_cov_in_optical_frames(res.camera_cov, res.T_base_cams)
         return out
 
     def save_map(self, path: str, method: Optional[str] = None, backups: int = 1) -> MarkerMap:

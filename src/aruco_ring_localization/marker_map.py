@@ -24,10 +24,17 @@ File format (YAML, written atomically with the previous file kept as ``.bak``; d
       base_frame: base_link
       cameras:
         cam0: {translation: [0.12, 0.0, 0.75], rotation: [-0.5, 0.5, -0.5, 0.5]}
+      covariance:                           # optional: their uncertainty (the bundle adjustment's)
+        cameras: [cam0, ...]                # order of the 6 x 6 blocks
+        matrix: [[...], ...]                # 6n x 6n: per camera (rx, ry, rz rad, tx, ty, tz m)
 
 The markers were estimated through the ring extrinsics. When bundle adjustment refined those
 (``ring_calibration``), localizing with them instead of the original calibration removes the
-calibration error from every pose (``ring_tf`` publishes them when given the map file).
+calibration error from every pose (``ring_tf`` publishes them when given the map file). Their
+covariance is in the convention of the ring file's ``extrinsics_std``: the error ``D`` of each
+camera in its own optical frame (``T_base_cam_true = T_base_cam · D``), rotation first; it
+includes the correlations between cameras (what the adjustment cannot tell apart, e.g. a turn of
+the whole ring against the robot, is common to all of them).
 
 fiducial_slam's ``map.txt`` (one marker a line: ``id x y z rx ry rz variance nObs [links...]``,
 angles fixed-axis roll/pitch/yaw in degrees) is imported and exported too.
@@ -148,6 +155,10 @@ class MarkerMap:
         self.frame_convention = frame_convention
         #: how the map came about: reprojection_rms_px, stations, station_model, notes (free-form).
         self.quality: Dict[str, Any] = {}
+        #: (6n, 6n) covariance of the refined extrinsics of ``ring_covariance_cameras`` (see the
+        #: module doc), or None.
+        self.ring_extrinsics_covariance: Optional[np.ndarray] = None
+        self.ring_covariance_cameras: List[str] = []
         self._corners: Dict[int, np.ndarray] = {}
         self.frame_id = frame_id
         self.reference_marker = reference_marker
@@ -238,6 +249,10 @@ class MarkerMap:
             out["ring_calibration"] = {"base_frame": self.ring_base_frame, "cameras": cams}
             if self.ring_prior_sigma:
                 out["ring_calibration"]["prior_sigma"] = {k: float(v) for k, v in self.ring_prior_sigma.items()}
+            if self.ring_extrinsics_covariance is not None:
+                out["ring_calibration"]["covariance"] = {
+                    "cameras": list(self.ring_covariance_cameras),
+                    "matrix": [[float(f"{v:.9g}") for v in row] for row in self.ring_extrinsics_covariance]}
         return out
 
     def save(self, path: str, limits: Optional["MapSanityLimits"] = None, backups: int = 1) -> None:
@@ -308,6 +323,9 @@ class MarkerMap:
         if data.get("ring_calibration") is not None:
             out.ring_base_frame, out.ring_extrinsics = _read_ring_calibration(data["ring_calibration"], source)
             out.ring_prior_sigma, out.ring_moved = _read_ring_refinement(data["ring_calibration"], source)
+            if data["ring_calibration"].get("covariance") is not None:
+                out.ring_covariance_cameras, out.ring_extrinsics_covariance = _read_ring_covariance(
+                    data["ring_calibration"]["covariance"], out.ring_extrinsics, source)
         return out
 
     # --- fiducial_slam ------------------------------------------------------------------------
@@ -474,6 +492,29 @@ def _read_ring_calibration(node: Any, source: str):
 
     cams = {str(name): read_transform(T, source, f"{key}.cameras.{name}") for name, T in node["cameras"].items()}
     return base, cams
+
+
+def _read_ring_covariance(node: Any, extrinsics: Mapping[str, np.ndarray], source: str):
+    key = "ring_calibration.covariance"
+    if not isinstance(node, Mapping) or not isinstance(node.get("cameras"), list):
+        raise ConfigError("expected {cameras: [NAME, ...], matrix: [[...], ...]}", path=source, key=key)
+    names = [str(n) for n in node["cameras"]]
+    unknown = sorted(set(names) - set(extrinsics))
+    if unknown or len(set(names)) != len(names):
+        raise ConfigError(f"expected distinct cameras of ring_calibration.cameras, got {names}", path=source,
+                          key=f"{key}.cameras")
+    try:
+        C = np.asarray(node.get("matrix"), dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ConfigError("expected a matrix of numbers", path=source, key=f"{key}.matrix") from None
+    n = 6 * len(names)
+    if C.shape != (n, n) or not np.all(np.isfinite(C)):
+        raise ConfigError(f"expected a finite {n}x{n} matrix (6 per camera), got shape {C.shape}", path=source,
+                          key=f"{key}.matrix")
+    C = 0.5 * (C + C.T)
+    if n and np.linalg.eigvalsh(C)[0] < -1e-6 * float(np.abs(C).max()):
+        raise ConfigError("not a covariance (negative eigenvalue)", path=source, key=f"{key}.matrix")
+    return names, C
 
 
 def _read_std(m: Mapping[str, Any], name: str, source: str, key: str) -> np.ndarray:

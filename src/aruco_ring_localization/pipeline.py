@@ -700,7 +700,10 @@ class LocalizationPipeline(_RingPipeline):
             if predicted is not None:
                 # Covariance of (z - prediction): the filter's predicted covariance + the measurement's.
                 gate_cov = self.filter.predicted_covariance(stamp) + self.filter.measurement_covariance(cov)
-            decision = self.gate.check(z, stamp, predicted, speed, yaw_rate, gate_cov)
+            # The full rotation goes in too (a flipped pose tilts), and whether the localizer found
+            # the measurement ambiguous (then it is not used).
+            decision = self.gate.check(z, stamp, predicted, speed, yaw_rate, gate_cov, rotation=loc.T_map_base[:3, :3],
+                                       ambiguous=loc.ambiguous)
             out.decision = decision
             if decision.reinitialize:
                 if decision.reason != "initialized":

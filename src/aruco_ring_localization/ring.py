@@ -12,15 +12,23 @@
         T_base_camera:                    # pose of the optical frame in base_frame
           translation: [0.17, 0.0, 0.55]  # m
           rotation: [-0.5, 0.5, -0.5, 0.5]   # quaternion x, y, z, w
+        extrinsics_std: {translation: 0.002, rotation_deg: 0.2}   # optional, see below
 
 Extrinsics are ``T_base_cam`` (4x4): ``p_base = T_base_cam @ p_cam``.
+
+``extrinsics_std`` is how far the calibration may be off: the 1-sigma error per axis of the
+camera's own optical frame, translation in m and rotation in degrees (a scalar for all three axes
+or a list of three). Given at the top level it applies to every camera without its own; absent
+everywhere it is :data:`DEFAULT_EXTRINSICS_STD_TRANSLATION` / :data:`DEFAULT_EXTRINSICS_STD_ROTATION_DEG`
+(a ring measured by hand or calibrated once). The joint estimator (``fusion: joint``) uses it to
+weigh what each camera says; ``0`` declares the calibration exact.
 """
 from __future__ import annotations
 
 import logging
 import os
 from dataclasses import dataclass
-from typing import Any, Dict, Iterator, List, Mapping, Optional, Sequence
+from typing import Any, Dict, Iterator, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 import yaml
@@ -34,6 +42,13 @@ logger = logging.getLogger(__name__)
 
 RING_FORMAT_VERSION = 1
 
+#: Default 1-sigma calibration error of a camera's extrinsics per axis of its optical frame (m, deg):
+#: what a ring measured with care or calibrated once achieves (docs/formats.md, "Ring file").
+DEFAULT_EXTRINSICS_STD_TRANSLATION = 0.002
+DEFAULT_EXTRINSICS_STD_ROTATION_DEG = 0.2
+_DEFAULT_STD = tuple([float(np.radians(DEFAULT_EXTRINSICS_STD_ROTATION_DEG))] * 3
+                     + [DEFAULT_EXTRINSICS_STD_TRANSLATION] * 3)
+
 
 @dataclass(frozen=True)
 class RingCamera:
@@ -45,6 +60,9 @@ class RingCamera:
         model: intrinsics and distortion.
         T_base_cam: (4, 4) pose of the optical frame in the robot's base frame.
         namespace: ROS namespace of its topics (``ring/cam0``).
+        extrinsics_std: (6,) 1-sigma calibration error of ``T_base_cam``: rotation about the
+            optical frame's x, y, z (rad), then translation along them (m). The true pose is
+            ``T_base_cam @ D`` with ``D`` such a small motion (the simulator's ``perturb_ring``).
     """
 
     name: str
@@ -52,6 +70,14 @@ class RingCamera:
     model: CameraModel
     T_base_cam: np.ndarray
     namespace: str = ""
+    extrinsics_std: Tuple[float, ...] = _DEFAULT_STD
+
+    @property
+    def extrinsics_covariance(self) -> np.ndarray:
+        """(6, 6) covariance of the left perturbation (w, v) of ``T_base_cam`` in the *base* frame
+        (``T_base_cam_true = exp(w, v) · T_base_cam``): the optical-frame std moved by the adjoint."""
+        A = geo.se3_adjoint(self.T_base_cam)
+        return A @ np.diag(np.square(self.extrinsics_std)) @ A.T
 
     @property
     def T_cam_base(self) -> np.ndarray:
@@ -103,7 +129,13 @@ class CameraRing:
     def with_extrinsics(self, extrinsics: Mapping[str, np.ndarray]) -> "CameraRing":
         """A copy with some cameras' ``T_base_cam`` replaced (e.g. the simulator's true rig)."""
         cams = [RingCamera(c.name, c.frame_id, c.model, np.asarray(extrinsics.get(c.name, c.T_base_cam)),
-                           c.namespace) for c in self.cameras]
+                           c.namespace, c.extrinsics_std) for c in self.cameras]
+        return CameraRing(cams, self.base_frame)
+
+    def with_extrinsics_std(self, translation: float, rotation_deg: float) -> "CameraRing":
+        """A copy whose every camera claims this calibration error (0, 0: exact extrinsics)."""
+        std = tuple([float(np.radians(rotation_deg))] * 3 + [float(translation)] * 3)
+        cams = [RingCamera(c.name, c.frame_id, c.model, c.T_base_cam, c.namespace, std) for c in self.cameras]
         return CameraRing(cams, self.base_frame)
 
     # --- files ------------------------------------------------------------------------------
@@ -129,7 +161,8 @@ class CameraRing:
         cams = data.get("cameras")
         if not isinstance(cams, list) or not cams:
             raise ConfigError("expected a non-empty list of cameras", path=source, key="cameras")
-        cameras = [_camera_from_dict(c, i, source, base_dir) for i, c in enumerate(cams)]
+        default_std = _read_extrinsics_std(data.get("extrinsics_std"), source, "extrinsics_std", _DEFAULT_STD)
+        cameras = [_camera_from_dict(c, i, source, base_dir, default_std) for i, c in enumerate(cams)]
         try:
             return cls(cameras, base_frame)
         except ConfigError as exc:
@@ -145,6 +178,8 @@ class CameraRing:
                 "name": c.name, "frame_id": c.frame_id, "namespace": c.namespace, "camera_info": info,
                 "T_base_camera": {"translation": [float(v) for v in c.T_base_cam[:3, 3]],
                                   "rotation": [float(v) for v in q]},
+                "extrinsics_std": {"translation": [float(v) for v in c.extrinsics_std[3:]],
+                                   "rotation_deg": [float(np.degrees(v)) for v in c.extrinsics_std[:3]]},
             })
         return {"format_version": RING_FORMAT_VERSION, "base_frame": self.base_frame, "cameras": cams}
 
@@ -153,7 +188,8 @@ class CameraRing:
         atomic_write_text(path, yaml.safe_dump(self.to_dict(camera_info_files), sort_keys=False))
 
 
-def _camera_from_dict(c: Any, i: int, source: str, base_dir: str) -> RingCamera:
+def _camera_from_dict(c: Any, i: int, source: str, base_dir: str,
+                      default_std: Tuple[float, ...] = _DEFAULT_STD) -> RingCamera:
     key = f"cameras[{i}]"
     if not isinstance(c, Mapping):
         raise ConfigError("expected a mapping", path=source, key=key)
@@ -181,7 +217,35 @@ def _camera_from_dict(c: Any, i: int, source: str, base_dir: str) -> RingCamera:
     else:
         raise ConfigError("expected a file name or a camera_info mapping", path=source, key=f"{key}.camera_info")
     T = read_transform(c.get("T_base_camera"), source, f"{key}.T_base_camera")
-    return RingCamera(name=name, frame_id=frame_id.lstrip("/"), model=model, T_base_cam=T, namespace=namespace)
+    std = _read_extrinsics_std(c.get("extrinsics_std"), source, f"{key}.extrinsics_std", default_std)
+    return RingCamera(name=name, frame_id=frame_id.lstrip("/"), model=model, T_base_cam=T, namespace=namespace,
+                      extrinsics_std=std)
+
+
+def _read_extrinsics_std(node: Any, source: str, key: str, default: Tuple[float, ...]) -> Tuple[float, ...]:
+    """``{translation: m, rotation_deg: deg}`` (scalars or lists of three) -> (6,) (rad, rad, rad, m, m, m).
+    A missing part keeps ``default``'s."""
+    if node is None:
+        return default
+    if not isinstance(node, Mapping):
+        raise ConfigError("expected {translation: m, rotation_deg: deg}", path=source, key=key)
+    unknown = sorted(set(node) - {"translation", "rotation_deg"})
+    if unknown:
+        raise ConfigError(f"unknown keys {unknown} (expected translation, rotation_deg)", path=source, key=key)
+    out = list(default)
+    for sub, sl, scale in (("rotation_deg", slice(0, 3), np.pi / 180.0), ("translation", slice(3, 6), 1.0)):
+        if sub not in node:
+            continue
+        value = node[sub]
+        try:
+            arr = np.broadcast_to(np.asarray(value, dtype=np.float64), (3,))
+        except (TypeError, ValueError):
+            raise ConfigError(f"expected a number or three numbers, got {value!r}", path=source,
+                              key=f"{key}.{sub}") from None
+        if isinstance(value, bool) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
+            raise ConfigError(f"expected non-negative numbers, got {value!r}", path=source, key=f"{key}.{sub}")
+        out[sl] = [float(v) * scale for v in arr]
+    return tuple(out)
 
 
 def read_transform(node: Any, source: str, key: str) -> np.ndarray:

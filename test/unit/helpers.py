@@ -44,6 +44,15 @@ def axis_angle_matrix(axis, angle: float) -> np.ndarray:
     return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * (K @ K)
 
 
+def se2_error(T_est, T_true) -> np.ndarray:
+    """(x, y, yaw) of an estimated pose minus the true one's, the yaw wrapped to (-pi, pi]."""
+    from aruco_ring_localization import geometry as geo
+
+    e = geo.se2_from_transform(T_est) - geo.se2_from_transform(T_true)
+    e[2] = geo.wrap_angle(e[2])
+    return e
+
+
 def max_abs_diff(a, b) -> float:
     """Largest absolute element difference of two arrays (for assertion messages)."""
     a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)

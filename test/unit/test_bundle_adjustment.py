@@ -106,3 +106,34 @@ def test_adjustment_runs_with_one_blas_thread_and_restores_the_count(monkeypatch
     ba.bundle_adjust(None)
     assert seen == [[1] * len(before)], f"BLAS threads inside the adjustment: {seen} (outside: {before})"
     assert blas_threads() == before, "the thread count was not restored"
+
+
+def test_camera_covariance_keeps_the_prior_only_direction_at_its_prior():
+    """A turn of the whole rig against the base is fixed by the extrinsics' priors alone (the
+    stations and markers absorb it), so the information on it must be the priors' whatever the
+    pixel noise; the cameras' relative motion, which the corners fix, must shrink with the noise.
+    With the variance factor scaling the whole covariance (as before), both scaled by it."""
+    o = BAOptions()
+
+    def run(noise):
+        prob, _ = _problem(seed=0, per=200)
+        rng = np.random.default_rng(7)
+        prob.obs_xy = prob.obs_xy + rng.normal(0, noise / 800.0, prob.obs_xy.shape)
+        res = bundle_adjust(prob, BAOptions(pixel_noise=0.5, refine_extrinsics=True))
+        C = res.camera_cov
+        assert C.shape == (18, 18) and np.linalg.eigvalsh(0.5 * (C + C.T))[0] > 0, "not a covariance"
+        # The common turn about base z, in the adjustment's (w, dt) per camera: w = e_z, dt = e_z x t0.
+        d = np.concatenate([np.r_[0, 0, 1.0, np.cross([0, 0, 1.0], T[:3, 3])] for T in prob.T_base_cams])
+        prior_info = sum(1.0 / o.extrinsics_rot_sigma ** 2 + np.sum(np.cross([0, 0, 1.0], T[:3, 3]) ** 2)
+                         / o.extrinsics_trans_sigma ** 2 for T in prob.T_base_cams)
+        r = np.zeros(18)  # camera 1 turned against camera 0 about z
+        r[2], r[8] = -1.0, 1.0
+        return d @ np.linalg.solve(C, d) / prior_info, r @ C @ r, res.variance_factor
+
+    turn_lo, rel_lo, vf_lo = run(0.1)
+    turn_hi, rel_hi, vf_hi = run(0.5)
+    assert vf_lo < 0.1 < 0.5 < vf_hi, (vf_lo, vf_hi)
+    for turn, vf in ((turn_lo, vf_lo), (turn_hi, vf_hi)):
+        # measured 1.0016 and 1.0000 (the linearisation point); the variance factor alone would give 1/vf = 25.
+        assert turn == pytest.approx(1.0, rel=0.02), f"information on the turn / the priors' = {turn:.4f} (vf {vf:.3f})"
+    assert rel_lo < 0.2 * rel_hi, f"the data-fixed relative turn did not shrink: {rel_lo:.3e} vs {rel_hi:.3e}"

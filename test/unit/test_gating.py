@@ -1,12 +1,14 @@
-"""gating.py: reject jumps, thresholds growing with time and speed, recovery after a kidnap."""
+"""gating.py: reject jumps, thresholds growing with time and speed, recovery after a kidnap, flips
+(the full rotation's tilt, ambiguous measurements)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from aruco_ring_localization.errors import ConfigError
-from aruco_ring_localization.gating import (ACCEPTED, INITIALIZED, REINITIALIZED, REJECTED_JUMP, GateParams,
-                                            MotionGate)
+from aruco_ring_localization import geometry as geo
+from aruco_ring_localization.gating import (ACCEPTED, INITIALIZED, REINITIALIZED, REJECTED_AMBIGUOUS, REJECTED_JUMP,
+                                            REJECTED_TILT, GateParams, MotionGate)
 
 
 def test_first_measurement_initialises():
@@ -94,3 +96,58 @@ def test_uncertain_track_widens_the_gate():
     gate.check([0.0, 0.0, 0.0], 0.0)
     loose = gate.check(z, 0.1, predicted=pred, covariance=np.diag([0.01, 0.01, 1e-4]))  # 10 cm std
     assert loose.accepted and loose.allowed_distance == pytest.approx(gate.thresholds(0.1)[0] + 0.3), f"{loose}"
+
+
+# --- flips: the full rotation and ambiguous measurements ------------------------------------
+
+def _tilted(deg: float, axis=(1.0, 0.0, 0.0)) -> np.ndarray:
+    return geo.rotation_from_rvec(np.radians(deg) * np.asarray(axis))
+
+
+def test_a_tilted_measurement_is_rejected_even_when_x_y_yaw_fit():
+    """A flipped pose whose (x, y, yaw) lands next to the prediction still tilts: rejected."""
+    gate = MotionGate(GateParams(max_tilt_change_deg=5.0))
+    gate.check([1.0, 1.0, 0.0], 0.0, rotation=np.eye(3))
+    level = gate.check([1.01, 1.0, 0.0], 0.1, predicted=[1.0, 1.0, 0.0], rotation=_tilted(0.5))
+    assert level.accepted and level.tilt == pytest.approx(np.radians(0.5), abs=1e-9), f"{level}"
+    flipped = gate.check([1.02, 1.0, 0.0], 0.2, predicted=[1.0, 1.0, 0.0], rotation=_tilted(12.0, (0.0, 1.0, 0.0)))
+    assert not flipped.accepted and flipped.reason == REJECTED_TILT, f"12 deg tilt accepted: {flipped}"
+    # Against the track's own tilt (the last accepted one, 0.5 deg about x), not the map's z.
+    assert flipped.tilt == pytest.approx(np.radians(12.0), abs=np.radians(0.6)), np.degrees(flipped.tilt)
+    # Without a rotation the gate is as before (x, y, yaw only).
+    assert gate.check([1.02, 1.0, 0.0], 0.3, predicted=[1.0, 1.0, 0.0]).accepted
+
+
+def test_ambiguous_measurements_never_start_update_or_restart_a_track():
+    gate = MotionGate(GateParams(recovery_count=3))
+    first = gate.check([1.0, 1.0, 0.0], 0.0, ambiguous=True)
+    assert not first.accepted and first.reason == REJECTED_AMBIGUOUS, f"an ambiguous pose started the track: {first}"
+    assert gate.check([1.0, 1.0, 0.0], 0.1).reason == INITIALIZED
+    near = gate.check([1.0, 1.0, 0.0], 0.2, predicted=[1.0, 1.0, 0.0], ambiguous=True)
+    assert not near.accepted and near.reason == REJECTED_AMBIGUOUS, f"{near}"
+    # A kidnap: consistent unambiguous measurements elsewhere re-initialise, ambiguous ones at the
+    # same place neither count nor interrupt the count.
+    reasons = []
+    for k, amb in enumerate([False, True, True, False, True, False]):
+        reasons.append(gate.check([4.0, 3.0, 1.0], 0.3 + 0.1 * k, predicted=[1.0, 1.0, 0.0], ambiguous=amb).reason)
+    assert reasons == [REJECTED_JUMP, REJECTED_AMBIGUOUS, REJECTED_AMBIGUOUS, REJECTED_JUMP, REJECTED_AMBIGUOUS,
+                       REINITIALIZED], reasons
+    # Only ambiguous ones, however consistent: no re-initialisation ever.
+    gate = MotionGate(GateParams(recovery_count=3))
+    gate.check([1.0, 1.0, 0.0], 0.0)
+    assert not any(gate.check([4.0, 3.0, 1.0], 0.1 * k, predicted=[1.0, 1.0, 0.0], ambiguous=True).accepted
+                   for k in range(1, 20))
+
+
+def test_tilted_consistent_measurements_must_agree_in_tilt_to_recover():
+    gate = MotionGate(GateParams(recovery_count=3))
+    gate.check([0.0, 0.0, 0.0], 0.0, rotation=np.eye(3))
+    tilts = [0.0, 30.0, 0.0, 30.0, 0.0, 30.0]   # alternating flips at one place: not a new truth
+    for k, t in enumerate(tilts):
+        d = gate.check([3.0, 0.0, 0.0], 0.1 * (k + 1), predicted=[0.0, 0.0, 0.0], rotation=_tilted(t))
+        assert not d.accepted, f"re-initialised on alternating tilts at step {k}: {d}"
+
+
+def test_bad_tilt_param():
+    with pytest.raises(ConfigError, match="max_tilt_change"):
+        GateParams(max_tilt_change_deg=-0.1)

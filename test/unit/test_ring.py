@@ -243,3 +243,56 @@ def test_inline_camera_info_is_accepted(tmp_path):
     model = CameraModel.from_yaml(str(CONFIG / "camera_info" / "cam0.yaml"))
     path = write_text(tmp_path, "ring.yaml", _ring_text(_set(["cameras", 0, "camera_info"], model.to_dict())))
     assert CameraRing.load(str(path))["cam0"].model == model
+
+
+# --- extrinsics_std --------------------------------------------------------------------------
+
+def test_extrinsics_std_default_top_level_and_per_camera(tmp_path):
+    from aruco_ring_localization.ring import DEFAULT_EXTRINSICS_STD_ROTATION_DEG, DEFAULT_EXTRINSICS_STD_TRANSLATION
+
+    def load(mutate):
+        return CameraRing.load(str(write_text(tmp_path, "r.yaml", _ring_text(mutate))))
+
+    def strip(data):
+        data.pop("extrinsics_std", None)
+        for c in data["cameras"]:
+            c.pop("extrinsics_std", None)
+
+    r = load(strip)
+    assert np.allclose(r.cameras[0].extrinsics_std, [np.radians(DEFAULT_EXTRINSICS_STD_ROTATION_DEG)] * 3
+                       + [DEFAULT_EXTRINSICS_STD_TRANSLATION] * 3)
+
+    def top_and_one(data):
+        strip(data)
+        data["extrinsics_std"] = {"translation": 0.001, "rotation_deg": 0.5}
+        data["cameras"][3]["extrinsics_std"] = {"rotation_deg": [0.1, 0.2, 0.3]}
+    r = load(top_and_one)
+    assert np.allclose(r.cameras[0].extrinsics_std, [np.radians(0.5)] * 3 + [0.001] * 3)
+    # A camera's own value replaces the part it gives; the rest comes from the top level.
+    assert np.allclose(r.cameras[3].extrinsics_std, list(np.radians([0.1, 0.2, 0.3])) + [0.001] * 3)
+    # Survives save/load and with_extrinsics (the extrinsics tf delivers keep the file's std).
+    path = str(tmp_path / "saved.yaml")
+    r.save(path)
+    assert np.allclose(CameraRing.load(path).cameras[3].extrinsics_std, r.cameras[3].extrinsics_std)
+    moved = r.with_extrinsics({"cam3": np.eye(4)})
+    assert moved.cameras[3].extrinsics_std == r.cameras[3].extrinsics_std
+
+
+def test_config_ring_states_the_labs_calibration_error():
+    ring = CameraRing.load(str(RING_YAML))
+    for c in ring.cameras:
+        assert np.allclose(c.extrinsics_std, [np.radians(0.2)] * 3 + [0.002] * 3), c.name
+
+
+@pytest.mark.parametrize("node, key", [
+    ("0.2", "extrinsics_std"),
+    ({"translation": -0.001}, "extrinsics_std.translation"),
+    ({"rotation_deg": [0.1, 0.2]}, "extrinsics_std.rotation_deg"),
+    ({"rotation_deg": "a lot"}, "extrinsics_std.rotation_deg"),
+    ({"rotation": 0.2}, "extrinsics_std"),
+])
+def test_bad_extrinsics_std_names_file_and_key(node, key, tmp_path):
+    path = write_text(tmp_path, "r.yaml", _ring_text(_set(["cameras", 2, "extrinsics_std"], node)))
+    with pytest.raises(ConfigError) as info:
+        CameraRing.load(str(path))
+    assert_config_error_names(info, path, "cameras[2]." + key)

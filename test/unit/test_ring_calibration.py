@@ -73,3 +73,69 @@ def test_bad_ring_calibration_names_file_and_key(tmp_path, node, key):
     with pytest.raises(ConfigError) as info:
         MarkerMap.from_dict(data, source="hall.yaml")
     assert "hall.yaml" in str(info.value) and key in str(info.value), str(info.value)
+
+
+# --- the covariance of the refined extrinsics ------------------------------------------------
+
+def _covariance(n: int, seed: int = 0) -> np.ndarray:
+    A = np.random.default_rng(seed).normal(0.0, 1e-3, (6 * n, 6 * n))
+    return A @ A.T
+
+
+def test_ring_covariance_round_trips_through_the_map_file(tmp_path):
+    ring = CameraRing.load(RING)
+    m = _map_with_calibration(ring)
+    m.ring_covariance_cameras = list(ring.names)
+    m.ring_extrinsics_covariance = _covariance(len(ring))
+    path = str(tmp_path / "map.yaml")
+    m.save(path)
+    loaded = MarkerMap.load(path)
+    assert loaded.ring_covariance_cameras == ring.names
+    rel = np.abs(loaded.ring_extrinsics_covariance - m.ring_extrinsics_covariance).max() \
+        / np.abs(m.ring_extrinsics_covariance).max()
+    assert rel < 1e-8, f"covariance changed by {rel:.1e} (relative) through save/load (9 digits written)"
+    assert MarkerMap.load(path).ring_extrinsics_covariance is not None
+    plain = _map_with_calibration(ring)
+    plain.save(path)
+    assert MarkerMap.load(path).ring_extrinsics_covariance is None
+
+
+@pytest.mark.parametrize("node, needle", [
+    ("not a mapping", "ring_calibration.covariance"),
+    ({"cameras": ["cam0", "cam9"], "matrix": np.eye(12).tolist()}, "ring_calibration.covariance.cameras"),
+    ({"cameras": ["cam0", "cam0"], "matrix": np.eye(12).tolist()}, "ring_calibration.covariance.cameras"),
+    ({"cameras": ["cam0"], "matrix": np.eye(12).tolist()}, "ring_calibration.covariance.matrix"),
+    ({"cameras": ["cam0"], "matrix": [["a"] * 6] * 6}, "ring_calibration.covariance.matrix"),
+    ({"cameras": ["cam0"], "matrix": (-np.eye(6)).tolist()}, "negative eigenvalue"),
+])
+def test_bad_ring_covariance_names_file_and_key(node, needle):
+    ring = CameraRing.load(RING)
+    data = _map_with_calibration(ring).to_dict()
+    data["ring_calibration"]["covariance"] = node
+    with pytest.raises(ConfigError) as info:
+        MarkerMap.from_dict(data, source="hall.yaml")
+    assert "hall.yaml" in str(info.value) and needle in str(info.value), str(info.value)
+
+
+def test_mapping_stores_the_adjustments_covariance_in_optical_frames():
+    """The bundle adjustment's (w, dt) of camera c, in the base frame, is D = (R_c^T w, R_c^T dt)
+    in the camera's optical frame (T_base_cam_true = T_base_cam D)."""
+    from aruco_ring_localization.bundle_adjustment import camera_cov_in_optical_frames
+
+    ring = CameraRing.load(RING)
+    T = np.stack([c.T_base_cam for c in ring.cameras[:2]])
+    C = _covariance(2, seed=1)
+    out = camera_cov_in_optical_frames(C, T)
+    rng = np.random.default_rng(2)
+    x = rng.multivariate_normal(np.zeros(12), C, size=4)
+    for s in x:  # the same motion both ways, to first order
+        for k in range(2):
+            w, dt = s[6 * k:6 * k + 3] * 1e-3, s[6 * k + 3:6 * k + 6] * 1e-3
+            moved = geo.make_transform(geo.rotation_from_rvec(w) @ T[k][:3, :3], T[k][:3, 3] + dt)
+            D = geo.inverse(T[k]) @ moved
+            d = np.r_[geo.rvec_from_rotation(D[:3, :3]), D[:3, 3]] / 1e-3
+            R = T[k][:3, :3].T
+            assert np.allclose(d, np.r_[R @ s[6 * k:6 * k + 3], R @ s[6 * k + 3:6 * k + 6]], atol=1e-5)
+    assert out.shape == (12, 12) and np.allclose(out, out.T)
+    R0, R1 = T[0][:3, :3].T, T[1][:3, :3].T
+    assert np.allclose(out[:3, 6:9], R0 @ C[:3, 6:9] @ R1.T), "cross-camera block not carried"
