@@ -44,7 +44,7 @@ from ..schemas import LocalizerConfig
 from . import log_bridge
 from .conversions import make_transform_stamped, msg_to_transform, pose_msg_to_transform, pose_to_msg, stamp_to_sec
 from .params import read_config
-from .ring_input import NOW, RingSubscriber
+from .ring_input import BUFF_SIZE, NOW, RingSubscriber
 from .ring_tf import default_ring_file
 
 WARN_PERIOD = 5.0
@@ -70,7 +70,7 @@ class LocalizerNode:
         self.pub_diag = rospy.Publisher("/diagnostics", DiagnosticArray, queue_size=5)
         # One detection message kept per camera when we fall behind: an older one would be overtaken.
         self.ring_input = RingSubscriber(self.pipeline, self.publish, "localizer", use_tf=config.input.use_tf,
-                                         tf_buffer=self.tf_buffer, queue_size=1)
+                                         tf_buffer=self.tf_buffer, queue_size=1, buff_size=BUFF_SIZE)
         rospy.Subscriber("cmd_vel", Twist, self.on_cmd_vel, queue_size=5)
         rospy.Subscriber("odom", Odometry, self.on_odom, queue_size=5)
         rospy.Subscriber("initialpose", PoseWithCovarianceStamped, self.on_initialpose, queue_size=1)

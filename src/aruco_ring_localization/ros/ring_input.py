@@ -21,8 +21,8 @@ order and handed to ``deliver`` by one thread at a time, in that order. A packag
 
 Bounded work per message (issue 14): rospy calls a subscriber's callback on the thread that reads
 its connection, so a slow callback leaves messages in the socket, where ``queue_size`` cannot drop
-them (a flood backed up 14 s). Every subscription here reads up to :data:`BUFF_SIZE` bytes at once,
-so rospy sees every waiting message and keeps only the newest ``queue_size``; a detection message
+them (a flood backed up 14 s). The localizer's subscriptions read up to :data:`BUFF_SIZE` bytes at
+once, so rospy sees every waiting message and keeps only the newest ``queue_size``; a detection message
 is converted only up to ``input/max_detections`` + 1 quads (the pipeline drops a longer one whole).
 """
 from __future__ import annotations
@@ -79,10 +79,14 @@ class RingSubscriber:
         tf_buffer: an existing tf2 Buffer to share (one with a listener is created otherwise).
         queue_size: detection messages kept per camera when the callback falls behind (the
             localizer keeps 1: an older frame would only be overtaken).
+        buff_size: rospy's read buffer per subscription, bytes: the localizer's :data:`BUFF_SIZE`
+            (never a backlog); rospy's default 64 kB for the mapper, which would rather fall
+            behind than lose a camera's message (a map wants every ring frame whole).
     """
 
     def __init__(self, pipeline: Any, deliver: Callable[[Any], None], name: str, use_tf: bool = True,
-                 poll_period: float = 0.05, tf_buffer: Optional[tf2_ros.Buffer] = None, queue_size: int = 5):
+                 poll_period: float = 0.05, tf_buffer: Optional[tf2_ros.Buffer] = None, queue_size: int = 5,
+                 buff_size: int = 65536):
         self.pipeline = pipeline
         self._deliver_fn = deliver
         self._name = name
@@ -104,9 +108,9 @@ class RingSubscriber:
             ns = ring[camera].namespace.strip("/")
             prefix = f"{ns}/" if ns else ""
             self._subs.append(rospy.Subscriber(f"{prefix}fiducial_vertices", FiducialArray, self._on_fiducials,
-                                               callback_args=camera, queue_size=queue_size, buff_size=BUFF_SIZE))
+                                               callback_args=camera, queue_size=queue_size, buff_size=buff_size))
             self._subs.append(rospy.Subscriber(f"{prefix}camera_info", CameraInfo, self._on_camera_info,
-                                               callback_args=camera, queue_size=1, buff_size=BUFF_SIZE))
+                                               callback_args=camera, queue_size=1, buff_size=buff_size))
         # reset=True: a bag loop moves ROS time backwards, which would otherwise kill the timer thread.
         self._timer = rospy.Timer(rospy.Duration(poll_period), self._on_timer, reset=True)
         p = pipeline.input.params
