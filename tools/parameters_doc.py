@@ -92,21 +92,17 @@ def markdown_value(value: Any) -> str:
 
 # --- launch files -------------------------------------------------------------------------------
 
+#: The default of a launch argument that keeps the node's YAML value (the argument is passed on
+#: only when given). Not an empty string: roslaunch's ros-args option lists those as "Required".
+KEEP_YAML = "yaml"
+
+
 def launch_args(path: str) -> List[Tuple[str, Optional[str], str]]:
-    """``(name, default or None, the comment above it)`` of every argument a launch file declares
-    (its top-level ``<arg>``; those passed to an ``<include>`` are not its own)."""
-    parser = ET.XMLParser(target=ET.TreeBuilder(insert_comments=True))
-    root = ET.parse(path, parser=parser).getroot()
-    out = []
-    comment = ""
-    for el in root:
-        if el.tag is ET.Comment:
-            comment = " ".join((el.text or "").split())
-            continue
-        if el.tag == "arg":
-            out.append((el.get("name", ""), el.get("default", el.get("value")), comment))
-        comment = ""
-    return out
+    """``(name, default or None, doc)`` of every argument a launch file declares (its top-level
+    ``<arg>``; those passed to an ``<include>`` are not its own)."""
+    root = ET.parse(path).getroot()
+    return [(el.get("name", ""), el.get("default", el.get("value")), " ".join((el.get("doc") or "").split()))
+            for el in root if el.tag == "arg"]
 
 
 def launch_files() -> List[str]:
@@ -184,7 +180,8 @@ def render() -> str:
     schemas = all_schemas()
     out = [INTRO]
     out += ["## Launch files and their arguments", ""]
-    out += ["An empty default means \"the node's YAML decides\" (the argument is passed on only when given).", ""]
+    out += [f"A default of `{KEEP_YAML}` means \"the node's YAML decides\" (the argument is passed on only when given). "
+            "`roslaunch aruco_ring_localization FILE.launch --ros-args` prints the same list.", ""]
     for path in launch_files():
         out += [f"### `{os.path.basename(path)}`", "", "| Argument | Default | Meaning |", "|---|---|---|"]
         for name, d, comment in launch_args(path):

@@ -5,10 +5,11 @@
 #   2. a venv at .venv/ from /usr/bin/python3 --system-site-packages (Debian's ROS Python
 #      modules belong to that interpreter), with the exact pins of requirements.txt,
 #      re-installed only when requirements.txt changes;
-#   3. a catkin workspace at .ws/ that links this repository (and our fiducial_msgs when the
-#      real one is not installed), built with the venv's Python, rebuilt only when a file that
+#   3. a catkin workspace at .ws/ that links this repository's files (and our fiducial_msgs when
+#      the real one is not installed), built with the venv's Python, rebuilt only when a file that
 #      catkin reads changed;
-#   4. .ws/env.sh, which puts all of it into a shell: `source .ws/env.sh`.
+#   4. .ws/env.sh, which puts all of it into a shell: `source .ws/env.sh` (it leaves ROS_HOME
+#      alone: maps and logs go where ROS puts them, ~/.ros unless ROS_HOME is set).
 #
 # Idempotent, needs no stdin; runs as root, or through sudo for apt.
 # ARUCO_RING_FORCE_BUILD=1 forces the catkin build.
@@ -28,6 +29,10 @@ APT_PACKAGES=(
   python3-venv cmake g++ make python3-rosbag python3-diagnostic-msgs ros-diagnostic-msgs
   python3-tf2-msgs python3-roslaunch python3-rosnode python3-rostopic python3-rosservice
   python3-rosparam python3-rosgraph python3-rosmsg python3-message-filters tf2-tools
+  # a ROS user's habits: rosrun/roscd (rosbash); rosrun tf tf_echo / view_frames (tf-tools,
+  # python3-tf; libtf-dev holds the tf package.xml without which rospack cannot find tf);
+  # the nodes' diagnostic_updater
+  rosbash tf-tools python3-tf libtf-dev python3-diagnostic-updater
   # rviz, headless rendering and screenshots (make demo GUI=1, test/integration/test_rviz_configs.py)
   rviz python3-rviz xvfb xauth libgl1-mesa-dri imagemagick
 )
@@ -124,16 +129,34 @@ workspace_digest() {
     ls -1 scripts test/integration/*.test 2>/dev/null || true
     sha256sum package.xml CMakeLists.txt setup.py
     find fiducial_msgs -type f | LC_ALL=C sort | xargs sha256sum
-    for link in aruco_ring_localization fiducial_msgs; do
-      echo "$link -> $(readlink "$WS/src/$link" || true)"
-    done
+    echo "fiducial_msgs -> $(readlink "$WS/src/fiducial_msgs" || true)"
+    ls -1 "$WS/src/aruco_ring_localization" 2>/dev/null || true
   } | sha256sum | cut -d' ' -f1
+}
+
+# .ws/src/aruco_ring_localization: a directory of links to the repository's entries, not one link
+# to the repository. Through a link to the repository, `rosrun aruco_ring_localization X` (which
+# searches the package's directory with find -L) reached .ws/ itself and found every executable
+# several times ("non-unique executable"). An entry added to the repository is linked by the next
+# `make setup`.
+link_package() {
+  local pkg="$WS/src/aruco_ring_localization" entry name
+  if [ -L "$pkg" ]; then rm -f "$pkg"; fi
+  mkdir -p "$pkg"
+  for entry in "$pkg"/*; do
+    if [ -L "$entry" ] && [ ! -e "$entry" ]; then rm -f "$entry"; fi
+  done
+  for entry in "$REPO"/*; do
+    name="$(basename "$entry")"
+    case "$name" in results|fiducial_msgs) continue ;; esac
+    ln -sfn "$entry" "$pkg/$name"
+  done
 }
 
 build_workspace() {
   step_begin
-  mkdir -p "$WS/src" "$WS/ros_home"
-  ln -sfn "$REPO" "$WS/src/aruco_ring_localization"
+  mkdir -p "$WS/src"
+  link_package
   if real_fiducial_msgs_installed; then
     rm -f "$WS/src/fiducial_msgs"
     log "catkin: using the installed fiducial_msgs"
@@ -175,7 +198,6 @@ source "$WS/devel/setup.bash"
 VIRTUAL_ENV_DISABLE_PROMPT=\${VIRTUAL_ENV_DISABLE_PROMPT:-1} source "$VENV/bin/activate"
 if [ "\$_aruco_ring_nounset" = 1 ]; then set -u; fi
 unset _aruco_ring_nounset
-export ROS_HOME="\${ARUCO_RING_ROS_HOME:-$WS/ros_home}"
 if [ -z "\${ROS_HOSTNAME:-}" ] && [ -z "\${ROS_IP:-}" ]; then export ROS_HOSTNAME=localhost; fi
 export ROS_MASTER_URI="\${ROS_MASTER_URI:-http://localhost:11311}"
 case ":\$PATH:" in *":$REPO/scripts:"*) ;; *) export PATH="$REPO/scripts:\$PATH" ;; esac

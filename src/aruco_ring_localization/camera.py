@@ -176,6 +176,19 @@ class CameraModel:
         return float(np.arctan(-left) + np.arctan(right)) if not self.is_fisheye else \
             float(_fisheye_angle(left) + _fisheye_angle(right))
 
+    def frustum_segments(self, depth: float) -> np.ndarray:
+        """(16, 3) end points of the 8 segments that draw the field of view in the optical frame, for
+        rviz: the rays through the four image corners (undistorted) from the centre to ``depth`` m
+        along z, and the rectangle joining their ends."""
+        corners = np.array([[0.0, 0.0], [self.width - 1.0, 0.0], [self.width - 1.0, self.height - 1.0],
+                            [0.0, self.height - 1.0]])
+        xy = self.normalize(corners)
+        ends = depth * np.column_stack([xy, np.ones(4)])
+        segments = []
+        for k in range(4):
+            segments += [np.zeros(3), ends[k], ends[k], ends[(k + 1) % 4]]
+        return np.asarray(segments)
+
     # --- projection -------------------------------------------------------------------------
 
     def distort_normalized(self, xy) -> np.ndarray:

@@ -70,6 +70,8 @@ from .ring import CameraRing
 logger = logging.getLogger(__name__)
 
 METHODS = ("paper", "refined")
+#: A station needs this many frames (of a camera) before a marker's detection ratio there counts.
+RATIO_MIN_FRAMES = 5
 
 
 FRAMES = ("floor", "marker")
@@ -96,6 +98,10 @@ class MappingOptions:
                                             "ambiguously")
     consensus_angle_deg: float = param(10.0, "agreement tolerance of that consensus, rotation", unit="deg")
     consensus_distance: float = param(0.10, "agreement tolerance of that consensus, position", unit="m")
+    min_detection_ratio: float = param(0.0, "a marker that every camera seeing it detected in fewer than this "
+                                            "fraction of its frames at a station (of at least "
+                                            f"{RATIO_MIN_FRAMES} frames) is taken for a misread id and not mapped; "
+                                            "0 disables")
     max_marker_spread: float = param(0.25, "a marker whose per-station positions disagree by more is rejected (a "
                                            "wrong fiducial_len_override, a moved marker, an id printed twice)",
                                      unit="m")
@@ -278,6 +284,7 @@ class MapBuilder:
         self._obs: List[_Obs] = []
         self._station_keys: Dict[Hashable, int] = {}
         self._station_frames: List[int] = []
+        self._camera_frames: Dict[Tuple[int, str], int] = defaultdict(int)   # (station, camera) -> frames kept
         self._anchor_corners: Dict[Tuple[str, int], np.ndarray] = {}
         self._last_station: Optional[int] = None
         self.frames = 0
@@ -288,6 +295,7 @@ class MapBuilder:
         self._version = getattr(self, "_version", 0) + 1
         self._init_cache: Optional[Tuple[int, _Init]] = None
         self._last_groups: List[_Group] = []
+        self._warned: Dict[int, str] = {}      # marker -> the kind of reason last warned about
         self.last_ba: Optional[BAResult] = None
         self._refine_rejected: Tuple[int, Dict[int, str]] = (-1, {})
 
@@ -331,6 +339,8 @@ class MapBuilder:
         if self._station_frames[st] >= opts.max_frames_per_station:
             return st
         self._station_frames[st] += 1
+        for name in ring_frame.cameras:
+            self._camera_frames[(st, name)] += 1
         for name, o, model, T_base_cam in detections:
             size = self.sizes(o.marker_id)
             xy = model.normalize(o.corners)
@@ -467,6 +477,12 @@ class MapBuilder:
             return self._init_cache[1]
         init = self._compute_init()
         self._init_cache = (self._version, init)
+        # Once per marker and kind of reason (the numbers in it change), not at every rebuild.
+        kinds = {m: why.split(" (")[0] for m, why in init.rejected.items()}
+        for m, why in init.rejected.items():
+            if self._warned.get(m) != kinds[m]:
+                logger.warning("mapping: marker %d not mapped: %s", m, why)
+        self._warned = kinds
         return init
 
     @staticmethod
@@ -487,11 +503,13 @@ class MapBuilder:
     def _compute_init(self) -> _Init:
         opts = self.options
         groups = self._groups()
-        self._last_groups = groups
         all_ids = sorted({o.marker_id for o in self._obs})
+        misread = self._misread(groups)
+        groups = [g for g in groups if g.marker_id not in misread]
+        self._last_groups = groups
         ref, ref_st = self._choose_reference(groups)
         if ref is None:
-            return _Init(None, None, {}, {}, {}, all_ids, {})
+            return _Init(None, None, {}, {}, {}, [m for m in all_ids if m not in misread], misread)
         est = self._station_marker_estimates(groups, self._unambiguous)
         # Positions are good even when the orientation is ambiguous: link stations with them too.
         est_pos = self._station_marker_estimates(groups, lambda g: True)
@@ -558,7 +576,7 @@ class MapBuilder:
                             T_W_s[s] = self._station_pose(est_pos[s], est.get(s, {}), T_W_m,
                                                           [m for m in est_pos[s] if m in T_W_m], planar)
             T_W_m = self._average_markers(est, T_W_s, T_W_m)
-        rejected = self._check_spread(est_pos, T_W_s, ref)
+        rejected = {**misread, **self._check_spread(est_pos, T_W_s, ref, ref_st, T_W_m)}
         for m in rejected:
             T_W_m.pop(m, None)
         # Markers seen only ambiguously at linked stations: consensus across viewpoints; when the
@@ -731,7 +749,7 @@ class MapBuilder:
         w = np.array([est_pos_s[m][1] for m in mids])
         P = np.array([est_pos_s[m][0][:3, 3] for m in mids])      # in the station's base frame
         Q = np.array([T_W_m[m][:3, 3] for m in mids])             # in W
-        if len(mids) == 1 or np.linalg.norm(np.ptp(P[:, :2], axis=0)) < 0.05:
+        if not MapBuilder._two_apart([est_pos_s[m][0] for m in mids]):
             # One marker (or all on one vertical line): the bearing comes from marker orientations.
             full = [m for m in mids if m in est_s] or list(mids)
             src = est_s if all(m in est_s for m in full) else est_pos_s
@@ -765,8 +783,37 @@ class MapBuilder:
             out[m] = geo.average_transforms(Ts[m], ws[m]) if len(Ts[m]) > 1 else Ts[m][0]
         return out
 
-    def _check_spread(self, est_pos, T_W_s, ref: int) -> Dict[int, str]:
-        """Markers whose per-station positions disagree by more than ``max_marker_spread``.
+    def _misread(self, groups: List[_Group]) -> Dict[int, str]:
+        """Markers that look like misread ids: at every station with enough frames where they were
+        seen, each camera that saw them did so in fewer than ``min_detection_ratio`` of its frames
+        there (a real marker in view is detected in nearly every frame of a still robot; a misread
+        one flickers: the driven simulated run had ids 445 and 662, not in the scene, 1-3 times in
+        660 frames)."""
+        ratio = self.options.min_detection_ratio
+        if ratio <= 0:
+            return {}
+        best: Dict[int, Tuple[float, int, int]] = {}   # marker -> (best ratio, detections, frames)
+        for g in groups:
+            n = self._camera_frames.get((g.station, g.camera), 0)
+            if n >= RATIO_MIN_FRAMES:
+                best[g.marker_id] = max(best.get(g.marker_id, (0.0, 0, 0)), (len(g.members) / n, len(g.members), n))
+        out = {}
+        for m, (r, k, n) in best.items():
+            if r < ratio:
+                out[m] = (f"detected in only {k} of {n} frames of a camera that had it in view (mapping/"
+                          f"min_detection_ratio {ratio}): a misread id, not a marker")
+        return out
+
+    def _check_spread(self, est_pos, T_W_s, ref: int, ref_st: int, T_W_m) -> Dict[int, str]:
+        """Markers whose positions from different stations disagree by more than ``max_marker_spread``.
+
+        Only stations whose pose does not rest on the marker under test, nor on one marker's
+        orientation, testify: the reference station, and stations that see at least two *other*
+        mapped markers apart (their pose is fitted to marker centres, :meth:`_station_pose`). A
+        station linked through one far marker has the yaw error of that marker's single-view
+        orientation (2-3 deg at 5 m), which puts every other marker it sees 0.2-0.3 m off: that
+        is the station's error, not the marker's, and it rejected good markers of a driven
+        mapping run (issue 15). The adjustment (``refined``) fixes such stations.
 
         The spread is robust to a few badly placed stations (a moving rig has hundreds): with
         five or more stations, twice the 80th percentile of the distances to the median position;
@@ -775,7 +822,10 @@ class MapBuilder:
         out: Dict[int, str] = {}
         pos: Dict[int, List[np.ndarray]] = defaultdict(list)
         for s, T_ws in T_W_s.items():
-            for m, (T, _) in est_pos.get(s, {}).items():
+            seen = est_pos.get(s, {})
+            for m, (T, _) in seen.items():
+                if s != ref_st and not self._two_apart([seen[k][0] for k in seen if k != m and k in T_W_m]):
+                    continue
                 pos[m].append((T_ws @ T)[:3, 3])
         for m, ps in pos.items():
             if len(ps) < 2 or m == ref:
@@ -788,8 +838,16 @@ class MapBuilder:
             if not spread <= self.options.max_marker_spread:
                 out[m] = (f"inconsistent between stations ({1000 * spread:.0f} mm apart): wrong size "
                           f"{self.sizes(m)} m (fiducial_len_override?), moved, or the id is printed twice")
-                logger.warning("mapping: marker %d rejected: %s", m, out[m])
         return out
+
+    @staticmethod
+    def _two_apart(T_base_markers: List[np.ndarray], min_apart: float = 0.05) -> bool:
+        """True when at least two of these markers lie ``min_apart`` m apart horizontally (a
+        station pose fitted to their centres, :meth:`_station_pose`)."""
+        if len(T_base_markers) < 2:
+            return False
+        P = np.array([T[:2, 3] for T in T_base_markers])
+        return float(np.linalg.norm(np.ptp(P, axis=0))) >= min_apart
 
     #: at most this many views (the most decisive ones) enter a consensus: it compares all pairs.
     _CONSENSUS_VIEWS = 48
@@ -844,6 +902,52 @@ class MapBuilder:
         return dict(self._initialize().rejected)
 
     @property
+    def last_station(self) -> Optional[int]:
+        """The station of the latest frame with detections (None before any)."""
+        return self._last_station
+
+    def station_pose(self, station: int, marker_map: MarkerMap) -> Optional[np.ndarray]:
+        """Planar ``T_map_base`` of the robot at ``station`` in ``marker_map``'s frame, or None when it
+        saw none of the map's markers: its own view of them fitted to where the map has them
+        (:meth:`_station_pose`), so it holds for a paper and a refined map alike."""
+        self._initialize()
+        groups = [g for g in self._last_groups if g.station == station and g.marker_id in marker_map]
+        if not groups:
+            return None
+        est_pos = self._station_marker_estimates(groups, lambda g: True)[station]
+        est = self._station_marker_estimates(groups, self._unambiguous).get(station, {})
+        T = self._station_pose(est_pos, est, {m: marker_map.T_map_marker(m) for m in est_pos}, list(est_pos))
+        return geo.transform_from_se2(*geo.se2_from_transform(T))
+
+    def unmapped(self, marker_map: MarkerMap) -> Dict[int, str]:
+        """Every marker detected at least once that ``marker_map`` lacks, with the reason."""
+        init = self._initialize()
+        kept = {o.marker_id for o in self._obs}
+        out: Dict[int, str] = {}
+        for m in sorted(self.seen):
+            if m in marker_map:
+                continue
+            if m in init.rejected:
+                out[m] = init.rejected[m]
+            elif m in init.unlinked:
+                out[m] = "never seen together with mapped markers: drive so that it is"
+            elif m not in kept:
+                out[m] = "every detection was dropped (see the warnings: reprojection, too far, no pose)"
+            else:
+                out[m] = "not linked to the reference marker's station"
+        return out
+
+    def format_unmapped(self, marker_map: MarkerMap, multiline: bool = False) -> str:
+        """``""`` when every detected marker is in ``marker_map``, else a loud warning with the reasons
+        (one sentence, or with ``multiline`` one indented line per marker)."""
+        missing = self.unmapped(marker_map)
+        if not missing:
+            return ""
+        sep = "\n  marker " if multiline else "; "
+        return (f"WARNING: {len(missing)} of {len(self.seen)} detected markers are NOT in the map:"
+                + ("\n  marker " if multiline else " ") + sep.join(f"{m}: {why}" for m, why in missing.items()))
+
+    @property
     def reference(self) -> Optional[int]:
         """The reference marker that the current data gives (None before any usable detection)."""
         return self._initialize().reference
@@ -877,8 +981,8 @@ class MapBuilder:
     def format_summary(self) -> str:
         s = self.summary()
         obs = ", ".join(f"{m}:{n}" for m, n in s["observations"].items() if m in s["mapped"])
-        text = (f"{len(s['mapped'])} markers mapped (reference {s['reference_marker']}) from {s['frames']} frames, "
-                f"{s['linked_stations']}/{s['stations']} stations ({s['station_model']}); observations per marker "
+        text = (f"{len(s['mapped'])} markers mapped from {s['frames']} frames, {s['linked_stations']}/{s['stations']} "
+                f"stations ({s['station_model']}), chained from marker {s['reference_marker']}; observations per marker "
                 f"{{{obs}}}")
         if s["ambiguous"]:
             text += (f"; orientation ambiguous (one viewpoint, better solution kept, large uncertainty): "

@@ -763,6 +763,7 @@ class MappingPipeline(_RingPipeline):
                                   reference_marker=config.map.reference, options=config.mapping,
                                   frame_id=config.map.map_frame)
         self.frames_missing = 0  # ring frames added without every camera
+        self._last_stamp: Optional[float] = None   # stamp of the latest frame the builder placed
 
     # --- events -----------------------------------------------------------------------------
 
@@ -830,10 +831,40 @@ class MappingPipeline(_RingPipeline):
     def silent_cameras(self, now: float) -> List[str]:
         return self.input.silent_cameras(now)
 
+    def format_saved(self, m: MarkerMap, path: str) -> str:
+        """What ``~save_map`` answers (and logs) after ``m`` was written to ``path``: a loud warning
+        first when a detected marker is not in the map (:meth:`MapBuilder.format_unmapped`)."""
+        s = self.summary()
+        frame = f"map frame on marker {m.reference_marker}"
+        if s["reference_marker"] not in (None, m.reference_marker):
+            frame += (f" (the best-determined heading after the adjustment; chaining started from marker "
+                      f"{s['reference_marker']}, the paper's rule)")
+        obs = ", ".join(f"{e.marker_id}:{e.observations}" for e in m)
+        text = (f"saved {len(m)} markers ({m.method}) to {path}; {frame}; {s['frames']} frames, "
+                f"{s['linked_stations']}/{s['stations']} stations; observations per marker {{{obs}}}")
+        if self.frames_missing:
+            text += f"; {self.frames_missing} ring frames without every camera (input/timeout)"
+        ba = self.last_ba if m.method == "refined" else None
+        if ba is not None:
+            text += f"; bundle adjustment RMS {ba.rms_px_before:.2f} -> {ba.rms_px_after:.2f} px in {ba.seconds:.1f} s"
+        warning = self.builder.format_unmapped(m)
+        return f"{warning}. {text}" if warning else text
+
+    def robot_pose(self, m: MarkerMap) -> Optional[Tuple[float, np.ndarray]]:
+        """``(stamp, T_map_base)`` of the robot at the latest frame's station in ``m``'s frame, or None
+        (:meth:`MapBuilder.station_pose`): what the mapper puts on tf, so that the robot, its ring and
+        its laser appear in the map while mapping."""
+        st = self.builder.last_station
+        if st is None or self._last_stamp is None:
+            return None
+        T = self.builder.station_pose(st, m)
+        return None if T is None else (self._last_stamp, T)
+
     def _add(self, frames: List[RingFrame]) -> int:
         for f in frames:
             self.frames_missing += bool(f.missing)
-            self.builder.add_frame(f)
+            if self.builder.add_frame(f) >= 0:
+                self._last_stamp = f.stamp
         return len(frames)
 
 

@@ -207,9 +207,19 @@ class MapperOutputParams:
     publish_period: float = param(1.0, "how often a changed live (paper-mode) map is republished (~markers, "
                                        "fiducial_map, static tf map -> marker_<id>)", unit="s")
     progress_period: float = param(5.0, "how often progress goes to the log", unit="s")
+    publish_tf: bool = param(True, "broadcast the robot's pose at its latest station in the live map (map -> odom "
+                                   "or map -> base_link, as tf_mode says), so that the robot, its ring and its "
+                                   "laser appear in the map while mapping")
+    tf_mode: str = param("auto", "auto: map -> odom when odom -> base_link exists in tf, else map -> base_link "
+                                 "(REP-105); map_to_odom; or map_to_base (beside gmapping, which owns map -> odom)")
+    base_frame: str = param("", "the robot frame we publish; empty: the ring's base_frame (base_link)")
+    odom_frame: str = param("odom", "odometry frame, for tf_mode map_to_odom and auto")
+    tf_period: float = param(0.1, "how often that transform is broadcast (re-stamped)", unit="s")
 
     def __post_init__(self) -> None:
-        require_positive(self, "publish_period", "progress_period")
+        require_positive(self, "publish_period", "progress_period", "tf_period")
+        if self.tf_mode not in TF_MODES:
+            raise ConfigError(f"expected one of {TF_MODES}, got {self.tf_mode!r}", key="tf_mode")
 
 
 @dataclass(frozen=True)
@@ -318,6 +328,10 @@ class RingTfConfig:
                                "in one /tf_static message; empty: the package's config/ring.yaml")
     map_file: str = param("", "a marker map: when it carries a ring_calibration (the extrinsics refined while "
                               "mapping), those are published instead of the ring file's; empty: none")
+    frustum_depth: float = param(1.0, "length of each camera's field of view drawn on ~markers (rviz)", unit="m")
+
+    def __post_init__(self) -> None:
+        require_positive(self, "frustum_depth")
 
 
 # --- apriltag_relay ------------------------------------------------------------------------------

@@ -11,6 +11,7 @@ checked. Named ``*_rostest.py`` so pytest does not collect it (it needs rostest'
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import threading
 import time
@@ -20,6 +21,7 @@ import rospkg
 import rospy
 import rostest
 import tf2_ros
+from rosgraph_msgs.msg import Log
 from std_msgs.msg import Int32
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
@@ -49,11 +51,15 @@ class MapperSimTest(unittest.TestCase):
         shutil.rmtree(os.path.dirname(cls.map_file), ignore_errors=True)
         # The simulator's own parameters: the same true rig and stations as the node's.
         config = load_config(SimulatorConfig, rospy.get_param("/simulator"), source="/simulator")
-        cls.core = SimulatorCore(config, Scene.default(), CameraRing.load(f"{root}/config/ring.yaml"))
+        ring = CameraRing.load(f"{root}/config/ring.yaml")
+        cls.base_frame = ring.base_frame
+        cls.core = SimulatorCore(config, Scene.default(), ring)
         cls.stations = cls.core.waypoints()
         cls.lock = threading.Lock()
         cls.marker_arrays = []
         cls.held = []
+        cls.progress = []   # the mapper's progress lines (/rosout)
+        rospy.Subscriber("/rosout", Log, cls._on_log, queue_size=100)
         rospy.Subscriber("/mapper/markers", MarkerArray, cls._on_markers, queue_size=5)
         rospy.Subscriber("/sim/at_waypoint", Int32, cls._on_waypoint, queue_size=100)
         last = len(cls.stations) - 1
@@ -75,6 +81,12 @@ class MapperSimTest(unittest.TestCase):
         with cls.lock:
             if not cls.held or cls.held[-1] != msg.data:
                 cls.held.append(msg.data)
+
+    @classmethod
+    def _on_log(cls, msg):
+        if msg.name == "/mapper" and " markers mapped from " in msg.msg:   # the progress lines
+            with cls.lock:
+                cls.progress.append(msg.msg)
 
     @classmethod
     def _on_markers(cls, msg):
@@ -141,6 +153,15 @@ class MapperSimTest(unittest.TestCase):
         # The boxes sit where the file says (the saved, refined map is what is shown).
         worst = max(geo.pose_distance(pose_msg_to_transform(mk.pose), m.T_map_marker(mk.id // 2))[0] for mk in cubes)
         self.assertLess(worst, 1e-6, f"a box is {worst:.2e} m from its marker in the file")
+
+    def test_5_progress_does_not_call_cameras_silent_while_frames_arrive(self):
+        with self.lock:
+            lines = list(self.progress)
+        self.assertGreaterEqual(len(lines), 2, f"too few progress lines: {lines}")
+        counts = [int(re.search(r"from (\d+) frames", line).group(1)) for line in lines]
+        for before, after, line in zip(counts, counts[1:], lines[1:]):
+            if after > before:
+                self.assertNotIn("silent cameras", line, f"frames {before} -> {after}, yet: {line}")
 
 
 if __name__ == "__main__":

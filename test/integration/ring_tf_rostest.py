@@ -55,6 +55,23 @@ class RingTfTest(unittest.TestCase):
             self.assertLess(err, TOL, f"{self.ring.base_frame} -> {camera.frame_id}: max |T_tf - T_ring| = "
                                       f"{err:.3g} (tolerance {TOL:g})\ntf:\n{T}\nring.yaml:\n{camera.T_base_cam}")
 
+    def test_markers_draw_every_cameras_field_of_view_and_the_robot(self):
+        from visualization_msgs.msg import MarkerArray
+
+        msg = rospy.wait_for_message("/ring_tf/markers", MarkerArray, timeout=10.0)   # latched
+        frustums = {m.header.frame_id: m for m in msg.markers if m.ns == "frustums"}
+        self.assertEqual(sorted(frustums), sorted(c.frame_id for c in self.ring.cameras))
+        for camera in self.ring.cameras:
+            m = frustums[camera.frame_id]
+            self.assertTrue(m.frame_locked)
+            # rviz places a marker with tf at its stamp: 0 (latest) shows it whenever the robot's
+            # pose arrives; the launch time hid it (no map -> base_link that early)
+            self.assertEqual(m.header.stamp, rospy.Time(0))
+            self.assertEqual(len(m.points), 16)
+            self.assertAlmostEqual(max(p.z for p in m.points), 1.0, places=6)   # frustum_depth's default
+        robot = [m for m in msg.markers if m.ns == "robot"]
+        self.assertEqual([m.header.frame_id for m in robot], [self.ring.base_frame] * 2)
+
     def test_bad_ring_file_exits_1_naming_file_and_key(self):
         script = os.path.join(_package_path(), "scripts", "ring_tf")
         with tempfile.TemporaryDirectory() as tmp:

@@ -11,7 +11,8 @@ the robot standing at the plate centre of the default scene (marker map = the sc
 - ``/mapper/markers`` and ``/localizer/markers`` (MarkerArray of the map), ``/localizer/pose``
   (PoseWithCovarianceStamped), ``/localizer/camera_estimates`` (PoseArray), ``/localizer/odometry``,
   ``/scan`` (LaserScan of the room walls), ``/map`` (an OccupancyGrid of the room, gmapping's
-  place) and ``/comparison/text``.
+  place), ``/comparison/text`` and ``/ring_tf/markers`` (the ring's fields of view and the robot,
+  as ring_tf publishes them).
 
 Runs until killed.
 """
@@ -23,13 +24,13 @@ import tf2_ros
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped
 from nav_msgs.msg import OccupancyGrid, Odometry
 from sensor_msgs.msg import LaserScan
-from visualization_msgs.msg import Marker
+from visualization_msgs.msg import Marker, MarkerArray
 
 from aruco_ring_localization import geometry as geo
 from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.ros.conversions import make_transform_stamped, pose_to_msg, se2_covariance_to_pose_covariance
 from aruco_ring_localization.ros.mapper import map_to_marker_array
-from aruco_ring_localization.ros.ring_tf import default_ring_file, ring_transforms
+from aruco_ring_localization.ros.ring_tf import default_ring_file, ring_markers, ring_transforms
 from aruco_ring_localization.simulation.scene import Scene
 
 
@@ -101,6 +102,8 @@ def main() -> None:
         "scan": rospy.Publisher("/scan", LaserScan, queue_size=5),
         "text": rospy.Publisher("/comparison/text", Marker, queue_size=5),
     }
+    pubs["ring"] = rospy.Publisher("/ring_tf/markers", MarkerArray, **latched)
+    pubs["ring"].publish(ring_markers(ring, rospy.Time(0), 1.0))
     pubs["mapper"].publish(map_to_marker_array(truth, now))
     pubs["loc_markers"].publish(map_to_marker_array(truth, now))
     pubs["grid"].publish(room_grid(scene))
@@ -110,8 +113,13 @@ def main() -> None:
     angles = np.linspace(-np.pi, np.pi, 360, endpoint=False)
     ranges = wall_ranges(scene, x + 0.2 * np.cos(yaw), y + 0.2 * np.sin(yaw), yaw, angles, 12.0)
     rate = rospy.Rate(10)
+    ring_msg = ring_markers(ring, rospy.Time(0), 1.0)
+    tick = 0
     while not rospy.is_shutdown():
         stamp = rospy.Time.now()
+        if tick % 10 == 0:  # as ring_tf does: again each second
+            pubs["ring"].publish(ring_msg)
+        tick += 1
         tfb.sendTransform([make_transform_stamped(T_map_base, "map", ring.base_frame, stamp),
                            make_transform_stamped(geo.transform_from_se2(x + 0.01, y, yaw), "map",
                                                   "sim_ground_truth", stamp)])

@@ -138,6 +138,22 @@ def _unexpected_errors(output: str) -> List[str]:
     return errors
 
 
+#: What both configurations must show (issue 15): the map (gmapping's grid and our markers), the ring's
+#: fields of view, the robot (tf and its marker) and the scan.
+REQUIRED = {"rviz/Map": "/map", "rviz/LaserScan": "/scan", "rviz/MarkerArray": "/ring_tf/markers", "rviz/TF": None}
+
+
+@pytest.mark.parametrize("config", CONFIGS, ids=[c.stem for c in CONFIGS])
+def test_rviz_config_shows_the_map_the_ring_the_robot_and_the_scan(config: Path):
+    import yaml
+
+    displays = yaml.safe_load(config.read_text())["Visualization Manager"]["Displays"]
+    shown = {(d.get("Class"), d.get("Topic") or d.get("Marker Topic")) for d in displays if d.get("Enabled", True)}
+    for cls, topic in REQUIRED.items():
+        assert any(c == cls and (topic is None or t == topic) for c, t in shown), \
+            f"{config.name}: no enabled {cls} display{' on ' + topic if topic else ''}; displays: {sorted(shown)}"
+
+
 @pytest.mark.parametrize("config", CONFIGS, ids=[c.stem for c in CONFIGS])
 def test_rviz_config_renders_without_errors(config: Path, ros_scene):
     png = OUT / f"{config.stem}.png"

@@ -152,6 +152,19 @@ def test_horizontal_fov_of_an_ideal_pinhole():
     assert abs(fish.horizontal_fov() - 2 * 319.5 / 500.0) < 1e-6, f"fisheye FOV {fish.horizontal_fov()}"
 
 
+def test_frustum_segments_reach_the_image_corners_at_depth(path=CAM0_YAML):
+    model = CameraModel.from_yaml(str(path))
+    seg = model.frustum_segments(2.0).reshape(8, 2, 3)
+    rays, rim = seg[0::2], seg[1::2]
+    assert np.allclose(rays[:, 0], 0.0) and np.allclose(rays[:, 1, 2], 2.0), "rays from the centre to depth 2 m"
+    px = model.project(rays[:, 1])
+    corners = [[0, 0], [model.width - 1, 0], [model.width - 1, model.height - 1], [0, model.height - 1]]
+    assert np.allclose(px, corners, atol=1e-3), px          # through the distortion, onto the corners
+    assert np.allclose(rim[:, 0], rays[:, 1]) and np.allclose(rim[:, 1], np.roll(rays[:, 1], -1, axis=0))
+    half = math.degrees(math.atan2(abs(rays[0, 1, 0]), 2.0) + math.atan2(abs(rays[1, 1, 0]), 2.0))
+    assert half > 60.0, f"corner-to-corner angle {half:.1f} deg: wider than the centre row's 78 deg FOV's core"
+
+
 # --- files and dicts ------------------------------------------------------------------------
 
 def test_from_yaml_reads_cam0():

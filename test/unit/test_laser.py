@@ -50,3 +50,19 @@ def test_nothing_within_range_is_inf_and_noise_is_seeded():
     exact = LaserScanner(_box(-2, -2, 2, 2), beams=90, noise_std=0.0).scan((0, 0, 0))
     assert np.array_equal(a, b) and not np.array_equal(a, c)
     assert 0.005 < np.std(a - exact) < 0.015, f"range noise std {np.std(a - exact):.4f} m"
+
+
+def test_occupancy_grid_marks_the_walls_and_knows_the_room():
+    from aruco_ring_localization.simulation.laser import occupancy_grid
+
+    cells, origin = occupancy_grid(_box(0, 0, 4, 2), 0.1, margin=0.5)
+    assert np.allclose(origin, [-0.5, -0.5])
+    assert cells.shape == (31, 51), cells.shape             # rows = y (2 m + 2 x 0.5 m), columns = x
+
+    def at(x, y):
+        return cells[int((y - origin[1]) / 0.1), int((x - origin[0]) / 0.1)]
+
+    assert at(0.0, 1.0) == 100 and at(4.0, 1.0) == 100 and at(2.0, 0.0) == 100 and at(2.0, 2.0) == 100
+    assert at(2.0, 1.0) == 0 and at(1.0, 0.5) == 0, "inside the room is free"
+    assert at(-0.3, 1.0) == -1 and at(2.0, 2.4) == -1, "outside the walls is unknown"
+    assert set(np.unique(cells)) == {-1, 0, 100}

@@ -5,14 +5,17 @@ dataclasses agree in name and default.
   flat or nested, is checked for its keys and defaults: its launch file sets the others);
 * every ``<param>`` a launch file sets on one of our nodes names a key of that node's schema; a
   value from ``$(arg X)`` comes from an argument named like the key's last part, whose default is
-  empty and which is only passed on when given (``if="$(eval arg('X') != '')"``) unless the YAML
-  holds nothing to hide there (an empty string); a literal value is a mode switch (``if``/``unless``);
+  ``yaml`` and which is only passed on when given (``if="$(eval arg('X') != 'yaml')"``) unless the
+  YAML holds nothing to hide there (an empty string); a literal value is a mode switch (``if``/``unless``);
   an argument's literal default, where it has one, is the schema's;
+* every launch argument has a ``doc=`` and a non-empty default (roslaunch lists an empty one as
+  "Required");
 * docs/parameters.md is what tools/parameters_doc.py generates, and every field documents itself.
 """
 from __future__ import annotations
 
 import importlib.util
+import os
 import xml.etree.ElementTree as ET
 
 import pytest
@@ -97,20 +100,32 @@ def test_launch_params_name_schema_keys_and_never_hide_the_yaml(launch, node, el
         arg = value[len("$(arg "):-1]
         assert arg in args, f"{launch}: {key} from undeclared arg {arg}"
         default = args[arg]
-        if default and "$(" not in default:
+        # A default that the condition tests against (yaml, none) means "not given", not a value.
+        if default and "$(" not in default and f"arg('{arg}') != '{default}'" not in cond:
             assert coerce(key, yaml.safe_load(default), defaults[key], launch) == defaults[key], \
                 f"{launch}: arg {arg} defaults to {default!r}, the schema's {key} to {defaults[key]!r}"
         if node in OURS:
             assert arg == key.rpartition(".")[2], f"{launch}: arg {arg} sets {key}: one name per thing"
         hides = yaml_value is not None and yaml_value != ""
+        keep = f"arg('{arg}') != '{doc_tool.KEEP_YAML}'"
         if hides and node in OURS:
-            assert default == "" and f"arg('{arg}') != ''" in cond, \
+            assert default == doc_tool.KEEP_YAML and keep in cond, \
                 f"{launch}: <param {key}> from arg {arg} (default {default!r}) would hide the YAML's {yaml_value!r}"
         elif hides:
-            assert default == "" or f"arg('{arg}') != ''" in cond, \
+            assert default == doc_tool.KEEP_YAML or keep in cond, \
                 f"{launch}: <param {key}> from arg {arg} (default {default!r}) hides the YAML's {yaml_value!r}"
     elif node in OURS:
         assert cond, f"{launch}: <param {key} value={value!r}> always set: a launch file must not fix a YAML value"
+
+
+def test_every_launch_argument_is_documented_and_none_looks_required():
+    """roslaunch's ros-args option prints each argument's doc (\"undocumented\" without one) and lists an
+    argument whose default is empty as \"Required\": none of ours is."""
+    for path in doc_tool.launch_files():
+        for name, default, doc in doc_tool.launch_args(path):
+            where = f"{os.path.basename(path)}: arg {name}"
+            assert doc, f"{where} has no doc= attribute"
+            assert default, f"{where} has an empty default: roslaunch would list it as Required"
 
 
 def test_parameters_doc_is_current():

@@ -14,6 +14,7 @@ from aruco_ring_localization import pipeline as pl
 from aruco_ring_localization.config import with_overrides
 from aruco_ring_localization.detections import MarkerObservation
 from aruco_ring_localization.errors import ConfigError, MeasurementError
+from aruco_ring_localization.marker_map import MarkerMap
 from aruco_ring_localization.markers import MarkerSizes
 from aruco_ring_localization.pipeline import (SKIP_NO_CAMERA_INFO, SKIP_NO_EXTRINSICS, LocalizationPipeline,
                                               MappingPipeline, RingInput, feed_ring_frame)
@@ -350,3 +351,31 @@ def test_flat_params_coercion_and_errors():
         params_from_dict(_Params, {"enabled": "false"})
     with pytest.raises(ConfigError, match="count"):
         params_from_dict(_Params, {"count": 2.5})
+
+
+def test_save_answer_names_the_map_frame_once_and_the_robot_pose_is_the_station(setup, tmp_path):
+    """~save_map's answer (issue 15, item 6: it said 'fixed to marker 777' and '(reference 580)' in one
+    line) and the robot's pose the mapper puts on tf (item 5)."""
+    scene, ring, _ = setup
+    sim = RingSimulator(scene, ring, pixel_noise=0.2, seed=3)
+    m = MappingPipeline(with_overrides(MapperConfig(), {**OFFLINE, "map.method": "paper"}), ring)
+    assert m.robot_pose(MarkerMap([], frame_id="map")) is None, "no frame yet: no pose"
+    pose = np.array(scene.mapping_pose)
+    for k in range(5):
+        frame = sim.observe(Scene.T_world_base(pose), stamp=0.1 * k)
+        feed_ring_frame(m, frame)
+    path = str(tmp_path / "map.yaml")
+    saved = m.save(path)
+    text = m.format_saved(saved, path)
+    assert text.startswith(f"saved {len(saved)} markers (paper) to {path}; map frame on marker {saved.reference_marker}")
+    assert "reference " not in text and "fixed to" not in text, text
+    assert "WARNING" not in text, "every detected marker is mapped from the plate's centre"
+    stamp, T_map_base = m.robot_pose(saved)
+    assert stamp == pytest.approx(0.4)
+    # in the robot's frame, every mapped marker is where it truly is (the map frame is the map's own)
+    truth = {sm.marker_id: sm.T_world_marker for sm in scene.markers}
+    T_base_world = geo.inverse(Scene.T_world_base(pose))
+    for e in saved:
+        seen = geo.inverse(T_map_base) @ e.T_map_marker
+        true = T_base_world @ truth[e.marker_id]
+        assert np.linalg.norm(seen[:2, 3] - true[:2, 3]) < 0.03, (e.marker_id, seen[:3, 3], true[:3, 3])

@@ -159,8 +159,8 @@ def test_config_simulator_yaml_mirrors_the_schema():
 
 
 def test_simulation_launch_args_only_override_when_given():
-    """Every simulator <param> of simulation.launch is a schema key set only when its (empty by
-    default) argument is given: none shadows a key of config/simulator.yaml."""
+    """Every simulator <param> of simulation.launch is a schema key set only when its argument (by
+    default "yaml") is given: none shadows a key of config/simulator.yaml."""
     import xml.etree.ElementTree as ET
 
     from aruco_ring_localization.config import flatten
@@ -174,13 +174,13 @@ def test_simulation_launch_args_only_override_when_given():
         value = p.get("value")
         assert value.startswith("$(arg ") and value.endswith(")"), ET.tostring(p)
         arg = value[len("$(arg "):-1]
-        assert p.get("if") == f"$(eval arg('{arg}') != '')", f"param {p.get('name')} is set unconditionally"
+        assert p.get("if") == f"$(eval arg('{arg}') != 'yaml')", f"param {p.get('name')} is set unconditionally"
         assert p.get("name").replace("/", ".") in keys, f"{p.get('name')} is not a simulator parameter"
         mapped[arg] = p.get("name")
     launch_only = {"config", "detectors", "corner_refinement", "sim_time"}
     assert set(args) == set(mapped) | launch_only, sorted(set(args) ^ (set(mapped) | launch_only))
     for arg in mapped:
-        assert args[arg] in ("", "$(arg sim_time)"), f"arg {arg} defaults to {args[arg]!r}, not the YAML's value"
+        assert args[arg] in ("yaml", "$(arg sim_time)"), f"arg {arg} defaults to {args[arg]!r}, not the YAML's value"
     loads = [r.get("file") for r in node.iter("rosparam")]
     assert loads == ["$(arg config)"] and args["config"].endswith("/config/simulator.yaml")
 
@@ -204,3 +204,17 @@ def test_lockstep_topics_must_start_with_a_header():
     assert _starts_with_header("std_msgs/Header header  # stamped\nfloat64 x")
     assert not _starts_with_header("# just a number\nfloat64 data\n")
     assert not _starts_with_header("")
+
+
+def test_the_gmapping_stand_in_puts_base_link_at_its_true_pose(scene_ring):
+    """map -> odom of the perfect gmapping, composed with the drifting odom -> base_link, is the truth."""
+    scene, ring = scene_ring
+    core = SimulatorCore(config(**{"robot.waypoints": "test_positions", "gmapping.publish": True}), scene, ring)
+    for k in range(60):
+        core.step(0.1 * k, 0.1)
+    assert np.linalg.norm(core.state.pose[:2] - core.state.odom_pose[:2]) > 1e-4 or \
+        abs(core.state.pose[2] - core.state.odom_pose[2]) > 1e-6, "the odometry did not drift: nothing is tested"
+    T = core.T_world_odom() @ Scene.T_world_base(core.state.odom_pose)
+    assert np.allclose(T, Scene.T_world_base(core.state.pose), atol=1e-12)
+    cells, origin = core.occupancy_grid()
+    assert (cells == 100).any() and origin[0] < scene.room.origin[0] and origin[1] < scene.room.origin[1]

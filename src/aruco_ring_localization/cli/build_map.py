@@ -86,13 +86,12 @@ def _print_summary(pipeline: MappingPipeline, m, path: str) -> None:
         t = e.T_map_marker[:3, 3]
         out.write(f"{e.marker_id:>6} {t[0]:>9.3f} {t[1]:>9.3f} {t[2]:>9.3f} "
                   f"{1000 * float(np.max(e.position_std)):>9.2f} {e.observations:>6}\n")
-    if s["unlinked"]:
-        out.write(f"seen but never linked to the map (no common view): {s['unlinked']}\n")
     if s["ambiguous"]:
         out.write(f"seen from one viewpoint only, orientation ambiguous (mapped with the better solution and a "
                   f"large uncertainty; another view fixes it): {s['ambiguous']}\n")
-    for mid, why in s["rejected"].items():
-        out.write(f"marker {mid} not mapped: {why}\n")
+    warning = pipeline.builder.format_unmapped(m, multiline=True)
+    if warning:
+        out.write(warning + "\n")
     ba = pipeline.last_ba
     if ba is not None and m.method == "refined":
         out.write(f"bundle adjustment: RMS {ba.rms_px_before:.3f} -> {ba.rms_px_after:.3f} px, {ba.seconds:.2f} s\n")

@@ -39,7 +39,8 @@ from ..errors import ArucoRingError, ConfigError
 from ..ring import CameraRing
 from ..schemas import DetectorConfig
 from .apriltag import APRILTAG_MSGS_TYPE, APRILTAG_ROS_TYPE, apriltag_msgs_to_observations, apriltag_ros_to_observations
-from .conversions import camera_info_to_model, fiducial_array_to_observations, msg_to_transform, stamp_to_sec
+from .conversions import (camera_info_to_model, fiducial_array_to_observations, make_transform_stamped, msg_to_transform,
+                          stamp_to_sec)
 
 logger = logging.getLogger(__name__)
 
@@ -368,3 +369,155 @@ class BagSource:
 def _same_model(a: CameraModel, b: CameraModel) -> bool:
     return (a.width, a.height, a.distortion_model) == (b.width, b.height, b.distortion_model) and \
         np.array_equal(a.K, b.K) and np.array_equal(np.asarray(a.D), np.asarray(b.D))
+
+
+# --- references: a pose topic or a tf chain of a bag, for aruco_ring export-tum ------------------
+
+#: Pose message types a reference topic may carry -> the Pose inside (with its field name).
+POSE_FIELDS: Dict[str, Tuple[Callable[[Any], Any], str]] = {
+    "geometry_msgs/PoseStamped": (lambda m: m.pose, "pose"),
+    "geometry_msgs/PoseWithCovarianceStamped": (lambda m: m.pose.pose, "pose.pose"),
+    "nav_msgs/Odometry": (lambda m: m.pose.pose, "pose.pose"),
+}
+
+
+def read_reference(path: str, topic: Optional[str] = None, tf: Optional[Tuple[str, str]] = None,
+                   progress: Optional[bool] = None, out=None) -> Tuple[np.ndarray, np.ndarray, str]:
+    """A reference trajectory from a bag: ``(stamps, T_parent_child (N, 4, 4), what)``.
+
+    ``topic``: every message of a :data:`POSE_FIELDS` type, at its header stamp (its receive time
+    when the stamp is zero). ``tf = (parent, child)``: the chain parent -> ... -> child through
+    ``/tf`` and ``/tf_static`` (tf2's buffer, the whole bag cached), at each stamp of a ``/tf``
+    transform on the way, skipping stamps the chain does not cover yet (before its first
+    transform). Exactly one of the two. A progress bar (messages) goes to stderr on a terminal or
+    with ``progress=True``; bad messages are skipped and counted in ``what``.
+
+    Raises:
+        ConfigError: the bag cannot be opened, the topic is missing or of another type, or no pose.
+    """
+    _quiet_ros_logging()
+    import rosbag
+
+    if (topic is None) == (tf is None):
+        raise ConfigError("give a pose topic or a tf chain (parent, child), not both or neither")
+    out = out or sys.stderr
+    show = bool(progress) if progress is not None else out.isatty()
+    try:
+        bag = rosbag.Bag(path)
+    except (OSError, rosbag.ROSBagException) as exc:
+        raise ConfigError(f"cannot open bag ({exc})", path=path) from None
+    with bag:
+        topics = {t: (i.msg_type, int(i.message_count)) for t, i in bag.get_type_and_topic_info().topics.items()}
+        if topic is not None:
+            return _poses_from_topic(bag, path, topics, topic, show, out)
+        return _poses_from_tf(bag, path, topics, tf, show, out)
+
+
+def _reference_bar(show: bool, total: int, out, path: str):
+    if not show:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="msg", file=out, dynamic_ncols=True, desc=os.path.basename(path))
+
+
+def _poses_from_topic(bag, path: str, topics, topic: str, show: bool, out):
+    name = topic if topic in topics else ("/" + topic.lstrip("/") if "/" + topic.lstrip("/") in topics else None)
+    if name is None:
+        posed = sorted(t for t, (typ, _) in topics.items() if typ in POSE_FIELDS)
+        raise ConfigError(f"no topic {topic} in the bag; pose topics there: {posed or 'none'}", path=path)
+    typ = topics[name][0]
+    if typ not in POSE_FIELDS:
+        raise ConfigError(f"{name} is {typ}, not one of {sorted(POSE_FIELDS)}", path=path)
+    get, field_name = POSE_FIELDS[typ]
+    from .conversions import pose_msg_to_transform
+
+    stamps, poses, bad = [], [], 0
+    bar = _reference_bar(show, topics[name][1], out, path)
+    try:
+        for _, msg, t in bag.read_messages(topics=[name]):
+            if bar is not None:
+                bar.update(1)
+            try:
+                T = pose_msg_to_transform(get(msg), f"{name} {field_name}")
+            except ArucoRingError as exc:
+                bad += 1
+                logger.debug("%s", exc)
+                continue
+            s = stamp_to_sec(msg.header.stamp)
+            stamps.append(s if s > 0 else t.to_sec())
+            poses.append(T)
+    finally:
+        if bar is not None:
+            bar.close()
+    return _finish(path, stamps, poses, bad, f"{name} ({typ})")
+
+
+def _poses_from_tf(bag, path: str, topics, tf: Tuple[str, str], show: bool, out):
+    import rospy
+    import tf2_py
+
+    parent, child = (_norm(f) for f in tf)
+    tf_topics = [t for t in ("/tf", "/tf_static") if t in topics]
+    if "/tf" not in topics and "/tf_static" not in topics:
+        raise ConfigError("no /tf nor /tf_static in the bag", path=path)
+    msgs = list(bag.read_messages(topics=tf_topics))
+    if not msgs:
+        raise ConfigError("/tf and /tf_static are empty", path=path)
+    span = msgs[-1][2].to_sec() - msgs[0][2].to_sec()
+    core = tf2_py.BufferCore(rospy.Duration(span + 3600.0))
+    frames, stamps = set(), set()
+    for topic, msg, _ in msgs:
+        for raw in msg.transforms:
+            names = (_norm(raw.header.frame_id), _norm(raw.child_frame_id))
+            try:
+                # tf2 wants geometry_msgs types, not the bag's own classes; invalid ones are skipped
+                ts = make_transform_stamped(msg_to_transform(raw.transform, f"{topic} {names[0]} -> {names[1]}"),
+                                            names[0], names[1], rospy.Time(raw.header.stamp.secs, raw.header.stamp.nsecs))
+                if topic == "/tf_static":
+                    core.set_transform_static(ts, "bag")
+                else:
+                    core.set_transform(ts, "bag")
+                    stamps.add(ts.header.stamp.to_nsec())
+            except (ArucoRingError, tf2_py.TransformException) as exc:
+                logger.debug("%s: %s", topic, exc)
+                continue
+            frames.update(names)
+    for f in (parent, child):
+        if f not in frames:
+            raise ConfigError(f"no frame {f} in the bag's tf; frames there: {sorted(frames)}", path=path)
+    out_stamps, poses, bad = [], [], 0
+    bar = _reference_bar(show, len(stamps), out, path)
+    try:
+        for ns in sorted(stamps):
+            if bar is not None:
+                bar.update(1)
+            try:
+                ts = core.lookup_transform_core(parent, child, rospy.Time(nsecs=ns))
+            except tf2_py.TransformException:
+                continue   # not on the chain, or outside the chain's time range
+            try:
+                poses.append(msg_to_transform(ts.transform, f"tf {parent} -> {child}"))
+            except ArucoRingError:
+                bad += 1
+                continue
+            out_stamps.append(ns * 1e-9)
+    finally:
+        if bar is not None:
+            bar.close()
+    if not poses:
+        raise ConfigError(f"tf {parent} -> {child}: no stamp where the chain is complete (are the frames "
+                          f"connected? frames in the bag: {sorted(frames)})", path=path)
+    return _finish(path, out_stamps, poses, bad, f"tf {parent} -> {child}")
+
+
+def _finish(path: str, stamps, poses, bad: int, what: str):
+    if not poses:
+        raise ConfigError(f"{what}: no valid pose" + (f" ({bad} invalid)" if bad else ""), path=path)
+    s = np.asarray(stamps, dtype=np.float64)
+    order = np.argsort(s, kind="stable")
+    keep = np.ones(len(order), dtype=bool)
+    keep[1:] = np.diff(s[order]) > 0       # one pose per stamp (TUM: strictly increasing)
+    idx = order[keep]
+    text = f"{what}: {len(idx)} poses" + (f", {bad} invalid messages skipped" if bad else "")
+    return s[idx], np.stack(poses)[idx], text

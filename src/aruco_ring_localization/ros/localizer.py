@@ -42,10 +42,11 @@ from ..pipeline import LocalizationPipeline, PoseOutput
 from ..ring import CameraRing
 from ..schemas import LocalizerConfig
 from . import log_bridge
-from .conversions import make_transform_stamped, msg_to_transform, pose_msg_to_transform, pose_to_msg, stamp_to_sec
+from .conversions import msg_to_transform, pose_msg_to_transform, pose_to_msg, stamp_to_sec
 from .params import read_config
 from .ring_input import BUFF_SIZE, NOW, RingSubscriber
 from .ring_tf import default_ring_file
+from .tf_output import MapTransform
 
 WARN_PERIOD = 5.0
 
@@ -63,6 +64,8 @@ class LocalizerNode:
         self.tf_buffer = tf2_ros.Buffer()
         self.tf_listener = tf2_ros.TransformListener(self.tf_buffer)
         self.tf_broadcaster = tf2_ros.TransformBroadcaster()
+        self.map_tf = MapTransform(self.tf_buffer, self.map_frame, self.base_frame, out.odom_frame, out.tf_mode,
+                                   "localizer")
         self.pub_pose = rospy.Publisher("~pose", PoseWithCovarianceStamped, queue_size=10)
         self.pub_odom = rospy.Publisher("~odometry", Odometry, queue_size=10)
         self.pub_cams = rospy.Publisher("~camera_estimates", PoseArray, queue_size=5)
@@ -149,37 +152,10 @@ class LocalizerNode:
             self.publish_tf(out.T_map_base, stamp)
 
     def publish_tf(self, T_map_base: np.ndarray, stamp) -> None:
-        p = self.config.output
-        if p.tf_mode in ("auto", "map_to_odom"):
-            try:
-                # Wait for odom -> base at this stamp only when that transform exists at all: without
-                # odometry the 50 ms wait would be paid on every frame for nothing.
-                if not self.tf_buffer.can_transform(p.odom_frame, self.base_frame, rospy.Time(0)):
-                    raise tf2_ros.LookupException(f"no tf {p.odom_frame} -> {self.base_frame}")
-                tf = self.tf_buffer.lookup_transform(p.odom_frame, self.base_frame, stamp, rospy.Duration(0.05))
-            except tf2_ros.ExtrapolationException:
-                try:
-                    tf = self.tf_buffer.lookup_transform(p.odom_frame, self.base_frame, rospy.Time(0))
-                except (tf2_ros.LookupException, tf2_ros.ConnectivityException, tf2_ros.ExtrapolationException):
-                    tf = None
-            except (tf2_ros.LookupException, tf2_ros.ConnectivityException):
-                tf = None
-            except rospy.exceptions.ROSTimeMovedBackwardsException:
-                # lookup_transform sleeps in ROS time while waiting; a bag loop during that wait
-                # raised out of the detection callback and lost the frame.
-                tf = None
-            if tf is not None:
-                T_odom_base = msg_to_transform(tf.transform, "tf odom -> base")
-                self.tf_broadcaster.sendTransform(make_transform_stamped(
-                    T_map_base @ geo.inverse(T_odom_base), self.map_frame, p.odom_frame, stamp))
-                self._tf_child = p.odom_frame
-                return
-            if p.tf_mode == "map_to_odom":
-                rospy.logwarn_throttle(WARN_PERIOD, f"localizer: no tf {p.odom_frame} -> {self.base_frame}; "
-                                                    "not publishing map -> odom")
-                return
-        self.tf_broadcaster.sendTransform(make_transform_stamped(T_map_base, self.map_frame, self.base_frame, stamp))
-        self._tf_child = self.base_frame
+        ts = self.map_tf.compute(T_map_base, stamp)
+        if ts is not None:
+            self.tf_broadcaster.sendTransform(ts)
+            self._tf_child = ts.child_frame_id.lstrip("/")
 
     def check_tf_authority(self, msg: TFMessage) -> None:
         """Warn, throttled, when another node publishes the tf child frame we publish.

@@ -12,6 +12,9 @@ Publishes:
     ``fiducial_map`` (fiducial_msgs/FiducialMapEntryArray, latched): as fiducial_slam publishes it.
     static tf ``<map_frame> -> marker_<id>`` for every marker, all in ONE sendTransform call
         (/tf_static is latched and keeps only a publisher's last message).
+    tf of the robot at its latest station in the live map (``output/publish_tf``): ``map -> odom``
+        when ``odom -> base_link`` exists, else ``map -> base_link`` (``output/tf_mode``, REP-105),
+        re-stamped every ``output/tf_period``; so the robot, its ring and its scan appear in rviz.
 
 Services:
     ``~save_map`` (std_srvs/Trigger): builds the map with ``method`` (``refined``: bundle
@@ -48,6 +51,7 @@ from .conversions import make_transform_stamped, pose_to_msg
 from .params import read_config
 from .ring_input import RingSubscriber
 from .ring_tf import default_ring_file
+from .tf_output import MapTransform
 
 WARN_PERIOD = 5.0
 
@@ -117,7 +121,18 @@ class MapperNode:
         self.pub_markers = rospy.Publisher("~markers", MarkerArray, queue_size=1, latch=True)
         self.pub_fiducial_map = rospy.Publisher("fiducial_map", FiducialMapEntryArray, queue_size=1, latch=True)
         self.static_tf = tf2_ros.StaticTransformBroadcaster()
-        self.ring_input = RingSubscriber(self.pipeline, lambda _added: None, "mapper", use_tf=config.input.use_tf)
+        self.tf_buffer = tf2_ros.Buffer()
+        self.tf_listener = tf2_ros.TransformListener(self.tf_buffer)
+        self.ring_input = RingSubscriber(self.pipeline, lambda _added: None, "mapper", use_tf=config.input.use_tf,
+                                         tf_buffer=self.tf_buffer)
+        out = config.output
+        self.map_tf = MapTransform(self.tf_buffer, config.map.map_frame, out.base_frame or ring.base_frame,
+                                   out.odom_frame, out.tf_mode, "mapper")
+        self.tf_broadcaster = tf2_ros.TransformBroadcaster()
+        self._robot_tf = None          # the TransformStamped of the robot's latest station, re-stamped
+        self._progress_frames = -1     # frames at the previous progress line
+        if out.publish_tf:
+            rospy.Timer(rospy.Duration(out.tf_period), self.on_tf_timer, reset=True)
         rospy.Service("~save_map", Trigger, self.on_save_map)
         rospy.Service("~clear", Trigger, self.on_clear)
         rospy.Timer(rospy.Duration(config.output.publish_period), self.on_publish_timer, reset=True)
@@ -130,11 +145,35 @@ class MapperNode:
 
     def publish(self, m: MarkerMap) -> None:
         stamp = rospy.Time.now()
+        self.update_robot_tf(m)
         self.pub_markers.publish(map_to_marker_array(m, stamp))
         self.pub_fiducial_map.publish(map_to_fiducial_map(m))
         transforms = [make_transform_stamped(e.T_map_marker, m.frame_id, f"marker_{e.marker_id}", stamp) for e in m]
         if transforms:
             self.static_tf.sendTransform(transforms)
+
+    def update_robot_tf(self, m: MarkerMap) -> None:
+        """The robot's tf at its latest station in ``m`` (map -> odom, or map -> base_link)."""
+        if not self.config.output.publish_tf:
+            return
+        with self.ring_input.lock:
+            pose = self.pipeline.robot_pose(m)
+        if pose is None:
+            return
+        # Every publish: the same stamp may come with another map frame (the refined map's, on a save).
+        ts = self.map_tf.compute(pose[1], rospy.Time.from_sec(pose[0]))
+        if ts is not None:
+            self._robot_tf = ts
+
+    def on_tf_timer(self, _event) -> None:
+        ts = self._robot_tf
+        if ts is None:
+            return
+        now = rospy.Time.now()
+        if now <= ts.header.stamp:
+            return   # tf2 ignores (and warns about) a repeated stamp: a paused simulated clock
+        ts.header.stamp = now
+        self.tf_broadcaster.sendTransform(ts)
 
     def on_publish_timer(self, _event) -> None:
         with self.ring_input.lock:
@@ -152,23 +191,28 @@ class MapperNode:
     def on_progress_timer(self, _event) -> None:
         with self.ring_input.lock:
             text = "mapper: " + self.pipeline.format_summary()
-            silent = self.pipeline.silent_cameras(self.ring_input.now())
+            frames = self.pipeline.frames
+        silence = self.config.input.silent_after
+        silent = self.ring_input.silent_cameras(silence)
         if silent:
             text += f"; silent cameras: {silent}"
+        age = self.ring_input.input_age()
+        if frames == self._progress_frames and age > silence:   # frames added: the input is alive
+            text += "; no camera message yet" if age == float("inf") else f"; no camera message for {age:.1f} s"
+        self._progress_frames = frames
         rospy.loginfo(text)
 
     def save(self) -> str:
-        """Build with the configured method, write atomically; returns a summary line."""
+        """Build with the configured method, write atomically; log and return the summary (a warning
+        first when a detected marker is not in the map)."""
         with self.ring_input.lock:
             m = self.pipeline.save(self.map_file)
-            summary = self.pipeline.format_summary()
-            ba = self.pipeline.last_ba if m.method == "refined" else None
+            text = self.pipeline.format_saved(m, self.map_file)
+            complete = not self.pipeline.builder.unmapped(m)
             self._published_version = self.pipeline.version
         self.publish(m)
-        extra = (f"; bundle adjustment RMS {ba.rms_px_before:.2f} -> {ba.rms_px_after:.2f} px in {ba.seconds:.1f} s"
-                 if ba is not None else "")
-        return (f"saved {len(m)} markers ({m.method}, map frame fixed to marker {m.reference_marker}) "
-                f"to {self.map_file}: {summary}{extra}")
+        (rospy.loginfo if complete else rospy.logwarn)(f"mapper: {text}")
+        return text
 
     def on_save_map(self, _req) -> TriggerResponse:
         try:
@@ -176,7 +220,6 @@ class MapperNode:
         except (ArucoRingError, OSError) as exc:
             rospy.logerr(f"mapper: save_map failed: {exc}")
             return TriggerResponse(success=False, message=str(exc))
-        rospy.loginfo(text)
         return TriggerResponse(success=True, message=text)
 
     def on_clear(self, _req) -> TriggerResponse:
@@ -192,7 +235,7 @@ class MapperNode:
         if not self.config.map.save_on_shutdown:
             return
         try:
-            rospy.loginfo(self.save())
+            self.save()
         except (ArucoRingError, OSError) as exc:
             rospy.logerr(f"mapper: save on shutdown failed: {exc}")
 

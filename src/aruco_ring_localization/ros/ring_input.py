@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import collections
 import threading
-from typing import Any, Callable, Dict, List, Optional
+from typing import Any, Callable, Dict, List, Optional, Set
 
 import numpy as np
 import rospy
@@ -97,6 +97,10 @@ class RingSubscriber:
         self._inbox_lock = threading.Lock()    # guards the inbox only (held for an append or a pop)
         self._inbox: "collections.deque[_Call]" = collections.deque()  # calls in arrival order
         self._info_keys: Dict[str, tuple] = {}
+        #: camera -> ROS time its last fiducial_vertices message arrived (before waiting for the lock).
+        self.last_arrival: Dict[str, float] = {}
+        #: cameras whose message is being handled right now (waiting for the lock, typically).
+        self._handling: Set[str] = set()
         self._tf_frames: Dict[str, str] = {}   # camera -> frame_id its extrinsics were looked up for
         ring = pipeline.input.calibrated_ring
         self._ring = ring
@@ -152,6 +156,27 @@ class RingSubscriber:
             raise item.error
         return item.out
 
+    def silent_cameras(self, silence: float) -> List[str]:
+        """Cameras from which no fiducial_vertices message arrived for ``silence`` s (or ever), and
+        none is being handled.
+
+        rospy hands a topic's messages to its callback one at a time: while the pipeline is busy (a
+        map preview, a save) every camera's callback waits for the lock and no arrival can be
+        stamped; against the clock alone all eight looked silent while frames kept being added. A
+        camera whose message is waiting is not silent.
+        """
+        now = self.now()
+        handling = set(self._handling)
+        return [c for c in self.pipeline.camera_names
+                if c not in handling and now - self.last_arrival.get(c, -np.inf) > silence]
+
+    def input_age(self) -> float:
+        """Seconds since any camera's last fiducial_vertices message (inf before the first; 0 while one
+        is being handled)."""
+        if self._handling:
+            return 0.0
+        return self.now() - max(self.last_arrival.values()) if self.last_arrival else float("inf")
+
     def shutdown(self) -> None:
         """Stop the subscriptions and the timer."""
         self._timer.shutdown()
@@ -195,6 +220,8 @@ class RingSubscriber:
                       frame_id, 1000.0 * drift)
 
     def _on_fiducials(self, msg: FiducialArray, camera: str) -> None:
+        self.last_arrival[camera] = self.now()
+        self._handling.add(camera)
         try:
             if self.use_tf:
                 self._look_up_extrinsics(camera, msg.header.frame_id)
@@ -202,6 +229,8 @@ class RingSubscriber:
             self.call(self.pipeline.on_detections, camera, stamp_to_sec(msg.header.stamp), observations, NOW)
         except ArucoRingError as exc:
             rospy.logwarn_throttle(WARN_PERIOD, f"{self._name}: {camera}: {exc}")
+        finally:
+            self._handling.discard(camera)
 
     def _on_timer(self, _event) -> None:
         try:

@@ -13,6 +13,11 @@ package's ``config/ring.yaml``; ``~map_file``: a marker map whose ``ring_calibra
 extrinsics refined by bundle adjustment while mapping, is published instead of the ring file's.
 Localization uses the refined calibration this way; mapping must not).
 
+Also publishes ``~markers`` (visualization_msgs/MarkerArray, latched, sent again each second
+while someone listens), for rviz: each camera's field of view (namespace ``frustums``, a line
+list in its optical frame, ``~frustum_depth`` m long) and the robot (namespace ``robot``: a disc of the ring's radius in the base frame and an
+arrow along its x axis), all frame-locked, so they follow the robot wherever tf puts it.
+
 Exits with code 1 and a fatal log naming the file and the key when the ring file is unusable.
 """
 from __future__ import annotations
@@ -21,10 +26,12 @@ import os
 import sys
 from typing import List, Optional, Sequence
 
+import numpy as np
 import rospkg
 import rospy
 import tf2_ros
-from geometry_msgs.msg import TransformStamped
+from geometry_msgs.msg import Point, TransformStamped
+from visualization_msgs.msg import Marker, MarkerArray
 
 from ..errors import ConfigError
 from ..marker_map import MarkerMap
@@ -51,6 +58,40 @@ def ring_transforms(ring: CameraRing, stamp: rospy.Time) -> List[TransformStampe
     """
     return [make_transform_stamped(camera.T_base_cam, ring.base_frame, camera.frame_id, stamp)
             for camera in ring.cameras]
+
+
+def ring_markers(ring: CameraRing, stamp: rospy.Time, depth: float) -> MarkerArray:
+    """The cameras' fields of view and the robot as rviz markers (module docstring)."""
+    out = MarkerArray()
+    for k, camera in enumerate(ring.cameras):
+        m = Marker()
+        m.header.frame_id, m.header.stamp = camera.frame_id, stamp
+        m.ns, m.id, m.type, m.action = "frustums", k, Marker.LINE_LIST, Marker.ADD
+        m.frame_locked = True
+        m.pose.orientation.w = 1.0
+        m.scale.x = 0.01
+        m.color.r, m.color.g, m.color.b, m.color.a = 0.1, 0.6, 1.0, 0.8
+        m.points = [Point(*map(float, p)) for p in camera.model.frustum_segments(depth)]
+        out.markers.append(m)
+    radius = max(float(np.hypot(*c.T_base_cam[:2, 3])) for c in ring.cameras)
+    height = float(np.mean([c.T_base_cam[2, 3] for c in ring.cameras]))
+    body = Marker()
+    body.header.frame_id, body.header.stamp = ring.base_frame, stamp
+    body.ns, body.id, body.type, body.action, body.frame_locked = "robot", 0, Marker.CYLINDER, Marker.ADD, True
+    body.pose.position.z = height / 2
+    body.pose.orientation.w = 1.0
+    body.scale.x = body.scale.y = 2 * radius
+    body.scale.z = max(height, 0.05)
+    body.color.r, body.color.g, body.color.b, body.color.a = 0.9, 0.5, 0.1, 0.5
+    heading = Marker()
+    heading.header.frame_id, heading.header.stamp = ring.base_frame, stamp
+    heading.ns, heading.id, heading.type, heading.action, heading.frame_locked = "robot", 1, Marker.ARROW, Marker.ADD, True
+    heading.pose.position.z = max(height, 0.05) + 0.02
+    heading.pose.orientation.w = 1.0
+    heading.scale.x, heading.scale.y, heading.scale.z = 1.5 * radius, 0.08, 0.08
+    heading.color.r, heading.color.g, heading.color.b, heading.color.a = 0.9, 0.2, 0.1, 1.0
+    out.markers += [body, heading]
+    return out
 
 
 def _load_ring(path: str) -> Optional[CameraRing]:
@@ -97,6 +138,18 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     broadcaster = tf2_ros.StaticTransformBroadcaster()
     transforms = ring_transforms(ring, rospy.Time.now())
     broadcaster.sendTransform(transforms)
+    markers = rospy.Publisher("~markers", MarkerArray, queue_size=1, latch=True)
+    # stamp 0: "the latest transform" for rviz, whenever the robot's pose appears on tf
+    marker_msg = ring_markers(ring, rospy.Time(0), config.frustum_depth)
+    markers.publish(marker_msg)
+
+    def resend(_event) -> None:
+        # rviz marks a marker whose frame it could not transform on arrival as failed for good; a
+        # robot whose pose appears on tf later (the mapper's first station, a localizer started
+        # after rviz) would stay in error. Sent again each second while someone listens.
+        if markers.get_num_connections():
+            markers.publish(marker_msg)
+    rospy.Timer(rospy.Duration(1.0), resend)
     rospy.loginfo("ring_tf: published %d static transforms %s -> {%s} from %s", len(transforms),
                   ring.base_frame, ", ".join(t.child_frame_id for t in transforms), ring_file)
     rospy.spin()

@@ -12,6 +12,8 @@ Every ``1/rate`` seconds it moves the robot (waypoint driver or ``cmd_vel``), th
 * ``odom`` (nav_msgs/Odometry, drifting wheel odometry) and, if ``odometry.publish_tf``, tf
   ``odom -> base_link``;
 * ``scan`` (sensor_msgs/LaserScan of the walls and posts, frame ``laser.frame``);
+* with ``gmapping.publish``, what a perfect gmapping would: tf ``map -> odom`` (base_link at its
+  true pose; ``map`` is the world frame) and the room's occupancy grid on ``map`` (latched);
 * ``sim/at_waypoint`` (std_msgs/Int32: index of the waypoint being held, -1 while moving or once
   finished) and ``sim/waypoints`` (geometry_msgs/PoseArray, latched: the waypoint list in the
   world frame; also the parameter ``sim/waypoint_poses``, [[x, y, yaw_rad], ...]);
@@ -133,10 +135,29 @@ class SimulatorNode:
         wp_list.poses = [pose_to_msg(Scene.T_world_base(w)) for w in waypoints]
         self.wp_list_pub = rospy.Publisher("sim/waypoints", PoseArray, queue_size=1, latch=True)
         self.wp_list_pub.publish(wp_list)
+        if c.gmapping.publish:
+            self._publish_grid()
         self.gate, self._sources = self._lockstep()
         rospy.loginfo("simulator: scene '%s' (%d markers), %s mode, %d cameras, %.1f Hz, %d waypoints, seed %d%s",
                       core.scene.name, len(core.scene.markers), c.mode, len(self.cams), c.rate, len(waypoints),
                       c.seed, f", lockstep with {sorted(self._sources)}" if self.gate is not None else "")
+
+    def _publish_grid(self) -> None:
+        """gmapping's latched ``map`` topic: the room's occupancy grid (the stand-in's)."""
+        import rospy
+        from nav_msgs.msg import OccupancyGrid
+
+        cells, origin = self.core.occupancy_grid()
+        grid = OccupancyGrid()
+        grid.header.frame_id = self.config.gmapping.map_frame
+        grid.header.stamp = rospy.Time.now()
+        grid.info.resolution = self.config.gmapping.resolution
+        grid.info.height, grid.info.width = cells.shape
+        grid.info.origin.position.x, grid.info.origin.position.y = float(origin[0]), float(origin[1])
+        grid.info.origin.orientation.w = 1.0
+        grid.data = cells.ravel().tolist()
+        self.grid_pub = rospy.Publisher("map", OccupancyGrid, queue_size=1, latch=True)
+        self.grid_pub.publish(grid)
 
     # --- inputs ---------------------------------------------------------------------------------
 
@@ -329,6 +350,10 @@ class SimulatorNode:
         tfs = [make_transform_stamped(T_world_base, c.ground_truth.parent, c.ground_truth.frame, stamp)]
         if c.odometry.publish_tf:
             tfs.append(make_transform_stamped(T_odom_base, c.odometry.frame, c.odometry.base_frame, stamp))
+        if c.gmapping.publish:   # a perfect gmapping: map -> odom, so that map -> base_link is the truth
+            tfs.append(make_transform_stamped(core.T_world_odom(), c.gmapping.map_frame, c.odometry.frame, stamp)
+                       if c.odometry.publish_tf else
+                       make_transform_stamped(T_world_base, c.gmapping.map_frame, c.odometry.base_frame, stamp))
         self.tf_pub.sendTransform(tfs)
         gt = PoseStamped()
         gt.header.stamp = stamp

@@ -65,3 +65,26 @@ class LaserScanner:
         r[(r > self.range_max) | ~np.isfinite(r)] = np.inf
         r[r < self.range_min] = self.range_min
         return r
+
+
+def occupancy_grid(segments: np.ndarray, resolution: float, margin: float = 0.5):
+    """The cells the segments (the walls and posts a laser sees) pass through, as gmapping's grid.
+
+    Returns ``(cells, origin)``: ``cells`` (rows = y, columns = x) int8 with 100 where a segment
+    passes (occupied), 0 elsewhere in the segments' bounding box (free: the room is known) and
+    ``origin`` (x, y) of cell (0, 0)'s corner, m; the box grows by ``margin`` m on each side, where
+    cells are -1 (unknown), as outside gmapping's walls. nav_msgs/OccupancyGrid's layout.
+    """
+    seg = np.asarray(segments, dtype=float).reshape(-1, 2, 2)
+    lo, hi = seg.reshape(-1, 2).min(axis=0), seg.reshape(-1, 2).max(axis=0)
+    origin = lo - margin
+    shape = np.ceil((hi - lo + 2 * margin) / resolution).astype(int) + 1     # (nx, ny)
+    cells = np.full((shape[1], shape[0]), -1, dtype=np.int8)
+    inside = np.floor((np.array([lo, hi]) - origin) / resolution).astype(int)
+    cells[inside[0, 1]:inside[1, 1] + 1, inside[0, 0]:inside[1, 0] + 1] = 0
+    for p, q in seg:
+        n = int(np.ceil(np.linalg.norm(q - p) / (0.5 * resolution))) + 1
+        pts = p + np.linspace(0.0, 1.0, n)[:, None] * (q - p)
+        ij = np.floor((pts - origin) / resolution).astype(int)
+        cells[ij[:, 1], ij[:, 0]] = 100
+    return cells, origin

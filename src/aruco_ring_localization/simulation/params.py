@@ -11,7 +11,8 @@ Sections, and what will join them (the structure is ready for it): ``cameras`` (
 what they see; later their trigger: synchronized or free-running, rate jitter, phases),
 ``ring`` (the calibration and the true rig's error from it; later per-frame vibration),
 ``render`` (images mode; later exposure and motion blur), ``robot`` (start, waypoints, limits),
-``ground_truth``, ``odometry``, ``laser``, ``clock`` (owning ``/clock``, its speed), ``lockstep``
+``ground_truth``, ``odometry``, ``gmapping`` (a perfect gmapping's tf and grid), ``laser``,
+``clock`` (owning ``/clock``, its speed), ``lockstep``
 (waiting for the consumers of each frame). A plate that is not flat would be a ``plate`` section.
 Units: SI; angles in radians unless the key ends in ``_deg``.
 """
@@ -158,6 +159,25 @@ class OdometryParams:
 
 
 @dataclass(frozen=True)
+class GmappingParams:
+    """A perfect gmapping, so that what runs beside gmapping on a robot has a reference in the simulation.
+
+    gmapping publishes ``map -> odom`` (so that ``map -> base_link`` is its robot pose) and a latched
+    occupancy grid on ``map``. This stand-in publishes the same, from the ground truth: ``map`` is the
+    scene's world frame, ``map -> odom`` puts base_link at its true pose, the grid is the room's walls
+    and posts. Off by default: without gmapping our own localizer or mapper owns ``map -> odom``.
+    """
+
+    publish: bool = param(False, "publish map_frame -> odom (base_link's true pose through the odometry; "
+                                 "map_frame -> base_link when odometry.publish_tf is off) and the grid on `map`")
+    map_frame: str = param("map", "gmapping's map frame (the scene's world frame)")
+    resolution: float = param(0.05, "cell side of the occupancy grid", unit="m")
+
+    def __post_init__(self) -> None:
+        _positive("resolution", self.resolution)
+
+
+@dataclass(frozen=True)
 class LaserParams:
     """A planar scan of the walls and posts (``scan``), for users who run gmapping on the simulated lab."""
 
@@ -227,6 +247,7 @@ class SimulatorConfig:
     robot: RobotParams = section(RobotParams)
     ground_truth: GroundTruthParams = section(GroundTruthParams)
     odometry: OdometryParams = section(OdometryParams)
+    gmapping: GmappingParams = section(GmappingParams)
     laser: LaserParams = section(LaserParams)
     clock: ClockParams = section(ClockParams)
     lockstep: LockstepParams = section(LockstepParams)

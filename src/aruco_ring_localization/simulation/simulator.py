@@ -2,7 +2,8 @@
 
 The node (``ros/simulator.py``) only converts: it reads :class:`~.params.SimulatorConfig`, calls
 :meth:`SimulatorCore.step` once per frame and publishes what the core returns (detections or
-images, the true pose, odometry, the scan, the waypoint being held).
+images, the true pose, odometry, the scan, the waypoint being held, and with ``gmapping.publish``
+a perfect gmapping's ``map -> odom`` and occupancy grid).
 
 The true rig is the ring file perturbed by a seeded calibration error (``ring.calibration_*``):
 the estimators get the ring file, the simulator sees with the true rig.
@@ -15,9 +16,10 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
+from .. import geometry as geo
 from ..errors import ConfigError
 from ..ring import CameraRing
-from .laser import LaserScanner
+from .laser import LaserScanner, occupancy_grid
 from .motion import RobotState, SimRobot
 from .params import SimulatorConfig
 from .ring_sim import RingSimulator, perturb_ring
@@ -117,3 +119,12 @@ class SimulatorCore:
 
     def scan(self) -> np.ndarray:
         return self.laser.scan(self.state.pose)
+
+    def T_world_odom(self) -> np.ndarray:
+        """What a perfect gmapping publishes as ``map -> odom`` (``map`` = the world): the odometry frame
+        placed so that base_link is at its true pose."""
+        return Scene.T_world_base(self.state.pose) @ geo.inverse(Scene.T_world_base(self.state.odom_pose))
+
+    def occupancy_grid(self):
+        """``(cells, origin)``: the room's walls and posts as gmapping's grid (:func:`laser.occupancy_grid`)."""
+        return occupancy_grid(self.scene.obstacle_segments(), self.config.gmapping.resolution)
