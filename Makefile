@@ -8,7 +8,7 @@ ENV := source .ws/env.sh
 PYTEST_ARGS ?= -q
 BENCH_ARGS ?=
 
-.PHONY: help setup test bench demo clean fuzz soak
+.PHONY: help setup test bench demo clean fuzz soak hostile
 
 help:
 	@echo "make demo   set up if needed, then run the demo"
@@ -17,6 +17,8 @@ help:
 	@echo "           BENCH_ARGS=\"--quick --only NAME\" passes options to bench/run.py"
 	@echo "make fuzz   the fuzz tests with many examples (FUZZ_ARGS=\"--examples N --seed S\"), docs/reliability.md"
 	@echo "make soak   simulator + 8 detectors + localizer for SOAK_ARGS=\"--minutes 30\" of sim time: RSS, drops, error"
+	@echo "make hostile  every hostile-input test (future stamps, NaN, floods, pauses, two localizers, map files;"
+	@echo "           unit + rostest through a real master), docs/reliability.md; figures in results/hostile/"
 	@echo "make setup  install apt packages, the venv and the catkin workspace (.venv/, .ws/)"
 	@echo "make clean  remove the venv, the workspace and results/"
 
@@ -40,6 +42,10 @@ fuzz: setup
 
 soak: setup
 	@$(ENV) && python tools/soak.py $(SOAK_ARGS)
+
+hostile: setup
+	@$(ENV) && ARUCO_RING_HOSTILE=1 python -m pytest $(PYTEST_ARGS) test/unit/test_hostile_input.py \
+		test/unit/test_map_limits.py test/integration/test_node_bad_input.py test/integration/test_rostests.py -k "hostile or map_limits or bad_input"
 
 clean:
 	rm -rf .venv .ws results .pytest_cache .hypothesis

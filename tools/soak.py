@@ -5,7 +5,10 @@ memory (RSS of each node over time), dropped frames and the position error.
 The simulator node (owning ``/clock``, paced at ``--speed`` simulated seconds per wall second,
 driving the paper's 23 poses again and again, holding each 3 s; its parameters are written to
 ``--out``/simulator.yaml) feeds the localizer; the error compares ``localizer/pose`` with
-``sim/ground_truth`` at the same stamp (the map is the scene's truth). Modes (``--mode``):
+``sim/ground_truth`` at the same stamp (the map is the scene's truth). The lab is the simulator's
+default (its schema's: the demo's and the benchmarks' lab), or the one of ``--simulator-config FILE``
+(config/simulator.yaml format: a harsher or a kinder lab, another scene); the soak sets only the
+mode, rate, route, loop, hold time and clock on top. Modes (``--mode``):
 
 * ``images`` — the simulator renders images for 8 detector nodes (lockstep: the clock waits for
   them, so no frame is lost and the real-time ratio says how fast the chain runs);
@@ -22,6 +25,7 @@ of the run) is below 5 MB per simulated hour, extrapolated.
 ``--report results/soak/soak.json`` rewrites the summary of a finished run.
 
 Usage: tools/soak.py [--minutes 30] [--rate 10] [--speed 1.0] [--sample 30] [--mode auto]
+                     [--simulator-config FILE]
 """
 from __future__ import annotations
 
@@ -44,7 +48,6 @@ import numpy as np
 REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
 sys.path.insert(0, os.path.join(REPO, "src"))
 
-TRUTH_MAP = os.path.join(REPO, "test", "data", "lab_truth_map.yaml")
 #: The first part of the run counted as warm-up (Python allocator pools, tf and connection
 #: buffers fill up over minutes); memory must be flat after it.
 WARMUP_FRACTION = 0.5
@@ -85,17 +88,28 @@ def node_pids(master_uri: str) -> Dict[str, int]:
     return out
 
 
-def simulator_config(mode: str, speed: float, rate: float):
-    """The simulator's parameters for the soak: the paper's 23 poses in a loop, 3 s each."""
-    from aruco_ring_localization.config import with_overrides
+def simulator_config(mode: str, speed: float, rate: float, base_file: Optional[str] = None):
+    """The simulator's parameters for the soak: the lab of ``base_file`` (or the default lab), the
+    paper's 23 poses in a loop, 3 s each."""
+    from aruco_ring_localization.config import load_yaml_config, with_overrides
     from aruco_ring_localization.simulation.params import SimulatorConfig
 
-    return with_overrides(SimulatorConfig(), {"mode": mode, "rate": rate, "robot.waypoints": "paper",
-                                              "robot.loop": True, "robot.hold_time": 3.0,
-                                              "clock.publish": True, "clock.speed": speed})
+    base = load_yaml_config(SimulatorConfig, base_file) if base_file else SimulatorConfig()
+    return with_overrides(base, {"mode": mode, "rate": rate, "robot.waypoints": "paper", "robot.plan": [],
+                                 "robot.loop": True, "robot.hold_time": 3.0, "clock.publish": True,
+                                 "clock.speed": speed})
 
 
-def launch_text(mode: str, sim_config: str) -> str:
+def write_truth_map(config, path: str) -> str:
+    """The true map of the configured scene (what the localizer localizes against), at ``path``."""
+    from aruco_ring_localization.simulation.scene import Scene
+
+    scene = Scene.load(config.scene.file) if config.scene.file else Scene.default()
+    scene.truth_map().save(path, backups=0)
+    return path
+
+
+def launch_text(mode: str, sim_config: str, truth_map: str) -> str:
     return f"""<launch>
   <include file="$(find aruco_ring_localization)/launch/simulation.launch">
     <arg name="config" value="{sim_config}"/>
@@ -105,7 +119,7 @@ def launch_text(mode: str, sim_config: str) -> str:
   <include file="$(find aruco_ring_localization)/launch/ring_tf.launch"/>
   <node pkg="aruco_ring_localization" type="localizer" name="localizer" output="log">
     <rosparam command="load" file="$(find aruco_ring_localization)/config/localization.yaml"/>
-    <param name="map_file" value="{TRUTH_MAP}"/>
+    <param name="map_file" value="{truth_map}"/>
   </node>
 </launch>
 """
@@ -118,6 +132,9 @@ def main(argv=None) -> int:
     ap.add_argument("--speed", type=float, default=1.0, help="simulated s per wall s, at most (default 1)")
     ap.add_argument("--sample", type=float, default=30.0, help="sampling period, simulated s (default 30)")
     ap.add_argument("--mode", choices=("auto", "corners", "images"), default="auto")
+    ap.add_argument("--simulator-config", metavar="FILE", default=None,
+                    help="the lab: simulator parameters (config/simulator.yaml format); default: the simulator's "
+                         "default lab")
     ap.add_argument("--out", default=os.path.join(REPO, "results", "soak"))
     ap.add_argument("--report", metavar="SOAK_JSON", help="only summarise a finished run's soak.json")
     args = ap.parse_args(argv)
@@ -144,14 +161,16 @@ def main(argv=None) -> int:
     tmp = tempfile.mkdtemp(prefix="soak_")
     os.makedirs(args.out, exist_ok=True)
     sim_config = os.path.join(args.out, "simulator.yaml")
+    config = simulator_config(mode, args.speed, args.rate, args.simulator_config)
     with open(sim_config, "w") as handle:
         import yaml
 
         from aruco_ring_localization.config import to_dict
-        yaml.safe_dump(to_dict(simulator_config(mode, args.speed, args.rate)), handle, sort_keys=False)
+        yaml.safe_dump(to_dict(config), handle, sort_keys=False)
+    truth_map = write_truth_map(config, os.path.join(args.out, "truth_map.yaml"))
     launch_file = os.path.join(tmp, "soak.launch")
     with open(launch_file, "w") as handle:
-        handle.write(launch_text(mode, sim_config))
+        handle.write(launch_text(mode, sim_config, truth_map))
     log = open(os.path.join(tmp, "roslaunch.log"), "w")
     proc = subprocess.Popen(["roslaunch", "-p", str(port), launch_file], stdout=log, stderr=subprocess.STDOUT,
                             start_new_session=True)
@@ -243,6 +262,7 @@ def run(args, mode: str, master_uri: str, proc: subprocess.Popen) -> int:
                   "err_cm_median": round(100 * float(np.median(errs)), 2) if errs else None,
                   "err_cm_max": round(100 * max(errs), 2) if errs else None,
                   "rss_mb": {k: round(v, 1) for k, v in rss.items() if v is not None},
+                  "load_average": round(os.getloadavg()[0], 2),
                   "frames": d.get("frames"), "dropped_stale": d.get("dropped_stale"),
                   "latency_ms_median": d.get("latency_ms_median")}
         samples.append(sample)
@@ -262,6 +282,15 @@ def error_line(err: np.ndarray, samples: List[dict]) -> str:
     mx = [s["err_cm_max"] for s in samples if s.get("err_cm_max") is not None]
     return (f"- position error over the run (from the per-sample figures): median of the sample medians "
             f"{np.median(med):.2f} cm, max {max(mx):.2f} cm" if med else "- position error: no poses")
+
+
+def load_line(samples: List[dict]) -> str:
+    """The machine's 1-minute load average over the run (the run's own nodes included)."""
+    loads = [s["load_average"] for s in samples if s.get("load_average") is not None]
+    if not loads:
+        return "- load average: not recorded"
+    return (f"- load average (1 min, this run's nodes included) over the samples: median {np.median(loads):.1f}, "
+            f"min {min(loads):.1f}, max {max(loads):.1f}")
 
 
 def report(args, mode, samples, errors, frames_total, wall) -> int:
@@ -301,6 +330,7 @@ def report(args, mode, samples, errors, frames_total, wall) -> int:
         f"localizer's own count of stale frames dropped: {dropped}; latency median "
         f"{last.get('latency_ms_median')} ms",
         error_line(err, samples),
+        load_line(samples),
         f"- memory flat after warm-up (the first {100 * WARMUP_FRACTION:.0f}% of the run; localizer growth < "
         f"{FLAT_MB_PER_H:g} MB/h): {'yes' if flat else 'NO'}",
     ])

@@ -15,6 +15,8 @@ layout (``image_width``, ``camera_matrix: {rows, cols, data}``, ``distortion_mod
 from __future__ import annotations
 
 import logging
+import os
+import re
 from dataclasses import dataclass, field
 from typing import Any, Dict, Mapping, Optional
 
@@ -318,7 +320,9 @@ class _UniqueKeyLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # type: 
         if isinstance(node, yaml.MappingNode):
             seen = set()
             for key_node, _ in node.value:
-                key = self.construct_object(key_node, deep=deep)
+                # A plain string key is its text: no need to construct every key twice.
+                key = key_node.value if key_node.tag == _STR_TAG and isinstance(key_node, yaml.ScalarNode) \
+                    else self.construct_object(key_node, deep=deep)
                 try:
                     duplicate = key in seen
                     seen.add(key)
@@ -330,14 +334,163 @@ class _UniqueKeyLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # type: 
         return super().construct_mapping(node, deep)
 
 
-def load_yaml_file(path: str) -> Any:
+_STR_TAG = "tag:yaml.org,2002:str"
+
+#: Largest YAML file :func:`load_yaml_file` reads by default (ring, camera_info, scene files), bytes.
+MAX_YAML_FILE_BYTES = 4 * 1024 * 1024
+
+# The plain scalars PyYAML's safe loader reads as a float or an int, in the forms our writers use
+# (the first patterns of yaml.resolver's float and int resolvers; every other form goes to it).
+_PLAIN_FLOAT = re.compile(r"[-+]?[0-9][0-9_]*\.[0-9_]*(?:[eE][-+][0-9]+)?\Z")
+_PLAIN_INT = re.compile(r"[-+]?(?:0|[1-9][0-9_]*)\Z")
+_SIMPLE = (str, bool, int, float, type(None))
+
+
+class _Unusual(Exception):
+    """Something :func:`_fast_safe_load` leaves to the full loader (tags, merge keys, duplicates)."""
+
+
+def _fast_safe_load(text: str) -> Any:
+    """``yaml.load(text, Loader=_UniqueKeyLoader)`` for the common case, built from libyaml's events.
+
+    PyYAML's C loader still builds a node per scalar and resolves and constructs each in Python:
+    a 5,000-marker map took 0.7-1.1 s of CPU. Here the C parser's events become dicts and lists
+    directly (no recursion, anchors and aliases shared as PyYAML shares them), and plain scalars
+    that are decimal floats or ints are converted at once; any other plain scalar goes through the
+    loader's own resolver and constructor. Anything else (an explicit tag, a merge key, a
+    duplicate key, a second document, a scalar that is not a str/bool/int/float/null, a parse
+    error) raises :class:`_Unusual` or the parser's error, and the caller uses the full loader,
+    which gives its own result or error: the outcome is always the full loader's.
+    """
+    loader = _UniqueKeyLoader("")
+    cache: Dict[str, Any] = {}
+
+    def plain(value: str) -> Any:
+        if _PLAIN_FLOAT.match(value):
+            return float(value.replace("_", ""))
+        if _PLAIN_INT.match(value):
+            return int(value.replace("_", ""))
+        if value in cache:
+            return cache[value]
+        tag = loader.resolve(yaml.ScalarNode, value, (True, False))
+        try:
+            obj = loader.construct_object(yaml.ScalarNode(tag, value))
+        except Exception:  # noqa: BLE001 - whatever it is, the full loader reports it its own way
+            raise _Unusual from None
+        if type(obj) not in _SIMPLE or tag == "tag:yaml.org,2002:merge":
+            raise _Unusual
+        cache[value] = obj
+        return obj
+
+    anchors: Dict[str, Any] = {}
+    stack: list = []        # [container, pending key]; _NO_KEY when a mapping waits for a key
+    root: list = []
+    documents = 0
+    for ev in yaml.parse(text, Loader=_UniqueKeyLoader):
+        kind = type(ev)
+        if kind is yaml.ScalarEvent:
+            if ev.tag is not None:
+                raise _Unusual
+            value = plain(ev.value) if ev.implicit[0] else ev.value
+        elif kind is yaml.AliasEvent:
+            if ev.anchor not in anchors:
+                raise _Unusual
+            value = anchors[ev.anchor]
+        elif kind is yaml.MappingStartEvent or kind is yaml.SequenceStartEvent:
+            if ev.tag is not None and not ev.implicit:
+                raise _Unusual
+            value = {} if kind is yaml.MappingStartEvent else []
+        elif kind is yaml.MappingEndEvent or kind is yaml.SequenceEndEvent:
+            stack.pop()
+            continue
+        elif kind is yaml.DocumentStartEvent:
+            documents += 1
+            if documents > 1:
+                raise _Unusual
+            continue
+        else:  # stream start/end, document end
+            continue
+        if getattr(ev, "anchor", None) is not None and kind is not yaml.AliasEvent:
+            anchors[ev.anchor] = value
+        if not stack:
+            root.append(value)
+        else:
+            top = stack[-1]
+            container = top[0]
+            if type(container) is list:
+                container.append(value)
+            elif top[1] is _NO_KEY:
+                if type(value) not in _SIMPLE or value in container:
+                    raise _Unusual  # a container as key, or a duplicate key: the full loader says so
+                top[1] = value
+            else:
+                container[top[1]] = value
+                top[1] = _NO_KEY
+        if kind is yaml.MappingStartEvent or kind is yaml.SequenceStartEvent:
+            stack.append([value, _NO_KEY])
+    return root[0] if root else None
+
+
+_NO_KEY = object()
+
+#: Most values a YAML document may expand to, aliases counted at every use (a 32 MiB map holds about
+#: 4 million). A "billion laughs" file (aliases of aliases) is small on disk but expands to far more:
+#: the first numpy call on it would try to allocate terabytes.
+MAX_YAML_VALUES = 10_000_000
+
+
+def _expanded_size(root: Any, limit: int) -> Optional[str]:
+    """Why the document ``root`` must not be used (it expands beyond ``limit`` values, or refers to
+    itself), or None. Linear in the distinct lists and dicts (shared ones are counted once, with
+    their size, at every use)."""
+    sizes: Dict[int, int] = {}
+    entered = set()
+    stack = [(root, False)]
+    while stack:
+        obj, done = stack.pop()
+        kind = type(obj)
+        if kind is not list and kind is not dict:
+            continue
+        oid = id(obj)
+        children = obj.values() if kind is dict else obj
+        if done:
+            entered.discard(oid)
+            n = 1 + (len(obj) if kind is dict else 0) + sum(
+                sizes[id(c)] if type(c) is list or type(c) is dict else 1 for c in children)
+            if n > limit:
+                return f"its aliases expand it to more than {limit:,} values (a YAML bomb?)"
+            sizes[oid] = n
+            continue
+        if oid in sizes:
+            continue
+        if oid in entered:
+            return "it contains itself (a recursive alias)"
+        entered.add(oid)
+        stack.append((obj, True))
+        stack.extend((c, False) for c in children if (type(c) is list or type(c) is dict) and id(c) not in sizes)
+    return None
+
+
+def load_yaml_file(path: str, max_bytes: int = MAX_YAML_FILE_BYTES) -> Any:
     """Read a YAML file; any failure becomes a ConfigError naming the file (and line, if known).
 
-    A key repeated in one mapping is an error too (naming the key and its line).
+    A key repeated in one mapping is an error too (naming the key and its line), and so is a file
+    larger than ``max_bytes`` (refused before it is parsed: parse time and memory grow with it) or
+    one whose aliases expand it beyond :data:`MAX_YAML_VALUES` values or make it recursive.
+    YAML's safe subset only (no Python objects); the common case takes the fast route
+    (:func:`_fast_safe_load`), with the same result.
     """
     try:
         with open(path, "r", encoding="utf-8") as handle:
-            data = yaml.load(handle, Loader=_UniqueKeyLoader)
+            size = os.fstat(handle.fileno()).st_size
+            if size > max_bytes:
+                raise ConfigError(f"file is {size / 2 ** 20:.1f} MiB, more than the {max_bytes / 2 ** 20:.0f} MiB "
+                                  "this file type may have", path=str(path))
+            text = handle.read()
+        try:
+            data = _fast_safe_load(text)
+        except (_Unusual, yaml.YAMLError, RecursionError):
+            data = yaml.load(text, Loader=_UniqueKeyLoader)
     except FileNotFoundError:
         raise ConfigError("file not found", path=str(path)) from None
     except (OSError, UnicodeDecodeError) as exc:
@@ -350,6 +503,9 @@ def load_yaml_file(path: str) -> Any:
         raise ConfigError("invalid YAML: nested too deeply", path=str(path)) from None
     if data is None:
         raise ConfigError("file is empty", path=str(path))
+    problem = _expanded_size(data, MAX_YAML_VALUES)
+    if problem:
+        raise ConfigError(f"refused: {problem}", path=str(path))
     return data
 
 

@@ -89,13 +89,18 @@ class RingFrameAssembler:
             is complete once every camera heard from within ``silence`` has reported. So a
             dead camera costs one ``timeout`` per frame only until it is found silent, not for ever.
             ``None`` always waits for every camera (up to ``timeout``).
+        late_by_clock: the caller's clock is the truth (the localizer's): a frame stamped more than
+            1 s before the last ring frame counts as a time jump (start over) only when its stamp is
+            recent by the caller's clock too (the clock went back with it); otherwise it is late
+            and dropped. False (the mapper): stamps alone decide, so a bag replayed in a loop
+            without its clock still maps.
 
     Usage: call :meth:`add` for every camera frame and :meth:`poll` periodically; both return
     the ring frames that are ready, oldest first.
     """
 
     def __init__(self, cameras: Sequence[str], slop: float = 0.03, timeout: float = 0.25, max_pending: int = 8,
-                 silence: Optional[float] = 1.0):
+                 silence: Optional[float] = 1.0, late_by_clock: bool = False):
         if not cameras:
             raise ValueError("RingFrameAssembler needs at least one camera name")
         if slop < 0 or timeout <= 0:
@@ -105,6 +110,7 @@ class RingFrameAssembler:
         self.timeout = float(timeout)
         self.max_pending = int(max_pending)
         self.silence = silence
+        self.late_by_clock = bool(late_by_clock)
         self._first_seen: Optional[float] = None
         self._pending: List[Tuple[float, RingFrame]] = []  # (arrival time, frame), stamp order
         self._last_emitted = -np.inf
@@ -125,8 +131,10 @@ class RingFrameAssembler:
             # Start-up, or every camera was silent: wait for all of them again while they come back.
             self._first_seen = now
         self.last_seen[frame.camera] = now
-        if frame.stamp < self._last_emitted - 1.0:
+        if frame.stamp < self._last_emitted - 1.0 and not (self.late_by_clock and now - frame.stamp > 1.0):
             # Time went backwards by more than a second (a bag loop, a clock reset): start over.
+            # With late_by_clock, a stamp that is old by the caller's clock too is a late message,
+            # not a jump (dropped below): one lagging camera must not reset everybody's frames.
             self.time_jumps += 1
             logger.warning("time jumped back from %.3f to %.3f s; resetting frame assembly",
                            self._last_emitted, frame.stamp)
@@ -186,7 +194,7 @@ def sanitize_observations(observations: Sequence[MarkerObservation], ignore: Col
                           min_area_px: float = 4.0) -> Tuple[List[MarkerObservation], Dict[str, int]]:
     """Keep only usable detections.
 
-    Drops: ids in ``ignore``; corners that are not a finite (4, 2) array; degenerate quads
+    Drops: ids in ``ignore``; negative ids; corners that are not a finite (4, 2) array; degenerate quads
     (non-convex, self-intersecting, smaller than ``min_area_px``); corners far outside the image
     when the size is known (more than one image size away); and every detection of an id that
     appears more than once in the same image (which one is real cannot be told).
@@ -205,6 +213,9 @@ def sanitize_observations(observations: Sequence[MarkerObservation], ignore: Col
     for obs in observations:
         if obs.marker_id in ignore:
             drop("ignored")
+            continue
+        if obs.marker_id < 0:
+            drop("negative id")   # no dictionary has one: a corrupt message
             continue
         c = np.asarray(obs.corners, dtype=np.float64)
         if c.shape != (4, 2) or not np.all(np.isfinite(c)):

@@ -1,8 +1,10 @@
 """Safe file writing: a file is replaced whole or not at all.
 
 :func:`atomic_write_text` writes to a temporary file in the same directory, flushes and fsyncs it,
-keeps the previous version as ``<name>.bak`` and renames the new one into place. A process killed
-at any instant leaves either the old file or the new one (and the ``.bak``), never half a file.
+keeps the previous version as ``<name>.bak`` (and, with ``backups=N``, the ones before as
+``<name>.bak.2`` ... ``<name>.bak.N``, newest first) and renames the new one into place. A process
+killed at any instant leaves either the old file or the new one (and the backups), never half a
+file.
 A new file gets the mode an ``open()`` would give it (0666 less the umask: 0644 by default); a
 replaced file keeps its own mode.
 """
@@ -12,14 +14,27 @@ import logging
 import os
 import secrets
 import stat
+from typing import List
 
 from .errors import ConfigError
 
 logger = logging.getLogger(__name__)
 
 
-def atomic_write_text(path: str, text: str, keep_backup: bool = True) -> None:
-    """Write ``text`` to ``path`` atomically; the previous file becomes ``path + '.bak'``."""
+def backup_paths(path: str, backups: int) -> List[str]:
+    """The backups of ``path``, newest first: ``path.bak``, ``path.bak.2``, ... (``backups`` of them)."""
+    return [f"{path}.bak" if k == 1 else f"{path}.bak.{k}" for k in range(1, int(backups) + 1)]
+
+
+def atomic_write_text(path: str, text: str, keep_backup: bool = True, backups: int = 1) -> None:
+    """Write ``text`` to ``path`` atomically.
+
+    With ``keep_backup``, the previous file becomes ``path + '.bak'`` and the ``backups - 1``
+    before it move down to ``.bak.2`` ... ``.bak.<backups>`` (the oldest goes); ``backups`` 0 or
+    ``keep_backup`` False keeps none.
+    """
+    if not keep_backup:
+        backups = 0
     path = os.path.abspath(str(path))
     directory = os.path.dirname(path)
     try:
@@ -33,10 +48,15 @@ def atomic_write_text(path: str, text: str, keep_backup: bool = True) -> None:
             handle.write(text)
             handle.flush()
             os.fsync(handle.fileno())
-        if keep_backup and os.path.exists(path):
+        if backups > 0 and os.path.exists(path):
+            baks = backup_paths(path, backups)
+            # Oldest first, each rename atomic: a kill in between loses at most the oldest backup.
+            for older, newer in zip(baks[::-1], baks[-2::-1]):
+                if os.path.lexists(newer):
+                    os.replace(newer, older)
             # A hard link keeps the old file reachable as .bak while the rename below replaces it,
             # so there is no instant at which neither the old nor the new map exists.
-            bak = path + ".bak"
+            bak = baks[0]
             try:
                 if os.path.lexists(bak):
                     os.unlink(bak)

@@ -1077,9 +1077,9 @@ class MapBuilder:
                 out.ring_extrinsics_covariance = camera_cov_in_optical_frames(res.camera_cov, res.T_base_cams)
         return out
 
-    def save_map(self, path: str, method: Optional[str] = None) -> MarkerMap:
+    def save_map(self, path: str, method: Optional[str] = None, backups: int = 1) -> MarkerMap:
         """Build the map (:meth:`build`) and write it to ``path`` atomically (previous file kept as
-        ``<path>.bak``, :meth:`MarkerMap.save`): what the mapper's ``~save_map`` and
+        ``<path>.bak``, ``backups`` generations: :meth:`MarkerMap.save`): what the mapper's ``~save_map`` and
         ``save_on_shutdown`` do. A crash at any instant leaves the old file or the new one whole.
         The map must pass the sanity checks (``options.sanity``, :func:`marker_map.check_map`);
         when it does not, nothing is written.
@@ -1089,7 +1089,7 @@ class MapBuilder:
             it, the markers and what to do); ConfigError: the file cannot be written.
         """
         m = self.build(method)
-        m.save(path, self.options.sanity)
+        m.save(path, self.options.sanity, backups=backups)
         return m
 
     def _refined_reference(self, init: _Init, res: BAResult, mids: List[int]) -> int:

@@ -49,6 +49,7 @@ from typing import Any, Dict, Iterable, Iterator, List, Mapping, Optional, Tuple
 
 import numpy as np
 import yaml
+from scipy.spatial.transform import Rotation
 
 from . import geometry as geo
 from .camera import load_yaml_file
@@ -60,6 +61,14 @@ from .markers import marker_corners
 logger = logging.getLogger(__name__)
 
 MAP_FORMAT_VERSION = 1
+
+#: Largest map file read, bytes (32 MiB: about 130,000 markers as the mapper writes them; a
+#: 5,000-marker map is 1.2 MB). A larger file is refused before it is parsed.
+MAX_MAP_FILE_BYTES = 32 * 1024 * 1024
+
+#: Largest |coordinate| of a marker in the map frame, m (100 km: no hall is larger). A value
+#: beyond it is a corrupt or hostile file: refused, naming the key, before any product overflows.
+MAX_COORDINATE = 1.0e5
 
 #: Map frame conventions (``frame_convention`` in the file).
 FRAME_CONVENTIONS = {
@@ -246,8 +255,9 @@ class MarkerMap:
                     "matrix": [[float(f"{v:.9g}") for v in row] for row in self.ring_extrinsics_covariance]}
         return out
 
-    def save(self, path: str, limits: Optional["MapSanityLimits"] = None) -> None:
-        """Write the map as YAML, atomically; the previous file is kept as ``<path>.bak``.
+    def save(self, path: str, limits: Optional["MapSanityLimits"] = None, backups: int = 1) -> None:
+        """Write the map as YAML, atomically; the previous file is kept as ``<path>.bak`` (and the
+        ``backups - 1`` before it as ``.bak.2`` ...: :func:`fileio.atomic_write_text`).
 
         The map must pass :func:`check_map` first (``limits``: default :class:`MapSanityLimits`);
         when it does not, nothing is written and :class:`errors.MapSanityError` says why.
@@ -257,13 +267,17 @@ class MarkerMap:
             raise MapSanityError(problems, path=str(path))
         text = "# aruco_ring_localization marker map (docs/formats.md)\n" + \
             yaml.safe_dump(self.to_dict(), sort_keys=False, default_flow_style=None)
-        atomic_write_text(path, text)
+        atomic_write_text(path, text, backups=backups)
         logger.info("saved %d markers to %s", len(self), path)
 
     @classmethod
     def load(cls, path: str) -> "MarkerMap":
-        """Load a YAML map; any problem raises ConfigError naming the file and the key."""
-        return cls.from_dict(load_yaml_file(path), source=str(path))
+        """Load a YAML map; any problem raises ConfigError naming the file and the key.
+
+        Files larger than :data:`MAX_MAP_FILE_BYTES` are refused unread; markers farther than
+        :data:`MAX_COORDINATE` from the origin are refused naming their key.
+        """
+        return cls.from_dict(load_yaml_file(path, max_bytes=MAX_MAP_FILE_BYTES), source=str(path))
 
     @classmethod
     def from_dict(cls, data: Any, source: str = "<map>") -> "MarkerMap":
@@ -297,11 +311,13 @@ class MarkerMap:
         if quality is not None and not isinstance(quality, Mapping):
             raise ConfigError("expected a mapping", path=source, key="quality")
         out.quality = dict(quality or {})
-        for i, m in enumerate(markers):
-            entry = _entry_from_dict(m, source, f"markers[{i}]")
-            if entry.marker_id in out:
-                raise ConfigError(f"duplicate marker id {entry.marker_id}", path=source, key=f"markers[{i}].id")
-            out.add(entry)
+        if not _add_all_vectorised(out, markers):
+            # Something is wrong (or unusual) in the list: one marker at a time, naming the key.
+            for i, m in enumerate(markers):
+                entry = _entry_from_dict(m, source, f"markers[{i}]")
+                if entry.marker_id in out:
+                    raise ConfigError(f"duplicate marker id {entry.marker_id}", path=source, key=f"markers[{i}].id")
+                out.add(entry)
         if ref is not None and ref not in out:
             raise ConfigError(f"reference marker {ref} is not among the markers", path=source, key="reference_marker")
         if data.get("ring_calibration") is not None:
@@ -389,6 +405,9 @@ def _entry_from_dict(m: Any, source: str, key: str) -> MarkerEntry:
     from .ring import read_transform  # local import: rig imports camera, not marker_map
 
     T = read_transform({"translation": m.get("translation"), "rotation": m.get("rotation")}, source, key)
+    if np.abs(T[:3, 3]).max() > MAX_COORDINATE:
+        raise ConfigError(f"{T[:3, 3].tolist()} lies more than {MAX_COORDINATE:g} m from the map origin",
+                          path=source, key=f"{key}.translation")
     pos_std = _read_std(m, "position_std", source, key)
     rot_std = _read_std(m, "rotation_std", source, key)
     nobs = m.get("observations", 0)
@@ -401,6 +420,65 @@ def _entry_from_dict(m: Any, source: str, key: str) -> MarkerEntry:
     if rms is not None and (isinstance(rms, bool) or not isinstance(rms, (int, float)) or not rms >= 0):
         raise ConfigError(f"expected a non-negative number of pixels, got {rms!r}", path=source, key=f"{key}.rms_px")
     return MarkerEntry(mid, T, float(size), pos_std, rot_std, nobs, ambiguous, None if rms is None else float(rms))
+
+
+def _add_all_vectorised(out: MarkerMap, markers: List[Any]) -> bool:
+    """Add every marker of a map file's list to ``out`` at once, when the whole list is valid.
+
+    The checks of :func:`_entry_from_dict` and :meth:`MarkerMap.add`, on arrays (a 5,000-marker map
+    in a few ms instead of 0.3 s); it accepts a subset of what they accept. Returns False (and
+    adds nothing) at the first doubt: the caller then goes marker by marker and names the key.
+    """
+    n = len(markers)
+    if n == 0 or not all(isinstance(m, dict) for m in markers):
+        return False
+    ids = [m.get("id") for m in markers]
+    sizes = [m.get("size") for m in markers]
+    nobs = [m.get("observations", 0) for m in markers]
+    ambiguous = [m.get("ambiguous", False) for m in markers]
+    rms = [m.get("rms_px") for m in markers]
+    if not (all(type(i) is int and i >= 0 for i in ids) and len(set(ids)) == n
+            and all(type(v) is int and v >= 0 for v in nobs)
+            and all(type(v) in (int, float) for v in sizes)
+            and all(type(v) is bool for v in ambiguous)
+            and all(v is None or (type(v) in (int, float) and v >= 0) for v in rms)):
+        return False
+    fields = {}
+    for name, width, dflt in (("translation", 3, None), ("rotation", 4, None), ("position_std", 3, _ZERO3),
+                              ("rotation_std", 3, _ZERO3)):
+        values = [m.get(name, dflt) for m in markers]
+        if not all(type(v) is list and len(v) == width for v in values):
+            return False
+        try:
+            arr = np.array(values, dtype=np.float64)
+        except (TypeError, ValueError):
+            return False
+        if arr.shape != (n, width) or not np.isfinite(arr).all():
+            return False
+        fields[name] = arr
+    size = np.array(sizes, dtype=np.float64)
+    t, q = fields["translation"], fields["rotation"]
+    norm = np.linalg.norm(q, axis=1)
+    if not ((size > 0).all() and np.isfinite(size).all() and (norm > 0.9).all() and (norm < 1.1).all()
+            and (np.abs(t) <= MAX_COORDINATE).all() and (fields["position_std"] >= 0).all()
+            and (fields["rotation_std"] >= 0).all()):
+        return False
+    T = np.zeros((n, 4, 4))
+    T[:, :3, :3] = Rotation.from_quat(q).as_matrix()
+    T[:, :3, 3] = t
+    T[:, 3, 3] = 1.0
+    local = marker_corners(1.0)[None] * size[:, None, None]           # (n, 4, 3) in each marker's frame
+    corners = np.einsum("nij,nkj->nki", T[:, :3, :3], local) + t[:, None, :]
+    for k in range(n):
+        mid = ids[k]
+        out._entries[mid] = MarkerEntry(mid, T[k], float(size[k]), fields["position_std"][k],
+                                        fields["rotation_std"][k], nobs[k], ambiguous[k],
+                                        None if rms[k] is None else float(rms[k]))
+        out._corners[mid] = corners[k]
+    return True
+
+
+_ZERO3 = [0.0, 0.0, 0.0]
 
 
 def _read_ring_calibration(node: Any, source: str):

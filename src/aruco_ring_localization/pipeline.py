@@ -60,6 +60,9 @@ logger = logging.getLogger(__name__)
 SKIP_NO_CAMERA_INFO = "no camera_info"
 SKIP_NO_EXTRINSICS = "no extrinsics"
 SKIP_BAD_STAMP = "bad stamp"
+SKIP_FUTURE_STAMP = "future stamp"
+SKIP_STALE_STAMP = "stale stamp"
+SKIP_FLOOD = "too many detections"
 
 #: Motion inputs :meth:`LocalizationPipeline.on_motion` takes.
 MOTION_SOURCES = ("cmd_vel", "odom")
@@ -110,16 +113,19 @@ class RingInput:
         params: the ``input`` section of the node's schema.
         warn: the pipeline's throttled warnings.
         label: how the warnings name this stage.
+        max_age: a message stamped longer than this (s) before the node's clock is dropped as
+            stale (the localizer's ``timing.max_frame_age``); 0: no limit (the mapper).
     """
 
     def __init__(self, ring: CameraRing, params: RingInputParams, warn: ThrottledWarnings,
-                 label: str = "ring input"):
+                 label: str = "ring input", max_age: float = 0.0):
         self.params = params
+        self.max_age = float(max_age)
         self.calibrated_ring = ring
         self.camera_names = resolve_camera_names(ring, params.cameras)
         self.ignore_ids = params.ignored_ids()
         self.assembler = RingFrameAssembler(self.camera_names, slop=params.slop, timeout=params.timeout,
-                                            silence=params.silent_after)
+                                            silence=params.silent_after, late_by_clock=self.max_age > 0)
         self._warn = warn
         self._label = label
         self._models: Dict[str, CameraModel] = {}
@@ -166,15 +172,39 @@ class RingInput:
 
     # --- data -------------------------------------------------------------------------------
 
-    def check_stamp(self, camera: str, stamp: float, now: float) -> Optional[str]:
-        """Why a camera's message with ``stamp`` must not be used at ``now``, or None.
+    def check_stamp(self, source: str, stamp: float, now: float) -> Optional[str]:
+        """Why a message of ``source`` (a camera, ``odom``) stamped ``stamp`` must not be used at
+        ``now`` (the node's clock), or None. THE stamp policy of the package:
 
-        THE place for the stamp policy (issue 14: stamps checked against the node's clock,
-        future or absurd stamps dropped, never used to predict). Today: non-finite stamps.
+        * not finite: ``SKIP_BAD_STAMP``;
+        * more than ``input.max_stamp_ahead`` after ``now``: ``SKIP_FUTURE_STAMP`` (a future stamp
+          would make the filter predict to it and put the pose on tf at it);
+        * more than ``max_age`` before ``now`` (when set): ``SKIP_STALE_STAMP`` (it can only make
+          a ring frame the localizer drops as stale, and it must not pass for a clock jump; ROS's
+          "no stamp", 0, is one of these).
+
+        A clock that jumps back (a bag loop) moves ``now`` with the stamps: nothing is dropped.
         """
         if not np.isfinite(stamp):
             return SKIP_BAD_STAMP
+        if stamp - now > self.params.max_stamp_ahead:
+            return SKIP_FUTURE_STAMP
+        if self.max_age > 0 and now - stamp > self.max_age:
+            return SKIP_STALE_STAMP
         return None
+
+    def stamp_hint(self, reason: str, stamp: float, now: float) -> str:
+        """The offset a stamp warning names (`` (+282.1 s ahead of the clock ...)``)."""
+        if reason == SKIP_FUTURE_STAMP:
+            return f" ({stamp - now:+.3f} s ahead of the node's clock; input/max_stamp_ahead {self.params.max_stamp_ahead} s)"
+        if reason == SKIP_STALE_STAMP:
+            return f" ({now - stamp:.3f} s old by the node's clock; limit {self.max_age} s)"
+        return f" ({stamp!r})"
+
+    def topic(self, camera: str) -> str:
+        """The detection topic of ``camera`` (relative to the node's namespace), for warnings."""
+        ns = self.calibrated_ring[camera].namespace.strip("/") if camera in self.skipped else ""
+        return f"{ns}/fiducial_vertices" if ns else "fiducial_vertices"
 
     def add_detections(self, camera: str, stamp: float, observations: Sequence[MarkerObservation],
                        now: float) -> List[RingFrame]:
@@ -190,18 +220,19 @@ class RingInput:
             return self.poll(now)
         model = self.camera_model(camera)
         reason = self.check_stamp(camera, stamp, now)
+        hint = "" if reason is None else self.stamp_hint(reason, stamp, now)
+        if reason is None and len(observations) > self.params.max_detections:
+            reason, hint = SKIP_FLOOD, f" (more than input/max_detections {self.params.max_detections})"
         if reason is None and model is None:
-            reason = SKIP_NO_CAMERA_INFO
+            reason, hint = SKIP_NO_CAMERA_INFO, " (set input/camera_info_fallback: true to use the ring file's)"
         if reason is None and camera not in self._extrinsics:
-            reason = SKIP_NO_EXTRINSICS
+            reason, hint = SKIP_NO_EXTRINSICS, (f" (tf {self.calibrated_ring.base_frame} -> "
+                                                f"{self.calibrated_ring[camera].frame_id})")
         if reason is not None:
             counts = self.skipped[camera]
             counts[reason] = counts.get(reason, 0) + 1
-            hint = {SKIP_NO_CAMERA_INFO: " (set input/camera_info_fallback: true to use the ring file's)",
-                    SKIP_NO_EXTRINSICS: f" (tf {self.calibrated_ring.base_frame} -> "
-                                        f"{self.calibrated_ring[camera].frame_id})",
-                    SKIP_BAD_STAMP: f" ({stamp!r})"}.get(reason, "")
-            self._warn(f"{camera}.{reason}", f"{self._label}: {camera}: {reason}{hint}; skipping its detections", now)
+            self._warn(f"{camera}.{reason}", f"{self._label}: {camera} ({self.topic(camera)}): {reason}{hint}; "
+                                             "skipping its detections", now)
             return self.poll(now)
         kept, dropped = sanitize_observations(observations, self.ignore_ids, model.width, model.height)
         if dropped:
@@ -347,7 +378,8 @@ class LocalizationPipeline(_RingPipeline):
         self.config = config
         self.marker_map = marker_map
         self.warn = ThrottledWarnings(logger.warning, WARN_PERIOD)
-        self.input = RingInput(ring, config.input, self.warn, label="localizer")
+        self.input = RingInput(ring, config.input, self.warn, label="localizer",
+                               max_age=config.timing.max_frame_age)
         self.localizer = RingLocalizer(self.input.ring, marker_map, config.estimator)
         self.gate = MotionGate(config.gate)
         self.filter = PoseFilter(config.filter)
@@ -356,6 +388,11 @@ class LocalizationPipeline(_RingPipeline):
         self._roll_pitch = (0.0, 0.0)        # ... and its roll, pitch
         self._last_stamp: Optional[float] = None
         self._last_frame_now: Optional[float] = None
+        self._clock: Optional[float] = None          # the latest ``now`` of any event (the node's clock)
+        self._clock_jumped = False                   # the clock went back: the next track says time_jump
+        xy = np.array([e.T_map_marker[:2, 3] for e in marker_map])
+        #: (x_min, y_min, x_max, y_max) of the markers in the map frame: where an initialpose may lie (+ margin).
+        self.extent = (*xy.min(axis=0), *xy.max(axis=0))
         self.last_update_now: Optional[float] = None
         self.last_track: Optional[TrackResult] = None
         # counters (diagnostics)
@@ -364,6 +401,7 @@ class LocalizationPipeline(_RingPipeline):
         self.predicted_only = 0
         self.frames_missing = 0             # ring frames processed without every camera
         self.time_jumps = 0
+        self.pauses = 0                     # clock gaps longer than timing.max_pause (re-initialisations)
         self.rejected_counts: Dict[str, int] = {}
         self.latency_ms: Deque[float] = deque(maxlen=200)
         self._camera_stats: Dict[str, Dict[str, float]] = {}
@@ -377,6 +415,7 @@ class LocalizationPipeline(_RingPipeline):
     def on_detections(self, camera: str, stamp: float, observations: Sequence[MarkerObservation],
                       now: float) -> List[PoseOutput]:
         """One camera's detections (raw pixels) at ``stamp``; returns the poses to publish."""
+        self._tick(now)
         return self._process(self.input.add_detections(camera, stamp, observations, now), now)
 
     def on_motion(self, source: str, stamp: Optional[float], linear_xy: Sequence[float], yaw_rate: float,
@@ -390,18 +429,38 @@ class LocalizationPipeline(_RingPipeline):
             T_odom_base: the odometry pose (4x4), unused today: issue 12 predicts the filter with
                 odometry increments here, and may then return poses at the odometry rate.
 
-        The gate allows jumps that grow with the largest fresh speed (``timing.motion_timeout``).
+        The gate allows jumps that grow with the largest fresh speed. Dropped, with a throttled
+        warning naming the source: a non-finite speed; a speed or yaw rate beyond ``limits``; a
+        stamp the stamp policy refuses (:meth:`RingInput.check_stamp`: in the future, or older
+        than ``timing.motion_timeout``). A kept input is fresh for ``timing.motion_timeout`` s of
+        the node's clock from its stamp, never from later than its arrival.
         """
         if source not in MOTION_SOURCES:
             raise ValueError(f"motion source must be one of {MOTION_SOURCES}, got {source!r}")
+        self._tick(now)
         v = float(np.hypot(float(linear_xy[0]), float(linear_xy[1])))
         w = float(yaw_rate)
         t = float(stamp) if stamp else float(now)
-        if not (np.isfinite(v) and np.isfinite(w) and np.isfinite(t)):
-            self.warn(f"{source}.non-finite", f"localizer: {source}: non-finite speed or stamp "
-                                              f"(v {v!r}, yaw rate {w!r}, stamp {t!r}) ignored", now)
+        lim = self.config.limits
+        problem = None
+        if not (np.isfinite(v) and np.isfinite(w)):
+            key, problem = "non-finite", f"non-finite speed (v {v!r}, yaw rate {w!r})"
+        elif v > lim.max_speed or abs(w) > lim.max_yaw_rate:
+            key, problem = "beyond limits", (f"speed {v:.3g} m/s / yaw rate {w:.3g} rad/s beyond limits/max_speed "
+                                             f"{lim.max_speed} m/s / limits/max_yaw_rate {lim.max_yaw_rate} rad/s")
+        else:
+            key = self.input.check_stamp(source, t, now)
+            if key == SKIP_STALE_STAMP or (key is None and now - t > self.config.timing.motion_timeout):
+                key = SKIP_STALE_STAMP
+                problem = f"stale stamp ({now - t:.3f} s old by the node's clock > timing/motion_timeout)"
+            elif key is not None:
+                problem = f"{key}{self.input.stamp_hint(key, t, now)}"
+        if problem is not None:
+            self.rejected_counts[f"{source}_{key.replace(' ', '_')}"] = \
+                self.rejected_counts.get(f"{source}_{key.replace(' ', '_')}", 0) + 1
+            self.warn(f"{source}.{key}", f"localizer: {source}: {problem}: ignored", now)
             return []
-        self._motion[source] = _Motion(abs(v), abs(w), t)
+        self._motion[source] = _Motion(abs(v), abs(w), min(t, float(now)))
         return []
 
     def on_initial_pose(self, pose, now: float) -> List[PoseOutput]:
@@ -418,6 +477,13 @@ class LocalizationPipeline(_RingPipeline):
             raise MeasurementError(f"initialpose: {exc}") from None
         if not np.all(np.isfinite(se2)):
             raise MeasurementError(f"initialpose: not finite: {se2.tolist()}")
+        m = self.config.limits.initial_pose_margin
+        x0, y0, x1, y1 = self.extent
+        if not (x0 - m <= se2[0] <= x1 + m and y0 - m <= se2[1] <= y1 + m):
+            raise MeasurementError(f"initialpose: ({se2[0]:.4g}, {se2[1]:.4g}) lies outside the map: its markers "
+                                   f"span x {x0:.2f}..{x1:.2f}, y {y0:.2f}..{y1:.2f} m (+ limits/initial_pose_margin "
+                                   f"{m} m)")
+        self._tick(now)
         stamp = self._last_stamp if self._last_stamp is not None else float(now)
         self._reset(se2, stamp)
         return []
@@ -433,6 +499,7 @@ class LocalizationPipeline(_RingPipeline):
         nothing when no camera reports) the filter predicts to ``now`` and the pose goes out with
         its growing covariance (``PoseOutput.predicted_only``), with a throttled warning.
         """
+        self._tick(now)
         out = self._process(self.input.poll(now), now)
         if out or self._last_frame_now is None or not self.filter.initialized:
             return out
@@ -498,9 +565,11 @@ class LocalizationPipeline(_RingPipeline):
                   ("std_x_m", f"{np.sqrt(cov[0, 0]):.4f}"), ("std_y_m", f"{np.sqrt(cov[1, 1]):.4f}"),
                   ("std_yaw_deg", f"{np.degrees(np.sqrt(cov[2, 2])):.3f}"),
                   ("frames", str(self.frames)), ("dropped_stale", str(self.dropped_stale)),
+                  ("camera_frames_late", str(self.input.assembler.dropped_late)),
                   ("frames_with_missing_cameras", str(self.frames_missing)),
                   ("predicted_only", str(self.predicted_only)),
                   ("time_jumps", str(self.time_jumps)),
+                  ("pauses", str(self.pauses)),
                   ("reinitializations", str(self.gate.reinitializations)),
                   ("latency_ms_median", f"{np.median(lat):.2f}")]
         values += [(f"rejected_{k.replace(' ', '_')}", str(v)) for k, v in sorted(self.rejected_counts.items())]
@@ -508,6 +577,37 @@ class LocalizationPipeline(_RingPipeline):
         return out
 
     # --- the pipeline -------------------------------------------------------------------------
+
+    def _tick(self, now: float) -> None:
+        """The clock policy, at every event, on the node's clock (never on a message's stamp).
+
+        * The clock went back by more than ``filter.time_jump_tolerance`` (a bag loop, a /clock
+          reset): the track starts over (``time_jumps``).
+        * It moved forward by more than ``timing.max_pause`` since the previous event (the process
+          was stopped or starved, the machine suspended, a recording has a gap): the track is not
+          extrapolated over the gap, nothing is predicted across it, and the next measurement
+          re-initialises the track (``pauses``): no jump from a stale prediction.
+        """
+        now = float(now)
+        last = self._clock
+        if last is None or not np.isfinite(now):
+            self._clock = now if np.isfinite(now) else last
+            return
+        if now < last - self.config.filter.time_jump_tolerance:
+            self.time_jumps += 1
+            self._clock_jumped = True
+            self.gate.reset()
+            self.filter.reset()
+            logger.warning("localizer: time jumped back from %.3f to %.3f s: filter reset", last, now)
+            self._clock = now
+            return
+        if now - last > self.config.timing.max_pause and self.filter.initialized:
+            self.pauses += 1
+            logger.warning("localizer: the node's clock moved %.2f s between two events (more than timing/max_pause "
+                           "%.2f s: the node was stopped or starved, or the input has a gap); the track restarts "
+                           "from the next measurement", now - last, self.config.timing.max_pause)
+            self._reset(None, None)
+        self._clock = max(last, now)
 
     def _process(self, frames: List[RingFrame], now: float) -> List[PoseOutput]:
         if not frames:
@@ -526,6 +626,16 @@ class LocalizationPipeline(_RingPipeline):
             self.dropped_stale += 1
             self.warn("stale", f"localizer: dropped {self.dropped_stale} stale ring frames so far (last "
                                f"{age:.2f} s old > timing/max_frame_age {max_age} s)", now)
+            return []
+        behind = None if self.filter.stamp is None else self.filter.stamp - frame.stamp
+        if -age > self.config.input.max_stamp_ahead or (
+                behind is not None and behind > self.config.filter.time_jump_tolerance):
+            # Assembled before the clock went back, or later than the track by more than a time
+            # jump: a late frame is dropped; only the node's clock going back restarts the track.
+            self.dropped_stale += 1
+            self.warn("late", f"localizer: dropped {self.dropped_stale} stale ring frames so far (last at "
+                              f"{frame.stamp:.3f} s: {-age:+.2f} s from the clock, "
+                              f"{0.0 if behind is None else behind:.2f} s behind the track)", now)
             return []
         t0 = time.perf_counter()
         track = self._track(frame)
@@ -551,8 +661,9 @@ class LocalizationPipeline(_RingPipeline):
             return []
         return [self._output(track)]
 
-    def _speeds(self, stamp: float) -> Tuple[float, float]:
-        fresh = [m for m in self._motion.values() if stamp - m.stamp <= self.config.timing.motion_timeout]
+    def _speeds(self, now: float) -> Tuple[float, float]:
+        """The largest speed and yaw rate of the motion inputs fresh at ``now`` (the node's clock)."""
+        fresh = [m for m in self._motion.values() if now - m.stamp <= self.config.timing.motion_timeout]
         return (max((m.speed for m in fresh), default=0.0), max((m.yaw_rate for m in fresh), default=0.0))
 
     def _reset(self, pose, stamp: Optional[float]) -> None:
@@ -567,11 +678,13 @@ class LocalizationPipeline(_RingPipeline):
         """Paper Algorithm 1, steps 2-5, on one ring frame."""
         stamp = float(ring_frame.stamp)
         self._last_stamp = stamp
-        time_jump = self.filter.check_time(stamp)
-        if time_jump:
-            # Time went backwards (a bag loop, a clock reset): the track starts over.
+        time_jump = self._clock_jumped   # the clock went back (_tick reset the track and said so)
+        self._clock_jumped = False
+        if self.filter.check_time(stamp):
+            # A stamp far behind the track with the clock steady (a driver that did not use _tick).
             self.gate.reset()
             self.time_jumps += 1
+            time_jump = True
             logger.warning("localizer: time jumped back to %.3f s: filter reset", stamp)
         pred = self.prediction(stamp)
         loc = self.localizer.process(ring_frame, pred)
@@ -581,7 +694,7 @@ class LocalizationPipeline(_RingPipeline):
         if loc.ok:
             z = loc.se2
             cov = loc.covariance_se2
-            speed, yaw_rate = self._speeds(stamp)
+            speed, yaw_rate = self._speeds(stamp if self._clock is None else self._clock)
             predicted = None if pred is None else geo.se2_from_transform(pred)
             gate_cov = None
             if predicted is not None:
@@ -681,8 +794,9 @@ class MappingPipeline(_RingPipeline):
         return self.builder.build(method)
 
     def save(self, path: str) -> MarkerMap:
-        """Build with ``map.method`` and write ``path`` atomically (:meth:`MapBuilder.save_map`)."""
-        return self.builder.save_map(path)
+        """Build with ``map.method`` and write ``path`` atomically, keeping ``map.backups`` previous
+        versions (:meth:`MapBuilder.save_map`)."""
+        return self.builder.save_map(path, backups=self.config.map.backups)
 
     @property
     def version(self) -> int:

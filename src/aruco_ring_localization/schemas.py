@@ -60,11 +60,19 @@ class RingInputParams:
     silent_after: float = param(1.0, "a camera with no usable detections for this long is silent: ring frames stop "
                                      "waiting for it and the diagnostics report it", unit="s")
     ignore_fiducials: str = param("", "marker ids never used, aruco_detect syntax \"1,4,9-12\"")
+    max_stamp_ahead: float = param(0.25, "a message stamped more than this after the node's clock (ROS time) is "
+                                         "dropped with a throttled warning naming the topic and the offset: a "
+                                         "future stamp is never used to predict, published or put on tf; covers "
+                                         "clock skew between machines and one frame of /clock delivery in "
+                                         "simulated time", unit="s")
+    max_detections: int = param(200, "a camera message with more detections than this is dropped whole (a "
+                                     "flood; no real image shows that many markers): the work per message and "
+                                     "per ring frame stays bounded")
 
     def __post_init__(self) -> None:
         if self.slop < 0:
             raise ConfigError(f"must be >= 0, got {self.slop!r}", key="slop")
-        require_positive(self, "timeout", "silent_after")
+        require_positive(self, "timeout", "silent_after", "max_stamp_ahead", "max_detections")
         parse_id_list(self.ignore_fiducials, key="ignore_fiducials")
 
     def ignored_ids(self) -> frozenset:
@@ -82,12 +90,34 @@ class TimingParams:
                                       "complete is dropped and counted, as is every ring frame that a newer one "
                                       "overtook: the estimator never falls behind; 0 disables the age test",
                                  unit="s")
-    motion_timeout: float = param(0.5, "a cmd_vel or odom twist older than this counts as zero for the gate",
+    motion_timeout: float = param(0.5, "a cmd_vel or odom twist received (node's clock) longer ago than this "
+                                       "counts as zero for the gate; a twist stamped older than this is stale too",
                                   unit="s")
+    max_pause: float = param(1.0, "the node's clock moving more than this between two events (the process was "
+                                  "stopped or starved, the machine suspended, a recording has a gap): the track "
+                                  "is not extrapolated over the gap; the next measurement re-initialises it",
+                             unit="s")
 
     def __post_init__(self) -> None:
         if self.max_frame_age < 0 or not self.motion_timeout > 0:
             raise ConfigError("max_frame_age must be >= 0 and motion_timeout positive", key="max_frame_age")
+        require_positive(self, "max_pause")
+
+
+@dataclass(frozen=True)
+class InputLimitParams:
+    """What the localizer believes of its motion and initial-pose inputs (anything beyond is dropped, warned)."""
+
+    max_speed: float = param(3.0, "a cmd_vel or odom twist faster than this is dropped (a robot that drives "
+                                  "faster must raise it: the gate opens with the speed)", unit="m/s")
+    max_yaw_rate: float = param(3.0, "a cmd_vel or odom yaw rate above this is dropped", unit="rad/s")
+    initial_pose_margin: float = param(10.0, "an initialpose farther than this outside the markers' extent "
+                                             "(their x-y bounding box) is refused", unit="m")
+
+    def __post_init__(self) -> None:
+        require_positive(self, "max_speed", "max_yaw_rate")
+        if not self.initial_pose_margin >= 0:
+            raise ConfigError(f"must be >= 0, got {self.initial_pose_margin!r}", key="initial_pose_margin")
 
 
 @dataclass(frozen=True)
@@ -123,7 +153,8 @@ class LocalizerConfig:
                                            "1, step 4)")
     filter: FilterParams = section(FilterParams, "the paper's Kalman filter: state x y x' y' x'' y'' phi phi' "
                                                  "phi'', measurement x y phi (paper section II-E-1)")
-    timing: TimingParams = section(TimingParams, "stale frames and motion inputs")
+    timing: TimingParams = section(TimingParams, "stale frames and motion inputs, pauses")
+    limits: InputLimitParams = section(InputLimitParams, "physical limits of the motion inputs and initialpose")
     output: LocalizerOutputParams = section(LocalizerOutputParams, "frames and publishing")
 
 
@@ -154,10 +185,14 @@ class MapParams:
                                       "camera, most face-on, at the first placement)")
     map_frame: str = param("map", "name of the map frame (REP-105 map; aruco_map beside gmapping)")
     save_on_shutdown: bool = param(False, "save the map when the node stops")
+    backups: int = param(5, "previous versions of the map file kept by every save: map.yaml.bak (the last), "
+                            "map.yaml.bak.2, ... map.yaml.bak.N (the oldest); 0 keeps none")
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise ConfigError(f"expected one of {METHODS}, got {self.method!r}", key="method")
+        if self.backups < 0:
+            raise ConfigError(f"must be >= 0, got {self.backups!r}", key="backups")
 
     @property
     def reference(self) -> Optional[int]:

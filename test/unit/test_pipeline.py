@@ -63,10 +63,10 @@ def _input(ring, cameras, **params) -> RingInput:
 def test_camera_skipped_without_camera_info_unless_fallback(setup):
     _, ring, _ = setup
     core = _input(ring, ["cam0"], use_tf=False)
-    assert core.add_detections("cam0", 1.0, [MarkerObservation(1, _square())], now=0.0) == []
+    assert core.add_detections("cam0", 1.0, [MarkerObservation(1, _square())], now=1.0) == []
     assert core.skipped["cam0"] == {SKIP_NO_CAMERA_INFO: 1}
     core_fb = _input(ring, ["cam0"], use_tf=False, camera_info_fallback=True)
-    frames = core_fb.add_detections("cam0", 1.0, [MarkerObservation(1, _square())], now=0.0)
+    frames = core_fb.add_detections("cam0", 1.0, [MarkerObservation(1, _square())], now=1.0)
     assert len(frames) == 1 and frames[0].cameras["cam0"].model is ring["cam0"].model, frames
     assert core_fb.skipped["cam0"] == {}
 
@@ -74,13 +74,13 @@ def test_camera_skipped_without_camera_info_unless_fallback(setup):
 def test_camera_skipped_until_extrinsics_then_ring_updated(setup):
     _, ring, _ = setup
     core = _input(ring, ["cam0", "cam1"], camera_info_fallback=True)
-    core.add_detections("cam0", 1.0, [], now=0.0)
+    core.add_detections("cam0", 1.0, [], now=1.0)
     assert core.skipped["cam0"] == {SKIP_NO_EXTRINSICS: 1}
     T = geo.compose(ring["cam0"].T_base_cam, geo.make_transform(t=[0.001, 0.0, 0.0]))
     core.set_extrinsics("cam0", T)
     assert np.allclose(core.ring["cam0"].T_base_cam, T)
     assert np.allclose(core.ring["cam1"].T_base_cam, ring["cam1"].T_base_cam)
-    core.add_detections("cam0", 1.0, [], now=0.0)
+    core.add_detections("cam0", 1.0, [], now=1.0)
     assert core.skipped["cam0"] == {SKIP_NO_EXTRINSICS: 1}, "skipped again although the extrinsics are known"
     core.set_extrinsics("cam1")  # None: the ring file's
     assert np.array_equal(core.ring["cam1"].T_base_cam, ring["cam1"].T_base_cam)
@@ -103,7 +103,7 @@ def test_malformed_detections_dropped_and_counted_once(setup):
     bad[2, 0] = np.nan
     obs = [MarkerObservation(1, bad), MarkerObservation(2, _square(300)), MarkerObservation(2, _square(900)),
            MarkerObservation(9, _square(500)), MarkerObservation(4, _square(200, 200))]
-    frames = core.add_detections("cam0", 1.0, obs, now=0.0)
+    frames = core.add_detections("cam0", 1.0, obs, now=1.0)
     kept = [o.marker_id for o in frames[0].cameras["cam0"].observations]
     assert kept == [4], f"kept {kept}"
     assert core.rejected["cam0"] == {"non-finite": 1, "duplicate id": 2, "ignored": 1}, core.rejected
@@ -176,8 +176,11 @@ def test_stale_and_overtaken_frames_are_dropped(setup):
     scene, ring, sim = setup
     p = LocalizationPipeline(_config(timing__max_frame_age=0.5), ring, scene.truth_map())
     T = scene.T_world_base(_pose(0.0))
-    assert feed_ring_frame(p, sim.observe(T, 10.0), now=10.6) == [], "a frame 0.6 s old went through"
-    assert p.dropped_stale == 1 and p.frames == 0
+    frame = sim.observe(T, 10.0)
+    assert feed_ring_frame(p, frame, now=10.6) == [], "a frame 0.6 s old went through"
+    # Refused message by message where they enter (the stamp policy), before any assembly.
+    assert sum(p.input.skipped[c].get(pl.SKIP_STALE_STAMP, 0) for c in frame.cameras) == len(frame.cameras)
+    assert p.dropped_stale == 0 and p.frames == 0
     assert len(feed_ring_frame(p, sim.observe(T, 11.0), now=11.4)) == 1
     # Two incomplete ring frames flushed at once: only the newer one is processed.
     for stamp in (12.0, 12.1):
@@ -185,7 +188,7 @@ def test_stale_and_overtaken_frames_are_dropped(setup):
             assert p.on_detections(name, stamp, sim.observe(T, stamp).cameras[name].observations, 12.2) == []
     out = p.flush(12.2)
     assert len(out) == 1 and out[0].stamp == pytest.approx(12.1), [o.stamp for o in out]
-    assert p.dropped_stale == 2 and p.frames == 2
+    assert p.dropped_stale == 1 and p.frames == 2
 
 
 def test_every_camera_silent_gives_predictions_with_growing_covariance(setup):

@@ -123,3 +123,17 @@ def test_sim_robot_direct_waypoints_hold_exactly():
     assert set(seen) == {0, 1}
     for i, p in seen.items():
         assert np.allclose(p, wps[i], atol=1e-9), (i, p)
+
+
+def test_the_published_command_is_the_one_followed_within_the_limits():
+    # The waypoint driver's proportional command is far above the limits when the goal is far (it
+    # gave 3.7 m/s on the paper's route, which the localizer drops as beyond limits/max_speed).
+    from aruco_ring_localization.simulation.motion import SimRobot
+    lim = MotionLimits(max_speed=0.3, max_yaw_rate=0.5)
+    robot = SimRobot((0, 0, 0), limits=lim)
+    robot.set_command((5.0, 5.0, 2.0), 0.0)
+    s = robot.step(0.1, 0.1)
+    assert np.hypot(s.cmd[0], s.cmd[1]) == pytest.approx(0.3) and s.cmd[2] == pytest.approx(0.5)
+    assert s.cmd[0] == pytest.approx(s.cmd[1])   # the direction kept
+    robot.set_command((float("nan"), 0.0, 0.0), 0.2)
+    assert np.all(robot.step(0.3, 0.1).cmd == 0.0)

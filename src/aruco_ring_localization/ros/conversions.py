@@ -7,7 +7,7 @@ node callbacks catch it, log it throttled and go on.
 from __future__ import annotations
 
 import math
-from typing import Iterable, List
+from typing import Iterable, List, Optional
 
 import cv2
 import numpy as np
@@ -28,14 +28,16 @@ def stamp_to_sec(stamp) -> float:
     return float(stamp.secs) + 1e-9 * float(stamp.nsecs)
 
 
-def fiducial_array_to_observations(msg: FiducialArray) -> List[MarkerObservation]:
+def fiducial_array_to_observations(msg: FiducialArray, limit: Optional[int] = None) -> List[MarkerObservation]:
     """FiducialArray -> observations (raw pixel corners in aruco_detect order).
 
     Values are copied as they are; the pipeline sanitizes them (:func:`detections.sanitize_observations`)
-    and counts what it drops (so the count of rejected detections can be reported).
+    and counts what it drops (so the count of rejected detections can be reported). With ``limit``,
+    only the first ``limit`` fiducials are converted (the pipeline refuses a message with more than
+    ``input/max_detections``: converting 3,000 quads of a flood would be wasted work).
     """
     out = []
-    for f in msg.fiducials:
+    for f in msg.fiducials[:limit]:
         corners = np.array([[f.x0, f.y0], [f.x1, f.y1], [f.x2, f.y2], [f.x3, f.y3]], dtype=np.float64)
         out.append(MarkerObservation(int(f.fiducial_id), corners))
     return out

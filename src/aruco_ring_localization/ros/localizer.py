@@ -14,6 +14,9 @@ ready), ``~odometry`` (nav_msgs/Odometry with the filter's twist), ``~camera_est
 (PoseArray, one per camera), ``~markers`` (MarkerArray, markers in view highlighted),
 ``/diagnostics``, tf ``map -> odom`` or ``map -> base_link``. Service: ``~reset`` (std_srvs/Trigger).
 
+Another node publishing the tf child frame we publish (a second localizer, gmapping's
+``map -> odom``) is warned about, throttled, at its first such message (docs/security.md).
+
 Parameters: :class:`aruco_ring_localization.schemas.LocalizerConfig` (config/localization.yaml,
 docs/parameters.md).
 """
@@ -29,6 +32,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped, Twist
 from nav_msgs.msg import Odometry
 from std_srvs.srv import Trigger, TriggerResponse
+from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import Marker, MarkerArray
 
 from .. import geometry as geo
@@ -40,9 +44,11 @@ from ..schemas import LocalizerConfig
 from . import log_bridge
 from .conversions import msg_to_transform, pose_msg_to_transform, pose_to_msg, stamp_to_sec
 from .params import read_config
-from .ring_input import NOW, RingSubscriber
+from .ring_input import BUFF_SIZE, NOW, RingSubscriber
 from .ring_tf import default_ring_file
 from .tf_output import MapTransform
+
+WARN_PERIOD = 5.0
 
 
 class LocalizerNode:
@@ -65,14 +71,18 @@ class LocalizerNode:
         self.pub_cams = rospy.Publisher("~camera_estimates", PoseArray, queue_size=5)
         self.pub_markers = rospy.Publisher("~markers", MarkerArray, queue_size=1, latch=True)
         self.pub_diag = rospy.Publisher("/diagnostics", DiagnosticArray, queue_size=5)
+        # One detection message kept per camera when we fall behind: an older one would be overtaken.
         self.ring_input = RingSubscriber(self.pipeline, self.publish, "localizer", use_tf=config.input.use_tf,
-                                         tf_buffer=self.tf_buffer)
+                                         tf_buffer=self.tf_buffer, queue_size=1, buff_size=BUFF_SIZE)
         rospy.Subscriber("cmd_vel", Twist, self.on_cmd_vel, queue_size=5)
         rospy.Subscriber("odom", Odometry, self.on_odom, queue_size=5)
         rospy.Subscriber("initialpose", PoseWithCovarianceStamped, self.on_initialpose, queue_size=1)
         rospy.Service("~reset", Trigger, self.on_reset)
         rospy.Timer(rospy.Duration(out.diagnostics_period), self.publish_diagnostics, reset=True)
         rospy.Timer(rospy.Duration(out.markers_period), self.publish_markers, reset=True)
+        self._tf_child: Optional[str] = None   # the child frame we last put on tf
+        # The tf listener's own /tf subscription: rospy deserializes each message once for both.
+        rospy.Subscriber("/tf", TFMessage, self.check_tf_authority, queue_size=100)
         rospy.loginfo("localizer: %d mapped markers in %s, fusion %s, output %s -> %s, tf %s (%s)",
                       len(marker_map), self.map_frame, config.estimator.fusion, self.map_frame, self.base_frame,
                       out.tf_mode, "on" if out.publish_tf else "off")
@@ -102,10 +112,11 @@ class LocalizerNode:
             self.ring_input.call(self.pipeline.on_initial_pose, T, NOW)
         except (ArucoRingError, tf2_ros.LookupException, tf2_ros.ConnectivityException,
                 tf2_ros.ExtrapolationException) as exc:
-            rospy.logwarn("localizer: ignoring initialpose in %r: %s", msg.header.frame_id, exc)
+            rospy.logwarn_throttle(WARN_PERIOD, f"localizer: ignoring initialpose in {msg.header.frame_id!r}: {exc}")
             return
         x, y, yaw = geo.se2_from_transform(T)
-        rospy.loginfo("localizer: re-initialised from initialpose at (%.2f, %.2f, %.1f deg)", x, y, np.degrees(yaw))
+        rospy.loginfo_throttle(WARN_PERIOD, f"localizer: re-initialised from initialpose at ({x:.2f}, {y:.2f}, "
+                                            f"{np.degrees(yaw):.1f} deg)")
 
     def on_reset(self, _req) -> TriggerResponse:
         self.ring_input.call(self.pipeline.reset)
@@ -144,6 +155,27 @@ class LocalizerNode:
         ts = self.map_tf.compute(T_map_base, stamp)
         if ts is not None:
             self.tf_broadcaster.sendTransform(ts)
+            self._tf_child = ts.child_frame_id.lstrip("/")
+
+    def check_tf_authority(self, msg: TFMessage) -> None:
+        """Warn, throttled, when another node publishes the tf child frame we publish.
+
+        Two localizers on the same frames (or ours beside gmapping without beside_gmapping:=true)
+        both publish ``map -> odom``: every tf user then sees the robot jump between two poses and
+        tf2 logs TF_REPEATED_DATA. The sender of each /tf message is in its connection header.
+        """
+        child = self._tf_child
+        if child is None:
+            return
+        sender = msg._connection_header.get("callerid", "") if hasattr(msg, "_connection_header") else ""
+        if not sender or sender == rospy.get_name():
+            return
+        for t in msg.transforms:
+            if t.child_frame_id.lstrip("/") == child:
+                rospy.logwarn_throttle(WARN_PERIOD, f"localizer: {sender} also publishes tf {t.header.frame_id} -> "
+                                                    f"{child}, as this node does: two localizers on the same frames "
+                                                    "(stop one; beside gmapping, use beside_gmapping:=true)")
+                return
 
     def publish_markers(self, _event=None) -> None:
         period = self.config.output.markers_period

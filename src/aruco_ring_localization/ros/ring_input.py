@@ -18,6 +18,12 @@ message could run before it and time the ring frame out while its cameras wait a
 mapper busy with its live preview split ring frames so). What the calls return is queued in call
 order and handed to ``deliver`` by one thread at a time, in that order. A package error
 (:class:`ArucoRingError`) from a message is logged throttled: a bad message never kills the node.
+
+Bounded work per message (issue 14): rospy calls a subscriber's callback on the thread that reads
+its connection, so a slow callback leaves messages in the socket, where ``queue_size`` cannot drop
+them (a flood backed up 14 s). The localizer's subscriptions read up to :data:`BUFF_SIZE` bytes at
+once, so rospy sees every waiting message and keeps only the newest ``queue_size``; a detection message
+is converted only up to ``input/max_detections`` + 1 quads (the pipeline drops a longer one whole).
 """
 from __future__ import annotations
 
@@ -35,6 +41,11 @@ from ..errors import ArucoRingError
 from .conversions import camera_info_to_model, fiducial_array_to_observations, msg_to_transform, stamp_to_sec
 
 WARN_PERIOD = 5.0  # s between repeats of one throttled warning
+
+#: rospy's per-read buffer for our subscriptions, bytes: larger than any backlog the kernel holds
+#: (a 3,000-quad FiducialArray is 120 kB), so queue_size drops old messages instead of the socket
+#: keeping them (rospy's default, 64 kB, is smaller than such a message).
+BUFF_SIZE = 1 << 24
 
 
 class _Now:
@@ -66,10 +77,16 @@ class RingSubscriber:
         use_tf: extrinsics from tf (else the pipeline uses the ring file's).
         poll_period: period (s) of the timer calling ``pipeline.poll``.
         tf_buffer: an existing tf2 Buffer to share (one with a listener is created otherwise).
+        queue_size: detection messages kept per camera when the callback falls behind (the
+            localizer keeps 1: an older frame would only be overtaken).
+        buff_size: rospy's read buffer per subscription, bytes: the localizer's :data:`BUFF_SIZE`
+            (never a backlog); rospy's default 64 kB for the mapper, which would rather fall
+            behind than lose a camera's message (a map wants every ring frame whole).
     """
 
     def __init__(self, pipeline: Any, deliver: Callable[[Any], None], name: str, use_tf: bool = True,
-                 poll_period: float = 0.05, tf_buffer: Optional[tf2_ros.Buffer] = None):
+                 poll_period: float = 0.05, tf_buffer: Optional[tf2_ros.Buffer] = None, queue_size: int = 5,
+                 buff_size: int = 65536):
         self.pipeline = pipeline
         self._deliver_fn = deliver
         self._name = name
@@ -95,9 +112,9 @@ class RingSubscriber:
             ns = ring[camera].namespace.strip("/")
             prefix = f"{ns}/" if ns else ""
             self._subs.append(rospy.Subscriber(f"{prefix}fiducial_vertices", FiducialArray, self._on_fiducials,
-                                               callback_args=camera, queue_size=5))
+                                               callback_args=camera, queue_size=queue_size, buff_size=buff_size))
             self._subs.append(rospy.Subscriber(f"{prefix}camera_info", CameraInfo, self._on_camera_info,
-                                               callback_args=camera, queue_size=1))
+                                               callback_args=camera, queue_size=1, buff_size=buff_size))
         # reset=True: a bag loop moves ROS time backwards, which would otherwise kill the timer thread.
         self._timer = rospy.Timer(rospy.Duration(poll_period), self._on_timer, reset=True)
         p = pipeline.input.params
@@ -208,7 +225,7 @@ class RingSubscriber:
         try:
             if self.use_tf:
                 self._look_up_extrinsics(camera, msg.header.frame_id)
-            observations = fiducial_array_to_observations(msg)
+            observations = fiducial_array_to_observations(msg, limit=self.pipeline.input.params.max_detections + 1)
             self.call(self.pipeline.on_detections, camera, stamp_to_sec(msg.header.stamp), observations, NOW)
         except ArucoRingError as exc:
             rospy.logwarn_throttle(WARN_PERIOD, f"{self._name}: {camera}: {exc}")

@@ -35,19 +35,25 @@ class HolonomicBase:
         self.velocity = np.zeros(3)   # vx, vy (base frame), wz
         self.limits = limits
 
+    def limited(self, cmd: Sequence[float]) -> np.ndarray:
+        """The command (vx, vy, wz) the base follows: ``cmd`` within the speed limits (zero if not finite)."""
+        lim = self.limits
+        target = np.array(cmd, dtype=float).reshape(3)
+        if not np.all(np.isfinite(target)):
+            return np.zeros(3)
+        speed = float(np.hypot(target[0], target[1]))
+        if speed > lim.max_speed:
+            target[:2] *= lim.max_speed / speed
+        target[2] = float(np.clip(target[2], -lim.max_yaw_rate, lim.max_yaw_rate))
+        return target
+
     def step(self, cmd: Sequence[float], dt: float) -> np.ndarray:
         """Advance by ``dt`` toward the commanded (vx, vy, wz); returns the body motion (dx, dy, dyaw)
         in the base frame at the start of the step."""
         if dt <= 0:
             return np.zeros(3)
         lim = self.limits
-        target = np.array(cmd, dtype=float).reshape(3)
-        if not np.all(np.isfinite(target)):
-            target = np.zeros(3)
-        speed = float(np.hypot(target[0], target[1]))
-        if speed > lim.max_speed:
-            target[:2] *= lim.max_speed / speed
-        target[2] = float(np.clip(target[2], -lim.max_yaw_rate, lim.max_yaw_rate))
+        target = self.limited(cmd)
         dv = target - self.velocity
         dlin = float(np.hypot(dv[0], dv[1]))
         if dlin > lim.max_accel * dt:
@@ -233,8 +239,11 @@ class SimRobot:
             body = _body_motion(before, self.base.pose)
         self.odometry.update(body, dt)
         holding = self.driver.holding if self.driver is not None else -1
+        # The command as followed (within the limits): what the simulator publishes on cmd_vel, as a
+        # real driver does (the waypoint driver's proportional command is far above them when the
+        # goal is far, and the localizer drops a cmd_vel beyond its limits/max_speed).
         return RobotState(self.base.pose.copy(), self.odometry.pose.copy(), self.odometry.velocity.copy(),
-                          np.asarray(cmd, dtype=float).copy(), holding)
+                          self.base.limited(cmd), holding)
 
 
 def _body_motion(a: Sequence[float], b: Sequence[float]) -> np.ndarray:
