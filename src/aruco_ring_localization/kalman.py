@@ -44,18 +44,23 @@ from scipy.linalg import block_diag
 
 from . import geometry as geo
 from .config import param, require_positive
+from .errors import ConfigError
 
 logger = logging.getLogger(__name__)
 
 # State indices (the paper's order).
 IX, IY, IVX, IVY, IAX, IAY, IPHI, IW, IALPHA = range(9)
 _AXES = ((IX, IVX, IAX), (IY, IVY, IAY), (IPHI, IW, IALPHA))
+#: ``filter/model``: the paper's planar filter, or the 6-DOF tracker (:mod:`tracker6`).
+FILTER_MODELS = ("planar", "6dof")
 
 
 @dataclass(frozen=True)
 class FilterParams:
     """Noise parameters of :class:`PoseFilter` (the localizer's ``filter`` section, config/localization.yaml)."""
 
+    model: str = param("planar", "planar: the paper's filter of a ground robot (x, y, yaw); 6dof: the 6-DOF tracker "
+                                 "of a handheld or flying rig (tracker6 section, module tracker6)")
     jerk_noise_xy: float = param(0.1, "spectral density of the white jerk driving x and y (constant-acceleration "
                                       "model): larger follows faster, smaller smooths more", unit="m^2/s^5")
     jerk_noise_yaw: float = param(0.1, "the same for the yaw", unit="rad^2/s^5")
@@ -73,6 +78,8 @@ class FilterParams:
                           unit="s")
 
     def __post_init__(self) -> None:
+        if self.model not in FILTER_MODELS:
+            raise ConfigError(f"expected one of {FILTER_MODELS}, got {self.model!r}", key="model")
         require_positive(self, "jerk_noise_xy", "jerk_noise_yaw", "measurement_std_xy", "measurement_std_yaw",
                          "initial_std_velocity", "initial_std_acceleration", "max_dt")
 

@@ -47,6 +47,8 @@ from .detections import CameraFrame, MarkerObservation, RingFrame, RingFrameAsse
 from .errors import ConfigError, GeometryError, MeasurementError
 from .gating import GateDecision, MotionGate
 from .kalman import PoseFilter
+from .localization import se2_covariance
+from .tracker6 import Tracker6
 from .localization import LocalizationResult, RingLocalizer
 from .mapping import MapBuilder
 from .marker_map import MarkerMap
@@ -298,6 +300,7 @@ class TrackResult:
         pose: filtered (x, y, yaw), or None before the first measurement.
         covariance: 3x3 filter covariance of (x, y, yaw), or None.
         time_jump: the filter was reset because time went backwards.
+        T_map_base: (4, 4) the 6-DOF tracker's filtered pose (``filter/model: 6dof``), else None.
     """
 
     stamp: float
@@ -306,6 +309,7 @@ class TrackResult:
     pose: Optional[np.ndarray] = None
     covariance: Optional[np.ndarray] = None
     time_jump: bool = False
+    T_map_base: Optional[np.ndarray] = None
 
 
 @dataclass
@@ -383,6 +387,8 @@ class LocalizationPipeline(_RingPipeline):
         self.localizer = RingLocalizer(self.input.ring, marker_map, config.estimator)
         self.gate = MotionGate(config.gate)
         self.filter = PoseFilter(config.filter)
+        #: ``filter/model: 6dof``: the 6-DOF tracker replaces the gate and the planar filter.
+        self.tracker6 = Tracker6(config.tracker6) if config.filter.model == "6dof" else None
         self._motion: Dict[str, _Motion] = {}
         self._z = 0.0                        # height of base_link in the map (last accepted measurement)
         self._roll_pitch = (0.0, 0.0)        # ... and its roll, pitch
@@ -527,6 +533,8 @@ class LocalizationPipeline(_RingPipeline):
 
     def prediction(self, stamp: float) -> Optional[np.ndarray]:
         """Predicted ``T_map_base`` (4x4) at ``stamp``, or None without a track."""
+        if self.tracker6 is not None:
+            return self.tracker6.predicted(stamp)
         if not self.filter.initialized:
             return None
         x, y, yaw = self.filter.predicted(stamp)
@@ -598,10 +606,13 @@ class LocalizationPipeline(_RingPipeline):
             self._clock_jumped = True
             self.gate.reset()
             self.filter.reset()
+            if self.tracker6 is not None:
+                self.tracker6.reset()
             logger.warning("localizer: time jumped back from %.3f to %.3f s: filter reset", last, now)
             self._clock = now
             return
-        if now - last > self.config.timing.max_pause and self.filter.initialized:
+        if now - last > self.config.timing.max_pause and (self.filter.initialized or (
+                self.tracker6 is not None and self.tracker6.initialized)):
             self.pauses += 1
             logger.warning("localizer: the node's clock moved %.2f s between two events (more than timing/max_pause "
                            "%.2f s: the node was stopped or starved, or the input has a gap); the track restarts "
@@ -669,6 +680,9 @@ class LocalizationPipeline(_RingPipeline):
     def _reset(self, pose, stamp: Optional[float]) -> None:
         self.gate.reset()
         self.filter.reset(pose, stamp)
+        if self.tracker6 is not None:
+            self.tracker6.reset(None if pose is None else geo.transform_from_se2(pose[0], pose[1], pose[2], self._z),
+                                stamp if stamp is not None else 0.0)
         if pose is not None:
             self.gate.last_accepted_stamp = float(stamp if stamp is not None else 0.0)
         logger.info("localizer: track reset%s", "" if pose is None else
@@ -686,6 +700,8 @@ class LocalizationPipeline(_RingPipeline):
             self.time_jumps += 1
             time_jump = True
             logger.warning("localizer: time jumped back to %.3f s: filter reset", stamp)
+        if self.tracker6 is not None:
+            return self._track6(ring_frame, stamp, time_jump)
         pred = self.prediction(stamp)
         loc = self.localizer.process(ring_frame, pred)
         for k, v in loc.rejected.items():
@@ -725,12 +741,52 @@ class LocalizationPipeline(_RingPipeline):
         self.last_track = out
         return out
 
+    def _track6(self, ring_frame: RingFrame, stamp: float, time_jump: bool) -> TrackResult:
+        """:meth:`_track` with the 6-DOF tracker (``filter/model: 6dof``): its own gate and filter."""
+        tracker = self.tracker6
+        if tracker.stamp is not None and stamp < tracker.stamp - self.config.filter.time_jump_tolerance:
+            tracker.reset()
+            self.time_jumps += 1
+            time_jump = True
+            logger.warning("localizer: time jumped back to %.3f s: 6-DOF track reset", stamp)
+        loc = self.localizer.process(ring_frame, tracker.predicted(stamp))
+        for k, v in loc.rejected.items():
+            self.rejected_counts[k] = self.rejected_counts.get(k, 0) + v
+        out = TrackResult(stamp=stamp, localization=loc, time_jump=time_jump)
+        if loc.ok:
+            out.decision = tracker.update(loc.T_map_base, stamp, loc.covariance, ambiguous=loc.ambiguous,
+                                          markers=len(loc.marker_ids))
+            if out.decision.accepted:
+                self._keep_attitude(loc.T_map_base)
+            else:
+                key = "gate" if out.decision.reason != "pending" else "track_pending"
+                self.rejected_counts[key] = self.rejected_counts.get(key, 0) + 1
+        else:
+            tracker.predict(stamp)
+        if tracker.initialized:
+            T = tracker.pose
+            out.T_map_base = T
+            out.pose = geo.se2_from_transform(T)
+            out.covariance = se2_covariance(tracker.covariance)
+        self.last_track = out
+        return out
+
     def _keep_attitude(self, T_map_base: np.ndarray) -> None:
         self._z = float(T_map_base[2, 3])
         roll, pitch, _ = geo.rpy_from_matrix(T_map_base)
         self._roll_pitch = (float(roll), float(pitch))
 
     def _output(self, track: TrackResult, predicted_only: bool = False) -> PoseOutput:
+        if track.T_map_base is not None:
+            # The 6-DOF tracker: its full pose on ~pose and tf (a handheld rig's roll and pitch are its state).
+            tr = self.tracker6
+            estimates = {name: e.T_map_base for name, e in track.localization.estimates.items() if e.valid}
+            # Covariances over (x, y, z, map-frame rotation vector): for small rotations its
+            # components are the roll, pitch and yaw increments of REP-103's layout.
+            return PoseOutput(stamp=track.stamp, T_map_base=track.T_map_base, T_map_base_6dof=track.T_map_base,
+                              covariance=tr.covariance, twist=tr.body_twist(),
+                              twist_covariance=tr.velocity_covariance,
+                              camera_estimates=estimates, track=track, predicted_only=predicted_only)
         x, y, yaw = track.pose
         T = geo.transform_from_se2(x, y, yaw, self._z)
         T6 = geo.make_transform(geo.matrix_from_rpy(self._roll_pitch[0], self._roll_pitch[1], yaw), [x, y, self._z])

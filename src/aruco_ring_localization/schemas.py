@@ -37,6 +37,7 @@ from .kalman import FilterParams
 from .localization import LocalizationParams
 from .mapping import METHODS, MappingOptions
 from .markers import MarkerSizes, parse_id_list
+from .tracker6 import Tracker6Params
 
 TF_MODES = ("auto", "map_to_odom", "map_to_base")
 IMAGE_TRANSPORTS = ("raw", "compressed")
@@ -153,6 +154,8 @@ class LocalizerConfig:
                                            "1, step 4)")
     filter: FilterParams = section(FilterParams, "the paper's Kalman filter: state x y x' y' x'' y'' phi phi' "
                                                  "phi'', measurement x y phi (paper section II-E-1)")
+    tracker6: Tracker6Params = section(Tracker6Params, "the 6-DOF tracker of a rig that is not a ground robot "
+                                                       "(used when filter/model is 6dof)")
     timing: TimingParams = section(TimingParams, "stale frames and motion inputs, pauses")
     limits: InputLimitParams = section(InputLimitParams, "physical limits of the motion inputs and initialpose")
     output: LocalizerOutputParams = section(LocalizerOutputParams, "frames and publishing")

@@ -8,7 +8,9 @@ detector; ``camera_info``; ``cmd_vel`` / ``odom``; extrinsics from ``/tf_static`
 file's). Output: one TUM line ``t x y z qx qy qz qw`` (evo reads it) per pose:
 
 * ``--output filtered`` (default): the filtered pose, as ``~pose`` (x, y, yaw at the measured
-  height; with ``--6dof`` the last accepted measurement's roll and pitch too);
+  height); with ``--6dof`` the full pose of the 6-DOF tracker (``filter/model: 6dof``, module
+  ``tracker6``: a handheld or flying rig), unless ``--filter-model planar`` keeps the planar filter
+  (then roll and pitch are the last accepted measurement's);
 * ``--output measurement``: the estimator's per-frame pose (planar; ``--6dof``: the full pose).
 
 ``--csv`` adds per-frame diagnostics (full precision).
@@ -53,6 +55,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="filtered poses (as ~pose) or the estimator's per-frame poses")
     parser.add_argument("--6dof", dest="six_dof", action="store_true",
                         help="full poses (z, roll, pitch from the estimator) instead of planar ones")
+    parser.add_argument("--filter-model", choices=["planar", "6dof"],
+                        help="filter/model (default: 6dof with --6dof, else the config's)")
     parser.add_argument("--csv", help="per-frame diagnostics CSV")
     parser.add_argument("--progress", action="store_true", help="progress bar on stderr even when it is not a terminal")
 
@@ -64,7 +68,8 @@ def load_config(args: argparse.Namespace) -> LocalizerConfig:
     path = args.config or package_file("config", "localization.yaml")
     return load_yaml_config(LocalizerConfig, path, {
         "map_file": args.map_file, "estimator.fusion": args.fusion, "input.slop": args.slop,
-        "input.ignore_fiducials": args.ignore_fiducials})
+        "input.ignore_fiducials": args.ignore_fiducials,
+        "filter.model": getattr(args, "filter_model", None) or ("6dof" if getattr(args, "six_dof", False) else None)})
 
 
 def run(args: argparse.Namespace) -> int:
