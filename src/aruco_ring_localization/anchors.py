@@ -397,3 +397,27 @@ def noisy_anchors(T_true: Mapping[int, np.ndarray], ids, std: float, seed: int, 
         p = np.asarray(T_true[m], dtype=float)[:3, 3] + rng.normal(0.0, std, 3)
         out.append(Anchor(int(m), p, np.full(3, float(std)), instrument=instrument, key=f"anchors[{i}]"))
     return AnchorSet(out, frame_id, source)
+
+
+def spread_markers(T_markers: Mapping[int, np.ndarray], n: int) -> List[int]:
+    """``n`` marker ids far apart (farthest-point order from the marker farthest from the centroid,
+    ties by id): which markers a simulated survey measures (the widest triangle fixes the heading
+    and the plane best)."""
+    ids = sorted(T_markers)
+    if n > len(ids):
+        raise ConfigError(f"a survey of {n} markers needs that many markers, the scene has {len(ids)}")
+    P = {m: np.asarray(T_markers[m], dtype=float)[:3, 3] for m in ids}
+    c = np.mean([P[m] for m in ids], axis=0)
+    chosen = [max(ids, key=lambda m: (float(np.linalg.norm(P[m] - c)), -m))]
+    while len(chosen) < n:
+        chosen.append(max((m for m in ids if m not in chosen),
+                          key=lambda m: (min(float(np.linalg.norm(P[m] - P[k])) for k in chosen), -m)))
+    return chosen
+
+
+def anchors_yaml(anchors: AnchorSet, header: str = "") -> str:
+    """The text of an anchors file (with ``header`` as comment lines on top)."""
+    import yaml
+
+    lines = "".join(f"# {h}\n" if h else "#\n" for h in header.splitlines()) if header else ""
+    return lines + yaml.safe_dump(anchors.to_dict(), sort_keys=False, default_flow_style=None)
