@@ -1052,7 +1052,7 @@ class MapBuilder:
         if self.anchors is not None:
             # Surveyed frame: a refined map is already in it (the adjustment ran there); a paper
             # map is the initialisation fitted to the anchors.
-            anchors = self.anchors.subset([m for m in mids])
+            anchors = self._surveyed(mids)
             fit = fit_frame(anchors, T_W)
             T_map_W = np.eye(4) if res is not None else fit.T_map_W
             T_W_map, ref, convention = geo.inverse(T_map_W), None, "survey"
@@ -1173,6 +1173,18 @@ class MapBuilder:
         n = len(Ts)
         return P.std(axis=0, ddof=1) / np.sqrt(n), rv.std(axis=0, ddof=1) / np.sqrt(n)
 
+    def _surveyed(self, mids: List[int]) -> AnchorSet:
+        """The anchors among the mapped markers ``mids``; ArucoRingError while they cannot fix the
+        frame yet (the live map waits for them, a save says which are missing)."""
+        assert self.anchors is not None
+        try:
+            return self.anchors.subset(mids)
+        except ConfigError:
+            have = [m for m in self.anchors.ids if m in set(mids)]
+            raise ArucoRingError(f"surveyed frame ({self.anchors.source}): {len(have)} of the surveyed markers "
+                                 f"{self.anchors.ids} mapped ({have}); the frame needs 2 of them, or 1 with a "
+                                 f"surveyed pose: map until the others are seen") from None
+
     def _problem(self, init: _Init, mids: List[int]) -> BAProblem:
         """The adjustment problem of the initialisation: every kept observation of ``mids``."""
         sts = sorted(init.T_W_stations)
@@ -1189,7 +1201,7 @@ class MapBuilder:
         if self.anchors is not None:
             # The surveyed frame: the initialisation fitted to the anchors, which then replace the
             # fixed station as the gauge (priors weighted by their std).
-            anchors = self.anchors.subset(mids)
+            anchors = self._surveyed(mids)
             fit = fit_frame(anchors, init.T_W_markers)
             T_m = fit.T_map_W @ T_m
             T_s = fit.T_map_W @ T_s

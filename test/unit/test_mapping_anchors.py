@@ -103,3 +103,19 @@ def test_a_mistyped_survey_value_stops_the_save(ring, frames, truth, tmp_path):
         m.save(str(path))
     assert f"marker {a.marker_id}" in str(err.value) and "survey.yaml" in str(err.value), str(err.value)
     assert not path.exists()
+
+
+def test_too_few_surveyed_markers_seen_says_which(ring, frames, truth):
+    """Only one surveyed marker is in the map (the other ids are not in the lab): no frame yet, and
+    the error names the anchors file and the markers it still needs."""
+    one = _survey(truth, _spread_ids(truth, 2))
+    a = one.anchors[0]
+    anchors = AnchorSet([a, Anchor(9999, a.position + 1.0, a.position_std)], source="survey.yaml")
+    b = MapBuilder(ring, MarkerSizes(0.2), anchors=anchors)
+    for f in frames[:3]:
+        b.add_frame(f)
+    from aruco_ring_localization.errors import ArucoRingError
+
+    with pytest.raises(ArucoRingError) as err:
+        b.build("paper")
+    assert "survey.yaml" in str(err.value) and "9999" in str(err.value), str(err.value)
