@@ -119,3 +119,23 @@ def test_too_few_surveyed_markers_seen_says_which(ring, frames, truth):
     with pytest.raises(ArucoRingError) as err:
         b.build("paper")
     assert "survey.yaml" in str(err.value) and "9999" in str(err.value), str(err.value)
+
+
+def test_both_solvers_give_the_same_surveyed_map(ring, frames, truth):
+    import dataclasses
+
+    from aruco_ring_localization.mapping import MappingOptions
+
+    maps = {}
+    for solver in ("lm", "trf"):
+        o = MappingOptions()
+        o = dataclasses.replace(o, ba=dataclasses.replace(o.ba, solver=solver))
+        b = MapBuilder(ring, MarkerSizes(0.2), options=o, anchors=_survey(truth, _spread_ids(truth)))
+        for f in frames:
+            b.add_frame(f)
+        maps[solver] = b.build()
+    d = max(float(np.linalg.norm(maps["lm"].T_map_marker(i)[:3, 3] - maps["trf"].T_map_marker(i)[:3, 3]))
+            for i in maps["lm"].ids)
+    assert d < 1e-4, f"lm and trf surveyed maps differ by {1000 * d:.3f} mm"
+    assert map_error(maps["trf"], truth)["position_rms_mm"] < map_error(_build(ring, frames, None), truth)[
+        "position_rms_mm"]
