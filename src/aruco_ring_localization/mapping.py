@@ -1205,8 +1205,8 @@ class MapBuilder:
             fit = fit_frame(anchors, init.T_W_markers)
             T_m = fit.T_map_W @ T_m
             T_s = fit.T_map_W @ T_s
-            pos = [a for a in anchors.anchors]
-            rot = [a for a in anchors.anchors if a.rotation is not None]
+            pos = anchors.anchors
+            rot = [a for a in pos if a.rotation is not None]
             priors = MarkerPriors(position_marker=[mi[a.marker_id] for a in pos],
                                   position=[a.position for a in pos], position_std=[a.position_std for a in pos],
                                   rotation_marker=[mi[a.marker_id] for a in rot], rotation=[a.rotation for a in rot],
