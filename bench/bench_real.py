@@ -46,7 +46,7 @@ from tagslam_reference import DATA, cached_bag, load_test, ring_frames, write_ca
 from aruco_ring_localization import geometry as geo  # noqa: E402
 from aruco_ring_localization.errors import ArucoRingError  # noqa: E402
 from aruco_ring_localization.evaluation.maps import map_error  # noqa: E402
-from aruco_ring_localization.importers import read_rig, write_ring_files  # noqa: E402
+from aruco_ring_localization.importers import read_rig, tagslam_anchors, write_ring_files  # noqa: E402
 from aruco_ring_localization.localization import LocalizationParams, RingLocalizer  # noqa: E402
 from aruco_ring_localization.mapping import MapBuilder, MappingOptions  # noqa: E402
 from aruco_ring_localization.marker_map import MarkerEntry, MarkerMap  # noqa: E402
@@ -170,7 +170,7 @@ def filter_model(station_model: str, requested: str = "auto") -> str:
     return "6dof" if station_model == "se3" else "planar"
 
 
-def run_one(test: str, max_frames: int = 0, model: str = "auto") -> Dict[str, float]:
+def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool = True) -> Dict[str, float]:
     out_dir = os.path.join(OUT, test)
     os.makedirs(out_dir, exist_ok=True)
     src, rig_body, tags, ref = load_test(test)
@@ -190,7 +190,10 @@ def run_one(test: str, max_frames: int = 0, model: str = "auto") -> Dict[str, fl
     res: Dict[str, float] = {"frames": len(frames), "cameras": len(ring), "tagslam_tags": len(truth)}
     # --- map ---
     t0 = _cpu()
-    b = MapBuilder(ring, sizes, options=MappingOptions(frame="marker"))
+    # TagSLAM's surveyed tags (the poses tagslam.yaml fixes) as anchors, as TagSLAM uses them.
+    survey = tagslam_anchors(tags, ignore, os.path.join(src, "tagslam.yaml")) if anchors else None
+    res["anchored"] = [] if survey is None else survey.ids
+    b = MapBuilder(ring, sizes, options=MappingOptions(frame="marker"), anchors=survey)
     for f in frames:
         b.add_frame(f)
     ours: Optional[MarkerMap] = None
@@ -247,6 +250,12 @@ def run_one(test: str, max_frames: int = 0, model: str = "auto") -> Dict[str, fl
     return res
 
 
+def _anchored(ids) -> str:
+    if not ids:
+        return "none"
+    return f"{len(ids)} tags" if len(ids) > 12 else f"{len(ids)}: {ids}"
+
+
 def _fmt(v, digits=1) -> str:
     if isinstance(v, (int, np.integer)):
         return str(int(v))
@@ -301,19 +310,26 @@ def report(rows: Dict[str, dict], failed: Dict[str, str], load, quick: bool, tes
              "docstring. Targets: every tag TagSLAM maps is mapped; map RMS <= 3 mm; localization on TagSLAM's map "
              "with TagSLAM's extrinsics median <= 1.5 mm; no frame > 10 deg off in the filtered output.",
              "", "Localization columns: *per frame* = the estimator alone on each ring frame (joint fusion, no "
-             "prediction), 6-DOF errors against TagSLAM's rig pose at the same stamp; *filtered* = the tracker "
-             "(gate + the planar Kalman filter of a ground robot: x, y, yaw of the pose in the map frame, compared "
-             "with the same projection of TagSLAM's pose); *flips* = filtered frames more than 10 deg off in yaw. "
-             "The planar filter is the robot's; for handheld and 6-DOF rigs (most of these recordings) it is not "
-             "the right model, which its errors show. Map columns: after the SE(3) fit of our map onto TagSLAM's "
+             "prediction), 6-DOF errors against TagSLAM's rig pose at the same stamp; *filtered* = the pipeline's "
+             "tracker (`filter/model`, chosen by the mapping's own data test, nothing from the reference: `6dof` "
+             "where the stations are SE(3), i.e. handheld and 6-DOF rigs: the 6-DOF tracker, errors in 6-DOF; "
+             "`planar` for a rig that stays flat: the ground robot's Kalman filter, x, y, yaw against the same "
+             "projection of TagSLAM's pose); *flips* = filtered frames more than 10 deg or 0.5 m off (issue 12's "
+             "`flips_filtered`), of the filtered frames that have a reference pose (*n*; the tracker publishes "
+             "nothing while its track is lost: more than `tracker6/lost_after` s without an accepted measurement). "
+             "*Anchored*: the tags whose poses tagslam.yaml fixes (surveyed), given to the mapping as anchors "
+             "(`build-map --anchors`, converted by `importers.tagslam_anchors`) as TagSLAM uses them: their "
+             "map error measures how well the map holds the survey, not an independent mapping. "
+             "Map columns: after the SE(3) fit of our map onto TagSLAM's "
              "tags over the 4 corners of every common tag; *loc on our map*: our map and refined extrinsics, our "
              "poses expressed in TagSLAM's frame through that same fit (nothing fitted to the trajectory).",
              "", f"Load average at the start {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f} (2 cores shared). "
              + ("`--quick`: 4 recordings, at most 600 frames each." if quick else ""), "",
              "| test | cams | frames | stations | map RMS / max mm | rot med / max deg | tags missing | "
-             "loc on TagSLAM's map: median / p95 / max mm, rot median deg | filtered: median / max mm, flips | "
-             "loc on our map: median / max mm | map / loc CPU ms per frame |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "loc on TagSLAM's map: median / p95 / max mm, rot median deg | filtered (model): median / max mm, "
+             "flips of n | loc on our map: median / max mm | map / loc CPU ms per frame | anchored | measured (UTC, "
+             "load) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for t, r in rows.items():
         lines.append(
             f"| {t} | {r['cameras']} | {r['frames']} | {r['stations']}{' (SE3)' if r['se3'] else ''} | "
@@ -322,9 +338,12 @@ def report(rows: Dict[str, dict], failed: Dict[str, str], load, quick: bool, tes
             f"{' ' + str(r['missing_ids']) if r['tags_missing'] else ''} | "
             f"{_fmt(r['tagslam_loc_median_mm'], 2)} / {_fmt(r['tagslam_loc_p95_mm'])} / {_fmt(r['tagslam_loc_max_mm'])}, "
             f"{_fmt(r['tagslam_loc_rot_median_deg'], 2)} | {_fmt(r['tagslam_filt_median_mm'])} / "
-            f"{_fmt(r['tagslam_filt_max_mm'])}, {r['tagslam_flips']} | "
+            f"{_fmt(r['tagslam_filt_max_mm'])} ({r.get('filter_model', 'planar')}), {r['tagslam_flips']} of "
+            f"{r.get('tagslam_filtered', '-')} | "
             f"{_fmt(r.get('ours_loc_median_mm'), 2)} / {_fmt(r.get('ours_loc_max_mm'))} | "
-            f"{_fmt(r['map_cpu_ms_per_frame'], 0)} / {_fmt(r['tagslam_loc_cpu_ms_per_frame'], 1)} |")
+            f"{_fmt(r['map_cpu_ms_per_frame'], 0)} / {_fmt(r['tagslam_loc_cpu_ms_per_frame'], 1)} | "
+            f"{_anchored(r.get('anchored'))} | {r.get('measured_utc', 'full run')}"
+            f"{', load %.0f' % r['load'] if 'load' in r else ''} |")
     lines.append("")
     if rows:
         lines.append(f"Worst map RMS {results['real_worst_map_rms_mm']:.2f} mm; tags missing in total "
@@ -353,10 +372,21 @@ if __name__ == "__main__":
     p.add_argument("--only", default="", help="comma-separated tests (test_5,test_8)")
     p.add_argument("--max-frames", type=int, default=0)
     p.add_argument("--render", action="store_true", help="print the section of the last run (rows.json) again")
+    p.add_argument("--merge", action="store_true", help="with --only: replace those rows in rows.json (the other "
+                                                        "rows stay from their run; the section says which)")
     a = p.parse_args()
     if a.render:
-        with open(os.path.join(OUT, "rows.json"), encoding="utf-8") as fh:
-            saved = json.load(fh)
+        saved = {"rows": {}, "failed": {}, "load": os.getloadavg(), "quick": False, "tests": _tests()}
+        if os.path.exists(os.path.join(OUT, "rows.json")):
+            with open(os.path.join(OUT, "rows.json"), encoding="utf-8") as fh:
+                saved = json.load(fh)
+        for t in _tests():   # rows re-measured alone (--only ... --merge) replace the full run's
+            row = os.path.join(OUT, t, "row.json")
+            if os.path.exists(row) and (t not in saved["rows"] or os.path.getmtime(row) > os.path.getmtime(
+                    os.path.join(OUT, "rows.json"))):
+                with open(row, encoding="utf-8") as fh:
+                    saved["rows"][t] = json.load(fh)
+        saved["rows"] = {k: saved["rows"][k] for k in sorted(saved["rows"], key=lambda n: int(n.split("_")[1]))}
         out = report(saved["rows"], saved["failed"], saved["load"], saved["quick"], saved["tests"])
         print(out["markdown"])
         print(json.dumps(out["results"], indent=1, sort_keys=True))
@@ -364,6 +394,12 @@ if __name__ == "__main__":
         for t in a.only.split(","):
             r = run_one(t, a.max_frames)
             print(t, json.dumps({k: (v if not isinstance(v, float) else round(v, 3)) for k, v in r.items()}))
+            if a.merge:
+                # One file per recording (several --merge runs may go side by side); --render takes them.
+                r["measured_utc"] = time.strftime("%Y-%m-%d %H:%M", time.gmtime())
+                r["load"] = os.getloadavg()[0]
+                with open(os.path.join(OUT, t, "row.json"), "w", encoding="utf-8") as fh:
+                    json.dump(r, fh, indent=1, default=float)
     else:
         out = run(a.quick)
         print(out["markdown"])

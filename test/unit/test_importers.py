@@ -161,3 +161,28 @@ def test_tagslam_tags_bad_file_names_the_key(tmp_path):
     with pytest.raises(ConfigError) as err:
         read_tagslam_tags(str(p))
     assert err.value.key == "bodies[0].lab.default_tag_size"
+
+
+def test_tagslam_fixed_tags_become_anchors(tmp_path):
+    from aruco_ring_localization.anchors import load_anchors
+    from aruco_ring_localization.importers import tagslam_anchors
+
+    t12 = read_tagslam_tags(str(DATA / "test_12" / "tagslam.yaml"))
+    a = tagslam_anchors(t12, t12.ignore | t12.moving)
+    # One fixed tag: its full pose, with the noise tagslam.yaml gives it (0.1 mm, 1e-5 rad).
+    assert a.ids == [6]
+    (anchor,) = a.anchors
+    np.testing.assert_allclose(anchor.position, t12.known_poses[6][:3, 3])
+    np.testing.assert_allclose(anchor.rotation, t12.known_poses[6][:3, :3])
+    np.testing.assert_allclose(anchor.position_std, [1e-4] * 3)
+    assert anchor.rotation_std == pytest.approx(1e-5)
+    # Written as an anchors file, it reads back as build-map --anchors reads it.
+    from aruco_ring_localization.anchors import anchors_yaml
+    p = tmp_path / "anchors.yaml"
+    p.write_text(anchors_yaml(a))
+    back = load_anchors(str(p))
+    assert back.ids == [6]
+    np.testing.assert_allclose(back.anchors[0].rotation, anchor.rotation, atol=1e-9)
+    assert tagslam_anchors(t12, {6}) is None                     # excluded: nothing to anchor
+    t24 = read_tagslam_tags(str(DATA / "test_24" / "tagslam.yaml"))
+    assert tagslam_anchors(t24) is None                          # boards, no surveyed tag

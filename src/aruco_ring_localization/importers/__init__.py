@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 from .rig import ImportedCamera, ImportedRig, read_rig, write_ring_files
-from .tagslam import TagslamTags, read_tagslam_tags
+from .tagslam import TagslamTags, read_tagslam_tags, tagslam_anchors
 
-__all__ = ["ImportedCamera", "ImportedRig", "read_rig", "write_ring_files", "TagslamTags", "read_tagslam_tags"]
+__all__ = ["ImportedCamera", "ImportedRig", "read_rig", "write_ring_files", "TagslamTags", "read_tagslam_tags",
+           "tagslam_anchors"]

@@ -50,6 +50,9 @@ class TagslamTags:
     ignore: Set[int] = field(default_factory=set)
     moving: Set[int] = field(default_factory=set)
     known_poses: Dict[int, np.ndarray] = field(default_factory=dict)
+    #: id -> (position std (3,) m, rotation std rad) of a known pose (its ``position_noise`` /
+    #: ``rotation_noise``, else ``body_defaults``').
+    known_noise: Dict[int, Tuple[np.ndarray, float]] = field(default_factory=dict)
     static_bodies: List[str] = field(default_factory=list)
     moving_bodies: List[str] = field(default_factory=list)
     remaps: List[Tuple[int, int, float, float]] = field(default_factory=list)
@@ -102,6 +105,43 @@ def _pose(node: Any, path: str, key: str) -> np.ndarray:
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(r))):
         raise ConfigError("contains NaN or infinite values", path=path, key=key)
     return geo.transform_from_rvec_tvec(r, t)
+
+
+def _noise(node: Mapping[str, Any], defaults: Any, path: str, key: str) -> Tuple[np.ndarray, float]:
+    """(position std (3,), rotation std) of a TagSLAM pose: its own noise, else body_defaults'."""
+    defaults = defaults if isinstance(defaults, Mapping) else {}
+    out = []
+    for name in ("position_noise", "rotation_noise"):
+        value = node.get(name, defaults.get(name, 0.05 if name == "position_noise" else 0.01))
+        try:
+            v = (np.array([float(value[a]) for a in ("x", "y", "z")]) if isinstance(value, Mapping)
+                 else np.full(3, float(value)))
+        except (TypeError, KeyError, ValueError):
+            raise ConfigError("expected a number or {x, y, z}", path=path, key=f"{key}.{name}") from None
+        if not np.all(np.isfinite(v)) or np.any(v <= 0):
+            raise ConfigError(f"expected positive values, got {value!r}", path=path, key=f"{key}.{name}")
+        out.append(v)
+    return out[0], float(out[1].max())
+
+
+def tagslam_anchors(tags: TagslamTags, exclude: Set[int] = frozenset(), source: str = "tagslam.yaml"):
+    """The tags whose poses ``tagslam.yaml`` fixes (surveyed) as anchors (:class:`anchors.AnchorSet`)
+    for ``build-map --anchors``, or None when it fixes none: positions with their
+    ``position_noise`` as std; a single fixed tag comes with its full pose (``rotation_noise``),
+    since one position cannot fix a frame. ``exclude``: ids not to anchor (ignored, moving)."""
+    from ..anchors import Anchor, AnchorSet
+
+    ids = sorted(i for i in tags.known_poses if i not in exclude)
+    if not ids:
+        return None
+    full = len(ids) == 1
+    out = []
+    for i in ids:
+        T = tags.known_poses[i]
+        pos_std, rot_std = tags.known_noise.get(i, (np.full(3, 0.05), 0.01))
+        out.append(Anchor(i, T[:3, 3].copy(), pos_std, T[:3, :3].copy() if full else None,
+                          rot_std if full else None, "TagSLAM known pose", f"tag {i}"))
+    return AnchorSet(out, frame_id="tagslam", source=source)
 
 
 def _ids(value: Any, path: str, key: str) -> Set[int]:
@@ -164,6 +204,7 @@ def read_tagslam_tags(path: str, rig_bodies: Tuple[str, ...] = ()) -> TagslamTag
             if static and tag.get("pose") is not None and body.get("pose") is not None:
                 T_w_body = _pose(body["pose"], path, f"{key}.pose")
                 out.known_poses[tag["id"]] = T_w_body @ _pose(tag["pose"], path, f"{tkey}.pose")
+                out.known_noise[tag["id"]] = _noise(tag["pose"], data.get("body_defaults"), path, f"{tkey}.pose")
         kind = str(body.get("type", "simple"))
         if kind in ("board", "staggered_board"):
             grid = body.get(kind)
