@@ -82,6 +82,12 @@ COMMAND_KEYS: Dict[str, str] = {
     "tf": "rosrun tf tf_echo",
 }
 
+# Packages that only an example launch file starts, not declared (so that rosdep works where they
+# are not packaged): package -> the launch file, whose header says how to install it.
+OPTIONAL_LAUNCH_PACKAGES: Dict[str, str] = {
+    "robot_localization": "robot_localization_example.launch",  # not in Debian 12
+}
+
 # Launch files are run by roslaunch (the package's runtime).
 LAUNCH_KEY = "roslaunch"
 
@@ -166,7 +172,8 @@ def launch_packages() -> Set[str]:
     pkgs = set()
     for path in sorted((REPO / "launch").glob("*.launch")):
         for node in ET.parse(str(path)).getroot().iter("node"):
-            pkgs.add(node.get("pkg"))
+            if OPTIONAL_LAUNCH_PACKAGES.get(node.get("pkg")) != path.name:
+                pkgs.add(node.get("pkg"))
     return pkgs - {"aruco_ring_localization"}
 
 
