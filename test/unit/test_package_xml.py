@@ -6,7 +6,7 @@ below), and package.xml must declare each key with the right dependency type:
 
 * used by the package at run time (src/, scripts/, the launch files' ``<node pkg=...>``, the
   commands the user docs tell a ROS user to run): ``exec_depend`` (or ``depend``);
-* used only by tests, benchmarks and tools: ``test_depend``;
+* used only by tests, benchmarks and tools (and the rostest files' ``<node pkg=...>``): ``test_depend``;
 * used by setup.py (the build): ``build_depend`` or ``buildtool_depend``.
 
 It fails on an import that is not in the table, on a key that is not declared or declared with the
@@ -168,9 +168,10 @@ def declared() -> Dict[str, Set[str]]:
     return deps
 
 
-def launch_packages() -> Set[str]:
+def launch_packages(pattern: str = "launch/*.launch") -> Set[str]:
+    """The packages of the ``<node>``s of the launch (or rostest) files matching pattern."""
     pkgs = set()
-    for path in sorted((REPO / "launch").glob("*.launch")):
+    for path in sorted(REPO.glob(pattern)):
         for node in ET.parse(str(path)).getroot().iter("node"):
             if OPTIONAL_LAUNCH_PACKAGES.get(node.get("pkg")) != path.name:
                 pkgs.add(node.get("pkg"))
@@ -201,7 +202,10 @@ def usage() -> Tuple[Dict[str, Set[str]], Dict[str, Set[str]], Dict[str, Set[str
     for key, command in COMMAND_KEYS.items():
         if command in text:
             runtime.setdefault(key, set()).add(f"docs: {command}")
-    tests = {k: v for k, v in keys_for(third_party_imports(TEST_DIRS)).items() if k not in runtime}
+    tests = keys_for(third_party_imports(TEST_DIRS))
+    for pkg in launch_packages("test/integration/*.test"):
+        tests.setdefault(pkg, set()).add("test/integration/*.test <node pkg=...>")
+    tests = {k: v for k, v in tests.items() if k not in runtime}
     build = keys_for(third_party_imports(["setup.py"]))
     return runtime, tests, build
 
