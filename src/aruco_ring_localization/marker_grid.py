@@ -24,7 +24,7 @@ OCCUPIED = 100
 UNKNOWN = -1
 DEFAULT_RESOLUTION = 0.05   # m per cell, map_server's usual 5 cm
 DEFAULT_MARGIN = 0.5        # m of unknown around the markers
-MAX_CELLS = 4096 * 4096     # a 200 m x 200 m map at 5 cm; a larger one is drawn coarser
+MAX_CELLS = 2048 * 2048     # a 100 m x 100 m map at 5 cm (4 MB); a larger one is drawn coarser
 
 
 @dataclass(frozen=True)

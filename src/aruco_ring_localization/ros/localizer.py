@@ -25,7 +25,7 @@ docs/parameters.md).
 from __future__ import annotations
 
 import sys
-from typing import List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence
 
 import diagnostic_updater
 import numpy as np
@@ -43,7 +43,7 @@ from .. import geometry as geo
 from ..errors import ArucoRingError, ConfigError
 from ..marker_grid import marker_grid
 from ..marker_map import MarkerMap
-from ..pipeline import LocalizationPipeline, PoseOutput
+from ..pipeline import LocalizationPipeline, PoseOutput, StatusReport
 from ..ring import CameraRing
 from ..schemas import LocalizerConfig
 from . import log_bridge
@@ -251,19 +251,19 @@ class Diagnostics:
     def __init__(self, camera_names: Sequence[str]):
         self.updater = diagnostic_updater.Updater()
         self.updater.setHardwareID("aruco_ring")
-        self._reports: dict = {}
+        self._reports: Dict[str, StatusReport] = {}
         self._all_silent = False
         for task in [f"camera {n}" for n in camera_names] + ["filter"]:
             self.updater.add(task, lambda stat, task=task: self._fill(task, stat))
 
-    def publish(self, reports) -> None:
+    def publish(self, reports: Sequence[StatusReport]) -> None:
         # the pipeline names a status "aruco_ring localizer: camera X"; the updater prefixes the node's name
         self._reports = {r.name.split(": ", 1)[-1]: r for r in reports}
         cameras = [r for task, r in self._reports.items() if task.startswith("camera ")]
         self._all_silent = bool(cameras) and not any(r.ok for r in cameras)
         self.updater.force_update()
 
-    def _fill(self, task: str, stat):
+    def _fill(self, task: str, stat: diagnostic_updater.DiagnosticStatusWrapper) -> diagnostic_updater.DiagnosticStatusWrapper:
         r = self._reports.get(task)
         if r is None:
             stat.summary(DiagnosticStatus.STALE, "no report yet")
