@@ -6,6 +6,13 @@ Unknowns (all in one frame W, the robot's base frame at the reference station):
 * ``T_W_base`` for every station (a robot placement; many frames may share one),
 * optionally ``T_base_cam`` of every camera, with a Gaussian prior around the calibration.
 
+Optional priors (:class:`MarkerPriors`, the anchors of a surveyed frame: :mod:`anchors`): a
+surveyed position of a marker's centre (``(t - p) / std`` per axis), a surveyed orientation
+(``log(R R_s^T) / std``) and a level station (the x, y components of its z axis over a sigma: the
+robot's floor is the frame's plane). They can replace the fixed station as the gauge: 3 surveyed
+points not on a line, or one surveyed pose, fix all 6 degrees of freedom; 2 points fix 5 and one
+level station the remaining tilt.
+
 Measurements: every detected corner of every observation. A corner ``X`` (marker frame) is seen by
 camera ``c`` of station ``s`` at ``p_c = T_base_cam^-1 · T_W_base^-1 · T_W_marker · X``, and the
 residual is ``A · (p_c.xy / p_c.z - xy_obs) / pixel_noise`` where ``xy_obs`` are the observed
@@ -50,6 +57,50 @@ logger = logging.getLogger(__name__)
 
 
 @dataclass
+class MarkerPriors:
+    """Priors of the adjustment other than the corners: surveyed markers and level stations.
+
+    Attributes:
+        position_marker: (K,) indices of markers with a surveyed centre.
+        position: (K, 3) those centres in the problem's frame W, m.
+        position_std: (K, 3) their 1-sigma per axis of W, m.
+        rotation_marker: (L,) indices of markers with a surveyed orientation.
+        rotation: (L, 3, 3) those orientations in W.
+        rotation_std: (L,) their 1-sigma, rad.
+        level_station: (J,) indices of stations whose z axis is held along W's z (the robot stands on
+            the frame's plane), with 1-sigma ``level_sigma`` (rad) on each tilt component.
+    """
+
+    position_marker: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+    position: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    position_std: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    rotation_marker: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+    rotation: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    rotation_std: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    level_station: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+    level_sigma: float = 1e-6
+
+    def __post_init__(self) -> None:
+        self.position_marker = np.asarray(self.position_marker, dtype=int).reshape(-1)
+        self.position = np.asarray(self.position, dtype=float).reshape(-1, 3)
+        self.position_std = np.asarray(self.position_std, dtype=float).reshape(-1, 3)
+        self.rotation_marker = np.asarray(self.rotation_marker, dtype=int).reshape(-1)
+        self.rotation = np.asarray(self.rotation, dtype=float).reshape(-1, 3, 3)
+        self.rotation_std = np.asarray(self.rotation_std, dtype=float).reshape(-1)
+        self.level_station = np.asarray(self.level_station, dtype=int).reshape(-1)
+        K, L = len(self.position_marker), len(self.rotation_marker)
+        if self.position.shape[0] != K or self.position_std.shape[0] != K or self.rotation.shape[0] != L \
+                or self.rotation_std.shape[0] != L:
+            raise GeometryError("MarkerPriors: the arrays of one kind of prior must have the same length")
+        if np.any(self.position_std <= 0) or np.any(self.rotation_std <= 0) or not self.level_sigma > 0:
+            raise GeometryError("MarkerPriors: every std must be positive")
+
+    @property
+    def n_residuals(self) -> int:
+        return 3 * len(self.position_marker) + 3 * len(self.rotation_marker) + 2 * len(self.level_station)
+
+
+@dataclass
 class BAProblem:
     """Inputs of :func:`bundle_adjust`. N observations of 4 corners.
 
@@ -71,6 +122,8 @@ class BAProblem:
             compresses the image towards its border (a corner 60 deg off-axis moves ~4x fewer raw
             pixels than pinhole pixels), and without it those corners would count as 4x noisier.
             Default: ``diag(obs_focal)``, the ideal pinhole camera.
+        priors: optional :class:`MarkerPriors` (surveyed markers, level stations): with them no
+            marker or station needs to be fixed.
     """
 
     T_W_markers: np.ndarray
@@ -86,6 +139,7 @@ class BAProblem:
     fixed_station: Optional[int] = None
     T_base_cams_start: Optional[np.ndarray] = None
     obs_lens: Optional[np.ndarray] = None
+    priors: Optional[MarkerPriors] = None
 
 
 @dataclass(frozen=True)
@@ -166,8 +220,10 @@ class _Model:
         N = len(prob.obs_marker)
         if N == 0:
             raise GeometryError("bundle adjustment needs at least one observation")
-        if prob.fixed_marker is None and prob.fixed_station is None and not opts.refine_extrinsics:
-            raise GeometryError("bundle adjustment needs a gauge: a fixed marker or a fixed station")
+        priors = prob.priors if prob.priors is not None and prob.priors.n_residuals else None
+        if prob.fixed_marker is None and prob.fixed_station is None and not opts.refine_extrinsics and priors is None:
+            raise GeometryError("bundle adjustment needs a gauge: a fixed marker, a fixed station or priors")
+        self.priors = priors
         self.M, self.S, self.C, self.N = M, S, C, N
         # Column offset of each pose block; -1 for fixed ones.
         self.col_m = np.full(M, -1)
@@ -205,7 +261,12 @@ class _Model:
             self.A[..., 1, 1] = (prob.obs_focal[:, 1] / opts.pixel_noise)[:, None]
         self.n_obs_res = 8 * N
         self.n_prior_res = 6 * C if opts.refine_extrinsics else 0
-        self.n_res = self.n_obs_res + self.n_prior_res
+        self.n_anchor_res = priors.n_residuals if priors is not None else 0
+        if priors is not None:
+            if np.any(self.col_m[priors.position_marker] < 0) or np.any(self.col_m[priors.rotation_marker] < 0) \
+                    or np.any(self.col_s[priors.level_station] < 0):
+                raise GeometryError("bundle adjustment: a prior on a fixed marker or station (leave it free)")
+        self.n_res = self.n_obs_res + self.n_prior_res + self.n_anchor_res
         self._build_pattern()
 
     def _build_pattern(self) -> None:
@@ -231,8 +292,57 @@ class _Model:
             pr = self.n_obs_res + np.arange(6 * self.C)
             pc = np.concatenate([self.col_c[i] + np.arange(6) for i in range(self.C)])
             self._prior_rows, self._prior_cols = pr, pc
-        self.rows = np.concatenate(self._blk_rows + ([self._prior_rows] if self.n_prior_res else []))
-        self.cols = np.concatenate(self._blk_cols + ([self._prior_cols] if self.n_prior_res else []))
+        extra_r = [self._prior_rows] if self.n_prior_res else []
+        extra_c = [self._prior_cols] if self.n_prior_res else []
+        if self.n_anchor_res:
+            ar, ac = self._anchor_pattern(self.n_obs_res + self.n_prior_res)
+            extra_r.append(ar)
+            extra_c.append(ac)
+        self.rows = np.concatenate(self._blk_rows + extra_r)
+        self.cols = np.concatenate(self._blk_cols + extra_c)
+
+    def _anchor_pattern(self, base: int) -> Tuple[np.ndarray, np.ndarray]:
+        """Rows/columns of the prior block (positions 3x3 diagonal on t, rotations 3x3 full on w,
+        level 2x3 on the station's w), in the order :meth:`_anchor_residuals` gives them."""
+        pr = self.priors
+        rows, cols = [], []
+        K, L, J = len(pr.position_marker), len(pr.rotation_marker), len(pr.level_station)
+        rows.append(base + np.arange(3 * K))
+        cols.append((self.col_m[pr.position_marker][:, None] + 3 + np.arange(3)).ravel())
+        base += 3 * K
+        r = base + 3 * np.arange(L)[:, None, None] + np.arange(3)[None, :, None]
+        c = self.col_m[pr.rotation_marker][:, None, None] + np.arange(3)[None, None, :]
+        rows.append(np.broadcast_to(r, (L, 3, 3)).ravel())
+        cols.append(np.broadcast_to(c, (L, 3, 3)).ravel())
+        base += 3 * L
+        r = base + 2 * np.arange(J)[:, None, None] + np.arange(2)[None, :, None]
+        c = self.col_s[pr.level_station][:, None, None] + np.arange(3)[None, None, :]
+        rows.append(np.broadcast_to(r, (J, 2, 3)).ravel())
+        cols.append(np.broadcast_to(c, (J, 2, 3)).ravel())
+        return np.concatenate(rows).astype(int), np.concatenate(cols).astype(int)
+
+    def _anchor_residuals(self, wm, Rm, tm, ws, Rs, jacobian: bool = False):
+        """The prior residuals (and with ``jacobian`` their Jacobian's non-zeros, pattern order)."""
+        pr = self.priors
+        im, il, js = pr.position_marker, pr.rotation_marker, pr.level_station
+        # Position: r = (t_m - p) / std, dr/dt = 1 / std.
+        r = [((tm[im] - pr.position) / pr.position_std).ravel()]
+        d = [(1.0 / pr.position_std).ravel()]
+        # Orientation: r = log(R_m R_s^T) / std; with R_m = exp(w) R0, dr/dw = J_l(r)^-1 J_l(w) / std.
+        if len(il):
+            phi = Rotation.from_matrix(Rm[il] @ np.transpose(pr.rotation, (0, 2, 1))).as_rotvec()
+            r.append((phi / pr.rotation_std[:, None]).ravel())
+            if jacobian:
+                Jr = np.linalg.inv(geo.so3_left_jacobian(phi)) @ geo.so3_left_jacobian(wm[il])
+                d.append((Jr / pr.rotation_std[:, None, None]).ravel())
+        # Level station: r = (z_x, z_y) / sigma of its z axis z = R_s e_z; dz/dv = -[z]x J_l(v).
+        if len(js):
+            z = Rs[js][:, :, 2]
+            r.append((z[:, :2] / pr.level_sigma).ravel())
+            if jacobian:
+                dz = -(geo.skew(z) @ geo.so3_left_jacobian(ws[js]))[:, :2, :]
+                d.append((dz / pr.level_sigma).ravel())
+        return (np.concatenate(r), np.concatenate(d)) if jacobian else np.concatenate(r)
 
     def sparsity(self) -> sp.csr_matrix:
         return sp.csr_matrix((np.ones(len(self.rows)), (self.rows, self.cols)), shape=(self.n_res, self.n_params))
@@ -267,7 +377,7 @@ class _Model:
         return (wm, Rm, tm), (ws, Rs, ts, Es), (wc, Rc, tc, Ec), a, q, q2, pc
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
-        *_, pc = self._forward(x)
+        (wm, Rm, tm), (ws, Rs, _, _), _, _, _, _, pc = self._forward(x)
         z = pc[..., 2]
         z = np.where(np.abs(z) < 1e-9, 1e-9, z)
         proj = pc[..., :2] / z[..., None]
@@ -278,6 +388,8 @@ class _Model:
             prior[:, :3] /= self.o.extrinsics_rot_sigma
             prior[:, 3:] /= self.o.extrinsics_trans_sigma
             out = np.concatenate([out, prior.ravel()])
+        if self.n_anchor_res:
+            out = np.concatenate([out, self._anchor_residuals(wm, Rm, tm, ws, Rs)])
         return out
 
     def jacobian(self, x: np.ndarray) -> sp.csr_matrix:
@@ -322,6 +434,8 @@ class _Model:
             pd = np.tile(np.r_[np.full(3, 1.0 / self.o.extrinsics_rot_sigma),
                                np.full(3, 1.0 / self.o.extrinsics_trans_sigma)], self.C)
             data.append(pd)
+        if self.n_anchor_res:
+            data.append(self._anchor_residuals(wm, Rm, tm, ws, Rs, jacobian=True)[1])
         return sp.csr_matrix((np.concatenate(data), (self.rows, self.cols)), shape=(self.n_res, self.n_params))
 
 
@@ -549,7 +663,7 @@ def _bundle_adjust(prob: BAProblem, opts: Optional[BAOptions] = None) -> BAResul
     cov = cam_cov = None
     if opts.covariance and J is not None:
         Jm = J if sp.issparse(J) else sp.csr_matrix(J)
-        if model.n_prior_res:
+        if model.n_res > model.n_obs_res:
             # The priors' sigmas are absolute: only the corner rows carry the variance factor (else
             # what only the priors determine -- a turn of the whole ring against the robot -- would
             # shrink with a small pixel noise).

@@ -41,6 +41,13 @@ base_link z = 0, x along the reference marker's x made horizontal).
 * The map frame is ``floor`` (below the reference marker, z up) or ``marker`` (the reference
   marker's own frame), ``MappingOptions.frame``; the map records it, its quality (reprojection
   RMS, stations, station model) and passes :func:`marker_map.check_map` before any save.
+* Surveyed frame (``anchors``, :mod:`anchors`): markers with surveyed positions (or one with a
+  surveyed pose) define the map frame instead of the reference marker. The initialisation is
+  fitted to them (:func:`anchors.fit_frame`, weighted by their std) and the bundle adjustment runs
+  in that frame with the anchors as priors and no fixed station (with 2 anchors, or anchors on one
+  line, the reference station is held level: the plane is the robot's floor); a paper map is the
+  fitted initialisation. The map records each anchor's residual (``anchors``, frame convention
+  ``survey``).
 
 Frames: ``W`` is the ring's base frame at the reference station; ``T_W_*`` poses live there
 until :meth:`build` expresses them in the map frame.
@@ -56,8 +63,9 @@ from typing import Any, Dict, Hashable, List, Optional, Tuple
 import numpy as np
 
 from . import geometry as geo
-from .bundle_adjustment import (BAOptions, BAProblem, BAResult, bundle_adjust, camera_cov_in_optical_frames,
-                                marker_std_in_frame, observation_rms_px)
+from .anchors import AnchorSet, anchor_report, fit_frame, frame_definition
+from .bundle_adjustment import (BAOptions, BAProblem, BAResult, MarkerPriors, bundle_adjust,
+                                camera_cov_in_optical_frames, marker_std_in_frame, observation_rms_px)
 from .config import in_radians, param, section
 from .errors import ArucoRingError, ConfigError, GeometryError, MeasurementError
 from .detections import RingFrame
@@ -72,6 +80,9 @@ logger = logging.getLogger(__name__)
 METHODS = ("paper", "refined")
 #: A station needs this many frames (of a camera) before a marker's detection ratio there counts.
 RATIO_MIN_FRAMES = 5
+#: 1-sigma (rad) of the level prior on the reference station of a frame surveyed by points on one
+#: line (2 anchors): the tilt about that line is the robot's floor, as in the reference-marker frame.
+LEVEL_SIGMA = 1e-5
 
 
 FRAMES = ("floor", "marker")
@@ -254,6 +265,8 @@ class MapBuilder:
         reference_marker: id that fixes the map frame, or None for the paper's rule.
         options: :class:`MappingOptions`.
         frame_id: name of the map frame in the built map.
+        anchors: surveyed markers (:class:`anchors.AnchorSet`) that define the map frame, or None
+            (the reference marker's frame).
 
     Ring frames must hold sanitized detections (:func:`detections.sanitize_observations`, ignored
     ids removed): :class:`pipeline.MappingPipeline` does it once where they enter.
@@ -261,7 +274,7 @@ class MapBuilder:
 
     def __init__(self, ring: CameraRing, sizes: MarkerSizes, method: str = "refined",
                  reference_marker: Optional[int] = None, options: Optional[MappingOptions] = None,
-                 frame_id: str = "map"):
+                 frame_id: str = "map", anchors: Optional[AnchorSet] = None):
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         self.ring = ring
@@ -270,6 +283,7 @@ class MapBuilder:
         self.reference_marker = reference_marker
         self.options = options or MappingOptions()
         self.frame_id = frame_id
+        self.anchors = anchors
         self.clear()
 
     def set_ring(self, ring: CameraRing) -> None:
@@ -1035,12 +1049,22 @@ class MapBuilder:
             ref = self._refined_reference(init, res, mids)
             T_W = {m: res.T_W_markers[k] for k, m in enumerate(mids)}
             per_obs = res.per_obs_rms_px
-        # The map frame is fixed to the (refined) reference marker; W is the ring's base frame at
-        # the reference station (the gauge of the adjustment).
-        T_W_map, definition = self._frame(T_W[ref], ref)
-        T_map_W = geo.inverse(T_W_map)
+        if self.anchors is not None:
+            # Surveyed frame: a refined map is already in it (the adjustment ran there); a paper
+            # map is the initialisation fitted to the anchors.
+            anchors = self._surveyed(mids)
+            fit = fit_frame(anchors, T_W)
+            T_map_W = np.eye(4) if res is not None else fit.T_map_W
+            T_W_map, ref, convention = geo.inverse(T_map_W), None, "survey"
+            definition = frame_definition(anchors, fit.kind)
+        else:
+            # The map frame is fixed to the (refined) reference marker; W is the ring's base frame at
+            # the reference station (the gauge of the adjustment).
+            T_W_map, definition = self._frame(T_W[ref], ref)
+            T_map_W = geo.inverse(T_W_map)
+            convention = self.options.frame
         out = MarkerMap(frame_id=self.frame_id, reference_marker=ref, frame_definition=definition, method=method,
-                        frame_convention=self.options.frame)
+                        frame_convention=convention)
         obs_k = np.array([k for k, m in enumerate(mids) for _ in init.marker_obs.get(m, [])], dtype=int)
         n_k = np.bincount(obs_k, minlength=len(mids))
         ss_k = np.bincount(obs_k, weights=np.square(per_obs), minlength=len(mids))
@@ -1064,6 +1088,15 @@ class MapBuilder:
                        "station_model": "planar" if init.planar else "se3"}
         if init.station_note and not init.planar:
             out.quality["station_note"] = init.station_note
+        if self.anchors is not None:
+            out.anchors = anchor_report(self.anchors, {e.marker_id: e.T_map_marker for e in out}, fit.kind)
+            for p in out.anchors["points"]:
+                if "residual" in p:
+                    logger.info("mapping: anchor marker %d mapped %.1f mm (%.1f sigma) from its surveyed position",
+                                p["marker"], 1000 * float(np.linalg.norm(p["residual"])), p["residual_sigmas"])
+                else:
+                    logger.warning("mapping: surveyed marker %d is not in the map (%s): the frame rests on the "
+                                   "others", p["marker"], self.anchors.source)
         if res is not None and self._refines_extrinsics:
             # The markers were estimated through these extrinsics: localizing with them removes the
             # ring's calibration error from every pose (ring_tf publishes them given the map file).
@@ -1104,7 +1137,7 @@ class MapBuilder:
         covariance, among markers seen from at least ``refined_reference_min_stations``
         stations when there are any (no truth is involved in the choice).
         """
-        if (self.reference_marker is not None or not self.options.refined_reference
+        if (self.reference_marker is not None or not self.options.refined_reference or self.anchors is not None
                 or res.marker_cov is None or len(mids) < 2):
             return init.reference
         stations: Dict[int, set] = defaultdict(set)
@@ -1140,6 +1173,18 @@ class MapBuilder:
         n = len(Ts)
         return P.std(axis=0, ddof=1) / np.sqrt(n), rv.std(axis=0, ddof=1) / np.sqrt(n)
 
+    def _surveyed(self, mids: List[int]) -> AnchorSet:
+        """The anchors among the mapped markers ``mids``; ArucoRingError while they cannot fix the
+        frame yet (the live map waits for them, a save says which are missing)."""
+        assert self.anchors is not None
+        try:
+            return self.anchors.subset(mids)
+        except ConfigError:
+            have = [m for m in self.anchors.ids if m in set(mids)]
+            raise ArucoRingError(f"surveyed frame ({self.anchors.source}): {len(have)} of the surveyed markers "
+                                 f"{self.anchors.ids} mapped ({have}); the frame needs 2 of them, or 1 with a "
+                                 f"surveyed pose: map until the others are seen") from None
+
     def _problem(self, init: _Init, mids: List[int]) -> BAProblem:
         """The adjustment problem of the initialisation: every kept observation of ``mids``."""
         sts = sorted(init.T_W_stations)
@@ -1149,12 +1194,32 @@ class MapBuilder:
         ci = {c: k for k, c in enumerate(cams)}
         idx = [i for m in mids for i in init.marker_obs.get(m, [])]
         obs = [self._obs[i] for i in idx]
+        T_m = np.stack([init.T_W_markers[m] for m in mids])
+        T_s = np.stack([init.T_W_stations[s] for s in sts])
+        fixed_station: Optional[int] = si[init.ref_station]
+        priors = None
+        if self.anchors is not None:
+            # The surveyed frame: the initialisation fitted to the anchors, which then replace the
+            # fixed station as the gauge (priors weighted by their std).
+            anchors = self._surveyed(mids)
+            fit = fit_frame(anchors, init.T_W_markers)
+            T_m = fit.T_map_W @ T_m
+            T_s = fit.T_map_W @ T_s
+            pos = anchors.anchors
+            rot = [a for a in pos if a.rotation is not None]
+            priors = MarkerPriors(position_marker=[mi[a.marker_id] for a in pos],
+                                  position=[a.position for a in pos], position_std=[a.position_std for a in pos],
+                                  rotation_marker=[mi[a.marker_id] for a in rot], rotation=[a.rotation for a in rot],
+                                  rotation_std=[a.rotation_std for a in rot],
+                                  level_station=[fixed_station] if fit.kind == "points_level" else [],
+                                  level_sigma=LEVEL_SIGMA)
+            fixed_station = None
         # Each observation carries the extrinsics in force when it was taken; the solver keeps one
         # per camera: the ring's current one.
         return BAProblem(
-            T_W_markers=np.stack([init.T_W_markers[m] for m in mids]),
+            T_W_markers=T_m,
             sizes=np.array([self.sizes(m) for m in mids]),
-            T_W_stations=np.stack([init.T_W_stations[s] for s in sts]),
+            T_W_stations=T_s,
             T_base_cams=np.stack([self.ring[c].T_base_cam for c in cams]),
             obs_marker=np.array([mi[o.marker_id] for o in obs], dtype=int),
             obs_station=np.array([si[o.station] for o in obs], dtype=int),
@@ -1163,7 +1228,8 @@ class MapBuilder:
             obs_focal=np.stack([o.focal for o in obs]),
             obs_lens=np.stack([o.lens for o in obs]),
             fixed_marker=None,
-            fixed_station=si[init.ref_station],
+            fixed_station=fixed_station,
+            priors=priors,
             T_base_cams_start=np.stack([init.extrinsics.get(c, self.ring[c].T_base_cam) for c in cams]),
         )
 
@@ -1221,12 +1287,18 @@ class MapBuilder:
         "moved" 5 mm, pure gauge, and the localizer then shifted every pose by it). Choosing ``D``
         so that the cameras' mean motion from the calibration is zero keeps the base frame the
         calibration's; the map relative to its reference marker is unchanged.
+
+        In a surveyed frame (anchors) the markers stay where the adjustment put them against the
+        survey: the same projections come from cameras ``D T_base_cam`` and stations ``T_W_s D^-1``.
         """
         calib = [self.ring[c].T_base_cam for c in self.ring.names]
         motions = [res.T_base_cams[k] @ geo.inverse(E) for k, E in enumerate(calib)]
         D = geo.inverse(geo.average_transforms(motions))
         D_inv = geo.inverse(D)
         res.T_base_cams[:] = D @ res.T_base_cams
+        if self.anchors is not None:
+            res.T_W_stations[:] = res.T_W_stations @ D_inv
+            return
         res.T_W_markers[:] = D @ res.T_W_markers
         res.T_W_stations[:] = D @ res.T_W_stations @ D_inv
         if res.marker_cov is not None:

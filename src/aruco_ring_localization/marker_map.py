@@ -27,6 +27,13 @@ File format (YAML, written atomically with the previous file kept as ``.bak``; d
       covariance:                           # optional: their uncertainty (the bundle adjustment's)
         cameras: [cam0, ...]                # order of the 6 x 6 blocks
         matrix: [[...], ...]                # 6n x 6n: per camera (rx, ry, rz rad, tx, ty, tz m)
+    anchors:                                # optional: the surveyed markers that define the frame
+      source: plate_anchors.yaml            # (frame_convention: survey; reference_marker: null)
+      frame_id: plate
+      kind: points                          # pose | points | points_level
+      points:
+        - {marker: 3, surveyed: [0, 0, 0.45], std: [0.001, 0.001, 0.001],
+           residual: [0.0004, -0.0002, 0.0001], residual_sigmas: 0.46}   # mapped - surveyed, m
 
 The markers were estimated through the ring extrinsics. When bundle adjustment refined those
 (``ring_calibration``), localizing with them instead of the original calibration removes the
@@ -57,6 +64,7 @@ from .config import param
 from .errors import ConfigError, GeometryError, MapSanityError
 from .fileio import atomic_write_text
 from .markers import marker_corners
+from .anchors import check_anchor_report
 
 logger = logging.getLogger(__name__)
 
@@ -75,6 +83,7 @@ FRAME_CONVENTIONS = {
     "floor": "origin on the floor below the reference marker's centre, z up (the ring base frame's z while "
              "mapping), x the reference marker's x made horizontal",
     "marker": "the reference marker's own frame (fiducial_slam's convention)",
+    "survey": "the frame of surveyed markers (anchors): their measured positions, or one measured pose",
 }
 
 
@@ -89,9 +98,12 @@ class MapSanityLimits:
                                    "the map records it)", unit="px")
     max_extrinsics_sigmas: float = param(6.0, "refined ring extrinsics may move at most this many prior "
                                               "standard deviations from the calibration")
+    max_anchor_sigmas: float = param(5.0, "surveyed frame: every anchor mapped within this many of its survey "
+                                          "std from its surveyed position (a mistyped value, a wrong id, a "
+                                          "moved marker)")
 
     def __post_init__(self) -> None:
-        for name in ("max_extent", "max_rms_px", "max_extrinsics_sigmas"):
+        for name in ("max_extent", "max_rms_px", "max_extrinsics_sigmas", "max_anchor_sigmas"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"must be positive, got {getattr(self, name)!r}", key=name)
 
@@ -159,6 +171,9 @@ class MarkerMap:
         #: module doc), or None.
         self.ring_extrinsics_covariance: Optional[np.ndarray] = None
         self.ring_covariance_cameras: List[str] = []
+        #: the surveyed markers that define the frame, with their residuals (:func:`anchors.anchor_report`),
+        #: or None (the reference marker's frame).
+        self.anchors: Optional[Dict[str, Any]] = None
         self._corners: Dict[int, np.ndarray] = {}
         self.frame_id = frame_id
         self.reference_marker = reference_marker
@@ -253,6 +268,8 @@ class MarkerMap:
                 out["ring_calibration"]["covariance"] = {
                     "cameras": list(self.ring_covariance_cameras),
                     "matrix": [[float(f"{v:.9g}") for v in row] for row in self.ring_extrinsics_covariance]}
+        if self.anchors is not None:
+            out["anchors"] = _plain(self.anchors)
         return out
 
     def save(self, path: str, limits: Optional["MapSanityLimits"] = None, backups: int = 1) -> None:
@@ -320,6 +337,8 @@ class MarkerMap:
                 out.add(entry)
         if ref is not None and ref not in out:
             raise ConfigError(f"reference marker {ref} is not among the markers", path=source, key="reference_marker")
+        if data.get("anchors") is not None:
+            out.anchors = _read_anchor_report(data["anchors"], source)
         if data.get("ring_calibration") is not None:
             out.ring_base_frame, out.ring_extrinsics = _read_ring_calibration(data["ring_calibration"], source)
             out.ring_prior_sigma, out.ring_moved = _read_ring_refinement(data["ring_calibration"], source)
@@ -557,6 +576,33 @@ def _read_ring_refinement(node: Mapping[str, Any], source: str):
     return sigma, moved
 
 
+def _read_anchor_report(node: Any, source: str) -> Dict[str, Any]:
+    """The map's ``anchors`` section, checked for the keys the sanity checks and the evaluation read."""
+    if not isinstance(node, Mapping):
+        raise ConfigError("expected a mapping (source, kind, points)", path=source, key="anchors")
+    points = node.get("points")
+    if not isinstance(points, list):
+        raise ConfigError("expected a list of surveyed markers", path=source, key="anchors.points")
+    for i, p in enumerate(points):
+        key = f"anchors.points[{i}]"
+        if not isinstance(p, Mapping):
+            raise ConfigError("expected a mapping (marker, surveyed, std, residual)", path=source, key=key)
+        mid = p.get("marker")
+        if isinstance(mid, bool) or not isinstance(mid, int):
+            raise ConfigError(f"expected a marker id, got {mid!r}", path=source, key=f"{key}.marker")
+        for name in ("surveyed", "std", "residual"):
+            if name == "residual" and name not in p:
+                continue
+            v = p.get(name)
+            if not (isinstance(v, list) and len(v) == 3 and all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                                                 and math.isfinite(x) for x in v)):
+                raise ConfigError(f"expected 3 finite numbers, got {v!r}", path=source, key=f"{key}.{name}")
+        sig = p.get("residual_sigmas")
+        if sig is not None and (isinstance(sig, bool) or not isinstance(sig, (int, float))):
+            raise ConfigError(f"expected a number, got {sig!r}", path=source, key=f"{key}.residual_sigmas")
+    return dict(node)
+
+
 def _plain(value: Any) -> Any:
     """numpy scalars / tuples -> plain YAML types (recursively)."""
     if isinstance(value, Mapping):
@@ -581,6 +627,8 @@ def check_map(m: "MarkerMap", limits: Optional[MapSanityLimits] = None, ring: An
     * ``extent``: every marker lies within ``max_extent`` of the origin (a hall-sized box);
     * ``reprojection``: the map's recorded reprojection RMS (``quality.reprojection_rms_px``) and
       every marker's (``rms_px``) are within ``max_rms_px``;
+    * ``anchors``: every surveyed marker is mapped within ``max_anchor_sigmas`` of its survey std
+      from its surveyed position (:func:`anchors.check_anchor_report`);
     * ``extrinsics``: refined ring extrinsics moved at most ``max_extrinsics_sigmas`` prior standard
       deviations from the calibration (recorded ``moved``; and against ``ring``'s calibration,
       a :class:`~aruco_ring_localization.ring.CameraRing`, when given: what ``check-config`` does).
@@ -628,6 +676,8 @@ def check_map(m: "MarkerMap", limits: Optional[MapSanityLimits] = None, ring: An
                             f"{lim.max_extrinsics_sigmas:g} prior sigmas ({1000 * sigma_t:.0f} mm, "
                             f"{np.degrees(sigma_r):.2f} deg): check the ring file (base frame, extrinsics) or map "
                             f"with refine_extrinsics: false")
+    if m.anchors is not None:
+        problems += check_anchor_report(m.anchors, lim.max_anchor_sigmas)
     return problems
 
 

@@ -42,6 +42,7 @@ from typing import Deque, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from . import geometry as geo
+from .anchors import load_anchors
 from .camera import CameraModel
 from .detections import CameraFrame, MarkerObservation, RingFrame, RingFrameAssembler, sanitize_observations
 from .errors import ConfigError, GeometryError, MeasurementError
@@ -766,9 +767,12 @@ class MappingPipeline(_RingPipeline):
         self.config = config
         self.warn = ThrottledWarnings(logger.warning, WARN_PERIOD)
         self.input = RingInput(ring, config.input, self.warn, label="mapper")
+        # A surveyed frame: read once here, so a bad anchors file stops the node (or build-map) at
+        # start, naming the file and the key.
+        anchors = load_anchors(config.map.anchors_file) if config.map.anchors_file else None
         self.builder = MapBuilder(self.input.ring, config.markers.sizes(), method=config.map.method,
                                   reference_marker=config.map.reference, options=config.mapping,
-                                  frame_id=config.map.map_frame)
+                                  frame_id=config.map.map_frame, anchors=anchors)
         self.frames_missing = 0  # ring frames added without every camera
         self._last_stamp: Optional[float] = None   # stamp of the latest frame the builder placed
 
@@ -843,7 +847,15 @@ class MappingPipeline(_RingPipeline):
         first when a detected marker is not in the map (:meth:`MapBuilder.format_unmapped`)."""
         s = self.summary()
         frame = f"map frame on marker {m.reference_marker}"
-        if s["reference_marker"] not in (None, m.reference_marker):
+        if m.anchors is not None:
+            res = [p for p in m.anchors["points"] if "residual" in p]
+            worst = max(res, key=lambda p: p["residual_sigmas"]) if res else None
+            frame = f"surveyed frame ({len(res)} anchors of {m.anchors['source']}"
+            if worst is not None:
+                frame += (f"; largest residual marker {worst['marker']}: "
+                          f"{1000 * float(np.linalg.norm(worst['residual'])):.1f} mm")
+            frame += ")"
+        elif s["reference_marker"] not in (None, m.reference_marker):
             frame += (f" (the best-determined heading after the adjustment; chaining started from marker "
                       f"{s['reference_marker']}, the paper's rule)")
         obs = ", ".join(f"{e.marker_id}:{e.observations}" for e in m)

@@ -184,6 +184,10 @@ class MapParams:
     reference_marker: int = param(-1, "id fixing the map frame; -1: the paper's rule (the marker closest to its "
                                       "camera, most face-on, at the first placement)")
     map_frame: str = param("map", "name of the map frame (REP-105 map; aruco_map beside gmapping)")
+    anchors_file: str = param("", "surveyed markers (YAML, docs/formats.md) that define the map frame: 2 or more "
+                                  "markers' measured positions with their std, or one marker's pose; they enter "
+                                  "the bundle adjustment as priors and the map records each one's residual; "
+                                  "empty: the frame of reference_marker")
     save_on_shutdown: bool = param(False, "save the map when the node stops")
     backups: int = param(5, "previous versions of the map file kept by every save: map.yaml.bak (the last), "
                             "map.yaml.bak.2, ... map.yaml.bak.N (the oldest); 0 keeps none")

@@ -90,3 +90,38 @@ def test_build_map_without_ring_topics_is_an_error(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "empty.bag" in err and "fiducial_vertices" in err, err
     assert not (tmp_path / "map.yaml").exists()
+
+
+def test_build_map_with_anchors(bag_path, tmp_path, capsys):
+    """--anchors FILE: the map is in the surveyed frame (the truth's, here) with each anchor's residual,
+    printed and in the file; in the strict convention it beats the reference marker's frame."""
+    from aruco_ring_localization.anchors import anchors_yaml, noisy_anchors, spread_markers
+
+    truth = Scene.default().truth_map()
+    T = {m: truth.T_map_marker(m) for m in truth.ids}
+    anchors = tmp_path / "anchors.yaml"
+    anchors.write_text(anchors_yaml(noisy_anchors(T, spread_markers(T, 3), 0.001, seed=3)))
+    out, ref_out = tmp_path / "map.yaml", tmp_path / "ref.yaml"
+    assert main(["build-map", str(bag_path), "--ring", RING, "--out", str(ref_out)]) == 0
+    capsys.readouterr()
+    assert main(["build-map", str(bag_path), "--ring", RING, "--out", str(out), "--anchors", str(anchors)]) == 0
+    text = capsys.readouterr().out
+    m = MarkerMap.load(str(out))
+    assert m.frame_convention == "survey" and m.anchors["source"] == str(anchors)
+    assert "(survey, points)" in text and "sigmas" in text, text
+    for p in m.anchors["points"]:
+        assert f"{p['marker']:>6} " in text and p["residual_sigmas"] < 5.0, (p, text)
+    err, ref_err = map_error(m, truth), map_error(MarkerMap.load(str(ref_out)), truth)
+    assert err["position_rms_mm"] < ref_err["position_rms_mm"], \
+        f"strict RMS {err['position_rms_mm']:.2f} mm surveyed vs {ref_err['position_rms_mm']:.2f} mm reference"
+
+
+def test_build_map_with_a_bad_anchors_file_names_it(bag_path, tmp_path, capsys):
+    anchors = tmp_path / "anchors.yaml"
+    anchors.write_text("anchors:\n  - {marker: 17, position: [0, 0, 0], std: 0.001}\n"
+                       "  - {marker: 42, position: [1, 0], std: 0.001}\n")
+    rc = main(["build-map", str(bag_path), "--ring", RING, "--out", str(tmp_path / "m.yaml"), "--anchors",
+               str(anchors)])
+    err = capsys.readouterr().err
+    assert rc != 0 and str(anchors) in err and "anchors[1].position" in err, err
+    assert not (tmp_path / "m.yaml").exists()

@@ -92,3 +92,21 @@ def test_a_stop_without_a_rest_has_no_frames():
     bogus = route[:3] + [(1.0, 1.0, 0.0)] + route[3:]       # never visited: found no rest there
     frames = demo.stop_frames(stamps, truth, bogus, cfg.robot.hold_time)
     assert frames[3] == [] and all(len(f) >= 10 for k, f in enumerate(frames) if k != 3)
+
+
+def test_the_demo_survey_is_seeded_noise_around_the_true_centres(tmp_path):
+    """results/demo/anchors.yaml: 3 markers far apart, at their true centres + 1 mm seeded noise."""
+    from aruco_ring_localization.anchors import frame_kind, load_anchors
+
+    scene = Scene.default()
+    truth = scene.truth_map()
+    a = load_anchors(str(demo.write_survey(tmp_path / "a.yaml", scene, 3, 0.001, 13)))
+    b = load_anchors(str(demo.write_survey(tmp_path / "b.yaml", scene, 3, 0.001, 13)))
+    c = load_anchors(str(demo.write_survey(tmp_path / "c.yaml", scene, 3, 0.001, 14)))
+    assert len(a.anchors) == 3 and frame_kind(a) == "points"
+    d = np.array([truth.T_map_marker(x.marker_id)[:3, 3] - x.position for x in a.anchors])
+    assert 0 < np.max(np.abs(d)) < 0.005, f"survey errors {d} m (1 mm noise)"
+    assert all(np.array_equal(x.position, y.position) for x, y in zip(a.anchors, b.anchors)), "not seeded"
+    assert not all(np.array_equal(x.position, y.position) for x, y in zip(a.anchors, c.anchors))
+    P = np.array([x.position for x in a.anchors])
+    assert min(np.linalg.norm(P[i] - P[j]) for i in range(3) for j in range(i)) > 3.0, f"not spread: {P}"

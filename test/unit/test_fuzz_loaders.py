@@ -278,3 +278,56 @@ def test_fuzz_fiducial_slam_text(text, size):
 def test_fiducial_slam_import_rejects_bad_marker_size(size):
     with pytest.raises(ArucoRingError):
         MarkerMap.from_fiducial_slam_text("1 0 0 0 0 0 0 0.01 3\n", marker_size=size, source="m.txt")
+
+
+# --- anchors file and the map's anchors section (issue 13) ----------------------------------------
+
+ANCHORS_DOC = {"frame_id": "plate", "anchors": [
+    {"marker": 17, "position": [0.0, 3.1, 1.1], "std": 0.001, "instrument": "total station"},
+    {"marker": 42, "position": [11.0, 3.6, 1.05], "std": [0.001, 0.002, 0.003]},
+    {"marker": 95, "position": [4.0, 0.0, 0.9], "std": 0.001, "rotation": [0.5, 0.5, 0.5, 0.5],
+     "rotation_std_deg": 0.05}]}
+MAP_WITH_ANCHORS_DOC = dict(MAP_DOC, frame_convention="survey", anchors={
+    "source": "a.yaml", "frame_id": "plate", "kind": "points", "points": [
+        {"marker": 17, "surveyed": [0.0, 3.1, 1.1], "std": [0.001] * 3, "residual": [1e-4, 0.0, 0.0],
+         "residual_sigmas": 0.1},
+        {"marker": 42, "surveyed": [11.0, 3.6, 1.05], "std": [0.001] * 3, "mapped": False}]})
+
+
+def test_valid_anchor_documents_load():
+    from aruco_ring_localization.anchors import anchors_from_dict
+
+    assert anchors_from_dict(ANCHORS_DOC, source="a.yaml").ids == [17, 42, 95]
+    assert MarkerMap.from_dict(MAP_WITH_ANCHORS_DOC, source="map.yaml").anchors["kind"] == "points"
+
+
+@FUZZ
+@given(st.data())
+def test_fuzz_anchors_from_dict(data):
+    from aruco_ring_localization.anchors import AnchorSet, anchors_from_dict, check_anchor_report
+
+    doc = mutate(data, ANCHORS_DOC)
+    result = _expect_own_error(lambda: anchors_from_dict(doc, source="fuzz_anchors.yaml"), "fuzz_anchors.yaml")
+    if isinstance(result, AnchorSet):
+        for a in result.anchors:
+            assert np.all(np.isfinite(a.position)) and np.all(a.position_std > 0)
+        check_anchor_report({"points": []}, 5.0)
+
+
+@FUZZ
+@given(junk)
+def test_fuzz_anchors_from_junk(doc):
+    from aruco_ring_localization.anchors import anchors_from_dict
+
+    _expect_own_error(lambda: anchors_from_dict(doc, source="junk_anchors.yaml"), "junk_anchors.yaml")
+
+
+@FUZZ
+@given(st.data())
+def test_fuzz_map_anchors_section(data):
+    from aruco_ring_localization.marker_map import check_map
+
+    doc = mutate(data, MAP_WITH_ANCHORS_DOC)
+    result = _expect_own_error(lambda: MarkerMap.from_dict(doc, source="fuzz_map.yaml"), "fuzz_map.yaml")
+    if isinstance(result, MarkerMap):
+        check_map(result)          # the sanity checks read the section: never a bare exception

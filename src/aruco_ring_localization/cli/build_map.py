@@ -34,6 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", help="the mapper's parameter file (default: config/mapping.yaml)")
     parser.add_argument("--method", choices=("paper", "refined"), help="map/method (default: the config's)")
     parser.add_argument("--reference-marker", type=int, help="map/reference_marker: id fixing the map frame")
+    parser.add_argument("--anchors", metavar="FILE",
+                        help="map/anchors_file: surveyed markers (YAML, docs/formats.md) that define the map frame")
     parser.add_argument("--fiducial-len", type=float, help="markers/fiducial_len: marker side, m")
     parser.add_argument("--fiducial-len-override", help='markers/fiducial_len_override: "1-10: 0.05, 12: 0.06"')
     parser.add_argument("--ignore-fiducials", help='input/ignore_fiducials: ids to ignore "1,4,9-12"')
@@ -54,6 +56,7 @@ def load_config(args: argparse.Namespace) -> MapperConfig:
         "map.method": args.method, "map.reference_marker": args.reference_marker,
         "markers.fiducial_len": args.fiducial_len, "markers.fiducial_len_override": args.fiducial_len_override,
         "input.ignore_fiducials": args.ignore_fiducials, "input.slop": args.slop, "map.map_frame": args.map_frame,
+        "map.anchors_file": args.anchors,
         "mapping.frame": args.frame})
 
 
@@ -78,8 +81,12 @@ def run(args: argparse.Namespace) -> int:
 def _print_summary(pipeline: MappingPipeline, m, path: str) -> None:
     s = pipeline.summary()
     out = sys.stdout
-    out.write(f"map: {path} ({m.method}, frame '{m.frame_id}' ({m.frame_convention}), reference marker "
-              f"{m.reference_marker})\n")
+    if m.anchors is not None:
+        out.write(f"map: {path} ({m.method}, frame '{m.frame_id}' (survey, {m.anchors['kind']}): "
+                  f"{m.frame_definition})\n")
+    else:
+        out.write(f"map: {path} ({m.method}, frame '{m.frame_id}' ({m.frame_convention}), reference marker "
+                  f"{m.reference_marker})\n")
     out.write(f"frames {s['frames']}, stations {s['linked_stations']}/{s['stations']} ({s['station_model']})\n")
     out.write(f"{'id':>6} {'x (m)':>9} {'y (m)':>9} {'z (m)':>9} {'std (mm)':>9} {'obs':>6}\n")
     for e in m:
@@ -92,6 +99,14 @@ def _print_summary(pipeline: MappingPipeline, m, path: str) -> None:
     warning = pipeline.builder.format_unmapped(m, multiline=True)
     if warning:
         out.write(warning + "\n")
+    if m.anchors is not None:
+        out.write(f"{'anchor':>6} {'dx (mm)':>9} {'dy (mm)':>9} {'dz (mm)':>9} {'sigmas':>9}\n")
+        for p in m.anchors["points"]:
+            if "residual" not in p:
+                out.write(f"{p['marker']:>6} not mapped\n")
+                continue
+            r = 1000 * np.asarray(p["residual"])
+            out.write(f"{p['marker']:>6} {r[0]:>9.2f} {r[1]:>9.2f} {r[2]:>9.2f} {p['residual_sigmas']:>9.2f}\n")
     ba = pipeline.last_ba
     if ba is not None and m.method == "refined":
         out.write(f"bundle adjustment: RMS {ba.rms_px_before:.3f} -> {ba.rms_px_after:.3f} px, {ba.seconds:.2f} s\n")

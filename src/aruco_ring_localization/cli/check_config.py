@@ -38,8 +38,10 @@ def run(args: argparse.Namespace) -> int:
             m = MarkerMap.load(args.map_file)
             problems = check_map(m, ring=ring if ring is not None and ring.base_frame == m.ring_base_frame else None)
             status = "OK" if not problems else "ERROR (fails its sanity checks)"
+            frame = (f"surveyed frame ({m.anchors.get('kind')}, anchors of {m.anchors.get('source')})"
+                     if m.anchors is not None else f"reference marker {m.reference_marker}")
             sys.stdout.write(f"map {args.map_file}: {status}, {len(m)} markers in frame '{m.frame_id}', "
-                             f"reference marker {m.reference_marker}, method '{m.method}', frame convention "
+                             f"{frame}, method '{m.method}', frame convention "
                              f"'{m.frame_convention or 'not recorded'}'\n")
             for p in problems:
                 sys.stdout.write(f"  check failed: {p}\n")

@@ -30,7 +30,13 @@ def truth_in_map_frame(est: MarkerMap, truth: MarkerMap, floor_z: float = 0.0) -
     The estimate's reference marker (``est.reference_marker``) must be in the truth; its true
     pose gives the map frame (origin on the floor z = ``floor_z`` of the truth frame below it,
     z up, x along its x made horizontal).
+    A surveyed map (``frame_convention: survey``, anchors) is in the frame of its survey, taken
+    to be the truth's (the identity): the anchors must have been surveyed in the truth's frame.
     """
+    if est.frame_convention == "survey":
+        # A surveyed frame is the frame the anchors were measured in: the truth's, when (as in the
+        # demo) they come from the true marker poses; nothing is fitted to the estimate.
+        return np.eye(4)
     ref = est.reference_marker
     if ref is None or ref not in truth:
         raise GeometryError(f"the estimated map's reference marker {ref!r} is not in the truth map")

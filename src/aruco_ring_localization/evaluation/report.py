@@ -378,7 +378,9 @@ def write_report(out_dir: Path, records: Sequence[StopRecord], est_map: MarkerMa
     truth_corners = {e.marker_id: truth_map.corners(e.marker_id) for e in truth_map}
     figures.plot_map(str(out_dir / "map.png"), est_world, truth_corners, plate=plate, room=room,
                      robot_pose=tuple(scene.mapping_pose), footprint=tuple(scene.robot.footprint),
-                     title=f"Marker map ({method}, reference marker {est_map.reference_marker}) in the lab, "
+                     title=f"Marker map ({method}, "
+                           + (f"surveyed frame, {len(est_map.anchors['points'])} anchors" if est_map.anchors
+                              else f"reference marker {est_map.reference_marker}") + ") in the lab, "
                            f"RMS {map_err['position_rms_mm']:.1f} mm" if map_err else f"Marker map ({method})")
     if ok_pos:
         figures.plot_positions(str(out_dir / "fig8_positions.png"), np.array([r.ref[:2] for r in ok_pos]),
