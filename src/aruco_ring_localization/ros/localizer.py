@@ -7,7 +7,8 @@ bag, with the same parameters (config/localization.yaml).
 
 Subscribes: ``<ns>/fiducial_vertices`` + ``<ns>/camera_info`` per camera (through
 :class:`ros.ring_input.RingSubscriber`), ``cmd_vel`` (geometry_msgs/Twist), ``odom``
-(nav_msgs/Odometry, optional), ``initialpose`` (geometry_msgs/PoseWithCovarianceStamped, rviz
+(nav_msgs/Odometry, optional; with ``motion/odometry`` its pose predicts the filter and each message
+gives a pose out), ``imu`` (sensor_msgs/Imu, with ``motion/imu`` only: its yaw rate), ``initialpose`` (geometry_msgs/PoseWithCovarianceStamped, rviz
 "2D Pose Estimate").
 Publishes: ``~pose`` (PoseWithCovarianceStamped, REP-103 covariance order, robot_localization
 ready), ``~odometry`` (nav_msgs/Odometry with the filter's twist), ``~camera_estimates``
@@ -35,6 +36,7 @@ from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped, Twist
 from nav_msgs.msg import OccupancyGrid, Odometry
 from nav_msgs.srv import GetMap, GetMapResponse
+from sensor_msgs.msg import Imu
 from std_srvs.srv import Trigger, TriggerResponse
 from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import Marker, MarkerArray
@@ -81,6 +83,8 @@ class LocalizerNode:
                                          tf_buffer=self.tf_buffer, queue_size=1, buff_size=BUFF_SIZE)
         rospy.Subscriber("cmd_vel", Twist, self.on_cmd_vel, queue_size=5)
         rospy.Subscriber("odom", Odometry, self.on_odom, queue_size=5)
+        if config.motion.imu:
+            rospy.Subscriber("imu", Imu, self.on_imu, queue_size=20)
         rospy.Subscriber("initialpose", PoseWithCovarianceStamped, self.on_initialpose, queue_size=1)
         rospy.Service("~reset", Trigger, self.on_reset)
         # map_server-style: the marker map as an OccupancyGrid (markers 100, the rest unknown)
@@ -110,6 +114,9 @@ class LocalizerNode:
             T_odom_base = None  # the twist is what the gate uses; a bad pose is not its problem
         self.ring_input.call(self.pipeline.on_motion, "odom", stamp_to_sec(msg.header.stamp),
                              (t.linear.x, t.linear.y), t.angular.z, NOW, T_odom_base)
+
+    def on_imu(self, msg: Imu) -> None:
+        self.ring_input.call(self.pipeline.on_imu, stamp_to_sec(msg.header.stamp), msg.angular_velocity.z, NOW)
 
     def on_initialpose(self, msg: PoseWithCovarianceStamped) -> None:
         try:
@@ -153,10 +160,11 @@ class LocalizerNode:
         od.twist.twist.linear.x, od.twist.twist.linear.y, od.twist.twist.angular.z = (float(v) for v in out.twist)
         od.twist.covariance = [float(v) for v in out.twist_covariance.ravel()]
         self.pub_odom.publish(od)
-        pa = PoseArray()
-        pa.header = msg.header
-        pa.poses = [pose_to_msg(T) for T in out.camera_estimates.values()]
-        self.pub_cams.publish(pa)
+        if not out.from_odometry:   # an odometry step has no camera estimates
+            pa = PoseArray()
+            pa.header = msg.header
+            pa.poses = [pose_to_msg(T) for T in out.camera_estimates.values()]
+            self.pub_cams.publish(pa)
         if self.config.output.publish_tf:
             self.publish_tf(out.T_map_base, stamp)
 
