@@ -33,6 +33,9 @@ APT_PACKAGES=(
   # python3-tf; libtf-dev holds the tf package.xml without which rospack cannot find tf);
   # the nodes' diagnostic_updater
   rosbash tf-tools python3-tf libtf-dev python3-diagnostic-updater
+  # diagnostic_aggregator with config/diagnostics_aggregator.yaml (-dev holds its package.xml and
+  # analyzer plugins, without which rosrun and pluginlib cannot find it; test/integration/diagnostics_aggregator.test)
+  libdiagnostic-aggregator-tools libdiagnostic-aggregator-dev
   # rviz, headless rendering and screenshots (make demo GUI=1, test/integration/test_rviz_configs.py)
   rviz python3-rviz xvfb xauth libgl1-mesa-dri imagemagick
 )

@@ -45,6 +45,7 @@ from scipy.linalg import block_diag
 from . import geometry as geo
 from .config import param, require_positive
 from .errors import ConfigError
+from .odometry import se2_compose, se2_compose_jacobians
 
 logger = logging.getLogger(__name__)
 
@@ -262,3 +263,46 @@ class PoseFilter:
         # filterpy: y = z - Hx; S = HPH' + R; K = PH'S^-1; x = x + Ky; P = (I-KH)P(I-KH)' + KRK'
         self.kf.update(self._wrapped(z).reshape(3, 1), R=R)
         self.kf.x[IPHI, 0] = geo.wrap_angle(float(self.kf.x[IPHI, 0]))
+
+    def predict_increment(self, stamp: float, d, cov_d) -> None:
+        """Advance the pose to ``stamp`` by a measured body-frame displacement ``d = (dx, dy, dyaw)``
+        (wheel odometry, :mod:`odometry`) with its 3x3 covariance ``cov_d``, instead of the
+        constant-acceleration model::
+
+            # (x, y, phi) <- (x, y, phi) ⊕ d
+            # P_pose <- J_p P_pose J_p^T + J_d cov_d J_d^T     (J: the composition's Jacobians)
+
+        The velocities become odometry's (``d / dt`` turned into the map frame; accelerations 0):
+        they are what the output twist and the constant-acceleration model use when odometry stops.
+        Their covariance follows the constant-acceleration model over ``dt``, uncorrelated with the
+        pose (the pose no longer integrates them). A stamp not after the filter's is ignored.
+        """
+        if self.stamp is None or self.check_time(stamp):
+            return
+        dt = float(stamp) - self.stamp
+        if dt <= 0.0:
+            return
+        x = self.kf.x.ravel().copy()
+        pose = np.array([x[IX], x[IY], x[IPHI]])
+        d = np.asarray(d, dtype=np.float64).reshape(3)
+        Jp, Jd = se2_compose_jacobians(pose, d)
+        new = se2_compose(pose, d)
+        idx = np.array([IX, IY, IPHI])
+        rest = np.array([IVX, IVY, IAX, IAY, IW, IALPHA])
+        P = self.kf.P
+        F = transition_matrix(min(dt, self.params.max_dt))
+        Q = process_noise(min(dt, self.params.max_dt), self.params.jerk_noise_xy, self.params.jerk_noise_yaw)
+        Pn = np.zeros((9, 9))
+        Pn[np.ix_(idx, idx)] = Jp @ P[np.ix_(idx, idx)] @ Jp.T + Jd @ np.asarray(cov_d, dtype=np.float64) @ Jd.T
+        Fr = F[np.ix_(rest, rest)]
+        Pn[np.ix_(rest, rest)] = Fr @ P[np.ix_(rest, rest)] @ Fr.T + Q[np.ix_(rest, rest)]
+        Pn = 0.5 * (Pn + Pn.T)
+        c, s = np.cos(new[2]), np.sin(new[2])
+        x[IX], x[IY], x[IPHI] = new
+        x[IVX] = (c * d[0] - s * d[1]) / dt
+        x[IVY] = (s * d[0] + c * d[1]) / dt
+        x[IW] = d[2] / dt
+        x[IAX] = x[IAY] = x[IALPHA] = 0.0
+        self.kf.x = x.reshape(9, 1)
+        self.kf.P = Pn
+        self.stamp = float(stamp)

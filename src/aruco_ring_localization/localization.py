@@ -51,7 +51,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 from scipy.linalg import lapack as _lapack
@@ -63,10 +63,14 @@ from .config import in_radians, param, require_positive
 from .errors import ConfigError, MeasurementError
 from .detections import RingFrame
 from .marker_map import MarkerMap
+from .odometry import body_covariance_to_perturbation, displacement_to_transform
 from .pnp import solve_marker_ippe, solve_points
 from .ring import CameraRing
 
 logger = logging.getLogger(__name__)
+
+#: ``motion(t_ref, t_c) -> (d (3,), cov_d (3, 3))`` or None: the robot's displacement between two stamps.
+MotionModel = Callable[[float, float], Optional[Tuple[np.ndarray, np.ndarray]]]
 
 FUSION_METHODS = ("paper", "joint", "joint_exact_extrinsics")
 
@@ -811,14 +815,18 @@ class RingLocalizer:
 
     # --- input ------------------------------------------------------------------------------
 
-    def _gather(self, ring_frame: RingFrame, rejected: Dict[str, int]) -> Dict[str, CameraView]:
+    def _gather(self, ring_frame: RingFrame, rejected: Dict[str, int],
+                motion: Optional[MotionModel] = None) -> Dict[str, CameraView]:
         """Per camera, the detections of mapped markers (others counted as ``unknown id``).
 
         The detections must be sanitized already (:func:`detections.sanitize_observations`:
         finite, convex, unique ids, not ignored): the pipeline does it once, where they enter.
+        With ``motion``, a camera whose stamp differs from the ring frame's is moved by the robot's
+        displacement in between (:meth:`_moved_extrinsics`).
         """
         mm = self.marker_map
         views: Dict[str, CameraView] = {}
+        t_ref = float(ring_frame.stamp)
         for name, cf in ring_frame.cameras.items():
             if not cf.observations:
                 continue
@@ -832,13 +840,47 @@ class RingLocalizer:
             if not obs:
                 continue
             ids = [int(o.marker_id) for o in obs]
-            views[name] = CameraView(name=name, T_cam_base=self._T_cam_base[name],
+            T_cam_base, T_base_cam = self._T_cam_base[name], self._T_base_cam[name]
+            ext_cov, ext_factor = self._ext_cov[name], self._ext_factor[name]
+            moved = None if motion is None or cf.stamp == t_ref else motion(t_ref, float(cf.stamp))
+            if moved is not None:
+                T_cam_base, T_base_cam, ext_cov = self._moved_extrinsics(T_base_cam, ext_cov, *moved)
+                ext_factor = None
+            views[name] = CameraView(name=name, T_cam_base=T_cam_base,
                                      model=cf.model if cf.model is not None else self.ring[name].model, ids=ids,
                                      px=np.concatenate([np.asarray(o.corners, dtype=np.float64) for o in obs]),
                                      X=np.concatenate([mm.corners(i) for i in ids]),
-                                     T_base_cam=self._T_base_cam[name], extrinsics_cov=self._ext_cov[name],
-                                     extrinsics_factor=self._ext_factor[name])
+                                     T_base_cam=T_base_cam, extrinsics_cov=ext_cov,
+                                     extrinsics_factor=ext_factor)
         return views
+
+    @staticmethod
+    def _moved_extrinsics(T_base_cam: np.ndarray, ext_cov: Optional[np.ndarray], d: np.ndarray,
+                          cov_d: np.ndarray) -> Tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]:
+        """A free-running camera's extrinsics at the ring frame's stamp (issue 12).
+
+        The camera saw the map at its own stamp ``t_c``, when base_link was at
+        ``T_map_base(t_ref) · D`` (``D``: the planar displacement ``d`` from ``t_ref`` to ``t_c``
+        in the body frame at ``t_ref``). So for the pose at ``t_ref`` it is a camera mounted at
+        ``D · T_base_cam``; nothing else in the estimator changes. The displacement's error
+        ``eps`` (3x3 ``cov_d`` over x, y, yaw) is a left perturbation of that mounting in the base
+        frame, as an extrinsic error is: ``exp(eps) · D · T_base_cam``; the extrinsics' own
+        ``Sigma`` is carried through ``D`` (``Ad_D Sigma Ad_D^T``) and the two add. Returns
+        ``(T_cam_base, T_base_cam, extrinsics_cov)``; the covariance is None only when both are
+        (negligible: a zero displacement error).
+        """
+        D = displacement_to_transform(d)
+        T_bc = D @ T_base_cam
+        cov = None
+        if ext_cov is not None:
+            A = geo.se3_adjoint(D)
+            cov = A @ ext_cov @ A.T
+        if cov_d is not None and np.any(np.asarray(cov_d) > 0):
+            C = body_covariance_to_perturbation(cov_d)
+            cov = C if cov is None else cov + C
+        if cov is not None:
+            cov = 0.5 * (cov + cov.T)
+        return _inv(T_bc), T_bc, cov
 
     # --- per camera -------------------------------------------------------------------------
 
@@ -950,13 +992,18 @@ class RingLocalizer:
 
     # --- the pipeline -----------------------------------------------------------------------
 
-    def process(self, ring_frame: RingFrame, prediction: Optional[np.ndarray] = None) -> LocalizationResult:
+    def process(self, ring_frame: RingFrame, prediction: Optional[np.ndarray] = None,
+                motion: Optional[MotionModel] = None) -> LocalizationResult:
         """Localize from one ring frame.
 
         Args:
             ring_frame: every camera's detections (raw pixels).
             prediction: optional (4, 4) predicted ``T_map_base`` (the filter's), used to resolve
                 single-marker ambiguities and to start the joint estimator.
+            motion: optional ``motion(t_ref, t_c) -> (d, cov_d)`` or None: the robot's planar
+                displacement (x, y, yaw in the body frame at ``t_ref``) from the ring frame's stamp to a
+                camera's own stamp and its 3x3 covariance (free-running cameras: each camera is used
+                at its own stamp, :meth:`_moved_extrinsics`). None: every camera at the frame's stamp.
 
         Returns:
             :class:`LocalizationResult` (``T_map_base`` None when nothing usable was seen;
@@ -964,7 +1011,7 @@ class RingLocalizer:
         """
         p = self.params
         result = LocalizationResult(stamp=float(ring_frame.stamp))
-        views = self._gather(ring_frame, result.rejected)
+        views = self._gather(ring_frame, result.rejected, motion)
         result.marker_ids = sorted({i for v in views.values() for i in v.ids})
         if not views:
             return result

@@ -53,6 +53,7 @@ from .tracker6 import Tracker6
 from .localization import LocalizationResult, RingLocalizer
 from .mapping import MapBuilder
 from .marker_map import MarkerMap
+from .odometry import OdometryHistory, constant_velocity_displacement, propagate_se2, se2_between
 from .ring import CameraRing, apply_refined_extrinsics
 from .schemas import LocalizerConfig, MapperConfig, RingInputParams
 from .throttle import WARN_PERIOD, ThrottledWarnings
@@ -69,6 +70,8 @@ SKIP_FLOOD = "too many detections"
 
 #: Motion inputs :meth:`LocalizationPipeline.on_motion` takes.
 MOTION_SOURCES = ("cmd_vel", "odom")
+#: Reason an odometry pose is not used for prediction (``rejected_odom_pose_jump``).
+ODOM_POSE_JUMP = "pose jump"
 
 
 def resolve_camera_names(ring: CameraRing, entries: Optional[Sequence[str]]) -> List[str]:
@@ -334,6 +337,8 @@ class PoseOutput:
         camera_estimates: camera -> (4, 4) ``T_map_base`` of each valid per-camera estimate.
         track: the ring frame through the pipeline (the measurement is ``track.localization``).
         predicted_only: no ring frame: every camera silent, the filter's prediction.
+        from_odometry: the filter predicted to an odometry message's stamp (``motion.odometry``:
+            the pose at the odometry rate); no measurement, no camera estimates.
     """
 
     stamp: float
@@ -345,6 +350,7 @@ class PoseOutput:
     camera_estimates: Dict[str, np.ndarray]
     track: TrackResult
     predicted_only: bool = False
+    from_odometry: bool = False
 
 
 @dataclass
@@ -398,6 +404,9 @@ class LocalizationPipeline(_RingPipeline):
         #: ``filter/model: 6dof``: the 6-DOF tracker replaces the gate and the planar filter.
         self.tracker6 = Tracker6(config.tracker6) if config.filter.model == "6dof" else None
         self._motion: Dict[str, _Motion] = {}
+        #: Odometry poses (and IMU yaw) by stamp, with ``motion.odometry`` (issue 12).
+        self.odometry = OdometryHistory(config.motion)
+        self.odometry_outputs = 0
         self._z = 0.0                        # height of base_link in the map (last accepted measurement)
         self._roll_pitch = (0.0, 0.0)        # ... and its roll, pitch
         self._last_stamp: Optional[float] = None
@@ -440,8 +449,9 @@ class LocalizationPipeline(_RingPipeline):
             source: ``cmd_vel`` or ``odom``.
             stamp: the message's stamp (s), or None (Twist has none; 0 counts as none): ``now``.
             linear_xy: (v_x, v_y) m/s; yaw_rate: rad/s, body frame.
-            T_odom_base: the odometry pose (4x4), unused today: issue 12 predicts the filter with
-                odometry increments here, and may then return poses at the odometry rate.
+            T_odom_base: the odometry pose (4x4) of base_link in odom. With ``motion.odometry``
+                it goes into :attr:`odometry` and the filter is predicted to ``stamp`` with the
+                increment since its own stamp: the pose at the odometry rate is returned.
 
         The gate allows jumps that grow with the largest fresh speed. Dropped, with a throttled
         warning naming the source: a non-finite speed; a speed or yaw rate beyond ``limits``; a
@@ -475,7 +485,133 @@ class LocalizationPipeline(_RingPipeline):
             self.warn(f"{source}.{key}", f"localizer: {source}: {problem}: ignored", now)
             return []
         self._motion[source] = _Motion(abs(v), abs(w), min(t, float(now)))
+        if source != "odom" or not self.config.motion.odometry or T_odom_base is None:
+            return []
+        return self._on_odometry_pose(t, T_odom_base, now)
+
+    def on_imu(self, stamp: Optional[float], yaw_rate: float, now: float) -> List[PoseOutput]:
+        """An IMU's yaw rate (sensor_msgs/Imu ``angular_velocity.z``, rad/s) at ``stamp``.
+
+        Used with ``motion.imu`` only: the odometry increments take their yaw from the integrated
+        rate. Validated as the other motion inputs: finite, within ``limits.max_yaw_rate``, a stamp
+        the stamp policy accepts and not older than ``timing.motion_timeout``; else dropped with a
+        throttled warning naming ``imu``.
+        """
+        self._tick(now)
+        if not self.config.motion.imu:
+            return []
+        w = float(yaw_rate)
+        t = float(stamp) if stamp else float(now)
+        lim = self.config.limits
+        problem = None
+        if not np.isfinite(w):
+            key, problem = "non-finite", f"non-finite yaw rate {w!r}"
+        elif abs(w) > lim.max_yaw_rate:
+            key, problem = "beyond limits", f"yaw rate {w:.3g} rad/s beyond limits/max_yaw_rate {lim.max_yaw_rate} rad/s"
+        else:
+            key = self.input.check_stamp("imu", t, now)
+            if key == SKIP_STALE_STAMP or (key is None and now - t > self.config.timing.motion_timeout):
+                key = SKIP_STALE_STAMP
+                problem = f"stale stamp ({now - t:.3f} s old by the node's clock > timing/motion_timeout)"
+            elif key is not None:
+                problem = f"{key}{self.input.stamp_hint(key, t, now)}"
+        if problem is None and not self.odometry.add_yaw_rate(t, w):
+            key, problem = "out of order", "stamp not after the previous imu message"
+        if problem is not None:
+            name = f"imu_{key.replace(' ', '_')}"
+            self.rejected_counts[name] = self.rejected_counts.get(name, 0) + 1
+            self.warn(f"imu.{key}", f"localizer: imu: {problem}: ignored", now)
         return []
+
+    def _on_odometry_pose(self, t: float, T_odom_base: np.ndarray, now: float) -> List[PoseOutput]:
+        """Keep an odometry pose; predict the filter to it and return the pose (``motion.odometry``).
+
+        The pose must be a valid transform and must not jump: between two messages within
+        ``motion.max_gap`` it may move at most ``limits.max_speed`` (and turn at most
+        ``limits.max_yaw_rate``) times the stamps' difference, plus 2 cm / 2 deg; otherwise the
+        history restarts from it (nothing is predicted across the jump) with a throttled warning.
+        """
+        try:
+            se2 = geo.se2_from_transform(geo.validate_transform(T_odom_base, "odom pose"))
+        except (GeometryError, ValueError) as exc:
+            self.rejected_counts["odom_bad_pose"] = self.rejected_counts.get("odom_bad_pose", 0) + 1
+            self.warn("odom.bad pose", f"localizer: odom: pose.pose: {exc}: not used for prediction", now)
+            return []
+        if not np.all(np.isfinite(se2)):
+            self.rejected_counts["odom_bad_pose"] = self.rejected_counts.get("odom_bad_pose", 0) + 1
+            self.warn("odom.bad pose", "localizer: odom: pose.pose not finite: not used for prediction", now)
+            return []
+        last = self.odometry.latest_stamp
+        if last is not None and t <= last:
+            self.rejected_counts["odom_out_of_order"] = self.rejected_counts.get("odom_out_of_order", 0) + 1
+            self.warn("odom.out of order", f"localizer: odom: stamp {t:.3f} s not after the previous {last:.3f} s: "
+                                           "pose not used for prediction", now)
+            return []
+        if last is not None and t - last <= self.config.motion.max_gap:
+            prev = self.odometry.pose_at(last)
+            d = None if prev is None else se2_between(prev, se2)
+            lim = self.config.limits
+            dt = t - last
+            if d is not None and (np.hypot(d[0], d[1]) > lim.max_speed * dt + 0.02
+                                  or abs(d[2]) > lim.max_yaw_rate * dt + np.radians(2.0)):
+                key = f"odom_{ODOM_POSE_JUMP.replace(' ', '_')}"
+                self.rejected_counts[key] = self.rejected_counts.get(key, 0) + 1
+                self.warn("odom.pose jump", f"localizer: odom: pose.pose jumped {np.hypot(d[0], d[1]):.3f} m / "
+                                            f"{np.degrees(abs(d[2])):.1f} deg in {dt:.3f} s (beyond limits/max_speed, "
+                                            "max_yaw_rate): the odometry history restarts here", now)
+                self.odometry.reset()
+                self.odometry.add_odometry(t, se2)
+                return []
+        self.odometry.add_odometry(t, se2)
+        if not self.filter.initialized or self.filter.stamp is None or t <= self.filter.stamp:
+            return []
+        self._advance(t)
+        self.odometry_outputs += 1
+        track = TrackResult(stamp=t, localization=LocalizationResult(stamp=t), pose=self.filter.pose,
+                            covariance=self.filter.covariance)
+        return [self._output(track, from_odometry=True)]
+
+    @property
+    def _odometry_on(self) -> bool:
+        return self.config.motion.odometry and self.odometry.latest_stamp is not None
+
+    def _advance(self, stamp: float) -> None:
+        """Predict the filter to ``stamp``: with the odometry increment when the history covers it,
+        else with the paper's constant-acceleration model."""
+        if self._odometry_on and self.filter.stamp is not None and stamp > self.filter.stamp:
+            inc = self.odometry.increment(self.filter.stamp, stamp)
+            if inc is not None:
+                self.filter.predict_increment(stamp, *inc)
+                return
+        self.filter.predict(stamp)
+
+    def _predicted_se2(self, stamp: float) -> Tuple[np.ndarray, np.ndarray]:
+        """The filter's (x, y, yaw) and 3x3 covariance at ``stamp`` without changing it: along the
+        odometry when it covers the interval (also back in time), else the filter's own model."""
+        f = self.filter
+        if self._odometry_on and f.stamp is not None and stamp != f.stamp:
+            inc = self.odometry.increment(f.stamp, stamp)
+            if inc is not None:
+                return propagate_se2(f.pose, f.covariance, *inc)
+        return f.predicted(stamp), f.predicted_covariance(stamp)
+
+    def _motion_model(self, t_ref: float, t_c: float) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+        """The robot's displacement from ``t_ref`` to ``t_c`` (body frame at ``t_ref``) and its
+        covariance, for a free-running camera: odometry when it covers both stamps, else the
+        filter's body velocity held constant (covariance ``dt^2`` times the velocity's); None
+        before the track starts."""
+        if self._odometry_on:
+            inc = self.odometry.increment(t_ref, t_c)
+            if inc is not None:
+                return inc
+        if not self.filter.initialized:
+            return None
+        dt = float(t_c) - float(t_ref)
+        twist = self.filter.body_twist
+        c, s = np.cos(self.filter.pose[2]), np.sin(self.filter.pose[2])
+        R = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])   # map -> body
+        V = R @ self.filter.velocity_covariance @ R.T
+        return constant_velocity_displacement(twist, dt), dt * dt * V
 
     def on_initial_pose(self, pose, now: float) -> List[PoseOutput]:
         """Restart the track at ``pose`` (4x4 ``T_map_base`` or (x, y, yaw)): rviz's initialpose.
@@ -520,6 +656,9 @@ class LocalizationPipeline(_RingPipeline):
         blind = now - self._last_frame_now
         if blind < self.config.input.silent_after or self.filter.stamp is None or now <= self.filter.stamp:
             return out  # not silent long enough, or the clock has not moved (a paused bag)
+        last_odom = self.odometry.latest_stamp
+        if self._odometry_on and last_odom is not None and now - last_odom <= self.config.timing.motion_timeout:
+            return out  # odometry predicts and publishes (on_motion)
         track = self._track(RingFrame(stamp=float(now), missing=list(self.input.camera_names)))
         self.warn("blind", f"localizer: no ring frame for {blind:.1f} s (every camera silent): predicting only, "
                            "the covariance grows", now)
@@ -545,7 +684,7 @@ class LocalizationPipeline(_RingPipeline):
             return self.tracker6.predicted(stamp)
         if not self.filter.initialized:
             return None
-        x, y, yaw = self.filter.predicted(stamp)
+        x, y, yaw = self._predicted_se2(stamp)[0] if self._odometry_on else self.filter.predicted(stamp)
         return geo.transform_from_se2(x, y, yaw, self._z)
 
     def markers_in_view(self, now: float, window: float) -> set:
@@ -616,6 +755,7 @@ class LocalizationPipeline(_RingPipeline):
             self.filter.reset()
             if self.tracker6 is not None:
                 self.tracker6.reset()
+            self.odometry.reset()
             logger.warning("localizer: time jumped back from %.3f to %.3f s: filter reset", last, now)
             self._clock = now
             return
@@ -711,38 +851,56 @@ class LocalizationPipeline(_RingPipeline):
         if self.tracker6 is not None:
             return self._track6(ring_frame, stamp, time_jump)
         pred = self.prediction(stamp)
-        loc = self.localizer.process(ring_frame, pred)
+        motion = self._motion_model if self.config.motion.compensate_stamps else None
+        loc = self.localizer.process(ring_frame, pred, motion)
         for k, v in loc.rejected.items():
             self.rejected_counts[k] = self.rejected_counts.get(k, 0) + v
         out = TrackResult(stamp=stamp, localization=loc, time_jump=time_jump)
+        odometry = self._odometry_on and self.filter.initialized
+        if odometry and stamp > self.filter.stamp:
+            self._advance(stamp)   # along the odometry up to the frame
+        t_update = stamp
         if loc.ok:
             z = loc.se2
             cov = loc.covariance_se2
+            if odometry and stamp < self.filter.stamp:
+                # Odometry moved the filter past the frame (camera latency): the measurement is moved
+                # along the odometry to the filter's stamp, with the increment's covariance.
+                inc = self.odometry.increment(stamp, self.filter.stamp)
+                if inc is not None:
+                    z, cov = propagate_se2(z, cov if cov is not None else
+                                           self.filter.measurement_covariance(None), *inc)
+                    t_update = self.filter.stamp
             speed, yaw_rate = self._speeds(stamp if self._clock is None else self._clock)
             predicted = None if pred is None else geo.se2_from_transform(pred)
+            if odometry and predicted is not None:
+                predicted = self._predicted_se2(t_update)[0]
             gate_cov = None
             if predicted is not None:
                 # Covariance of (z - prediction): the filter's predicted covariance + the measurement's.
-                gate_cov = self.filter.predicted_covariance(stamp) + self.filter.measurement_covariance(cov)
+                P_pred = self._predicted_se2(t_update)[1] if odometry else self.filter.predicted_covariance(stamp)
+                gate_cov = P_pred + self.filter.measurement_covariance(cov)
             # The full rotation goes in too (a flipped pose tilts), and whether the localizer found
             # the measurement ambiguous (then it is not used).
-            decision = self.gate.check(z, stamp, predicted, speed, yaw_rate, gate_cov, rotation=loc.T_map_base[:3, :3],
-                                       ambiguous=loc.ambiguous)
+            decision = self.gate.check(z, t_update, predicted, speed, yaw_rate, gate_cov,
+                                       rotation=loc.T_map_base[:3, :3], ambiguous=loc.ambiguous)
             out.decision = decision
             if decision.reinitialize:
                 if decision.reason != "initialized":
                     logger.warning("localizer: re-initialised after consistent measurements disagreed with the "
                                    "track")
-                self.filter.reset(z, stamp, cov)
+                self.filter.reset(z, t_update, cov)
                 self._keep_attitude(loc.T_map_base)
             elif decision.accepted:
-                self.filter.update(z, stamp, cov)
+                self.filter.update(z, t_update, cov)
                 self._keep_attitude(loc.T_map_base)
             else:
                 self.rejected_counts["gate"] = self.rejected_counts.get("gate", 0) + 1
-                self.filter.predict(stamp)
+                self._advance(stamp)
         else:
-            self.filter.predict(stamp)
+            self._advance(stamp)
+        if odometry and self.filter.stamp is not None:
+            out.stamp = max(out.stamp, self.filter.stamp)   # the pose is the filter's, at its stamp
         if self.filter.initialized:
             out.pose = self.filter.pose
             out.covariance = self.filter.covariance
@@ -784,7 +942,7 @@ class LocalizationPipeline(_RingPipeline):
         roll, pitch, _ = geo.rpy_from_matrix(T_map_base)
         self._roll_pitch = (float(roll), float(pitch))
 
-    def _output(self, track: TrackResult, predicted_only: bool = False) -> PoseOutput:
+    def _output(self, track: TrackResult, predicted_only: bool = False, from_odometry: bool = False) -> PoseOutput:
         if track.T_map_base is not None:
             # The 6-DOF tracker: its full pose on ~pose and tf (a handheld rig's roll and pitch are its state).
             tr = self.tracker6
@@ -794,7 +952,8 @@ class LocalizationPipeline(_RingPipeline):
             return PoseOutput(stamp=track.stamp, T_map_base=track.T_map_base, T_map_base_6dof=track.T_map_base,
                               covariance=tr.covariance, twist=tr.body_twist(),
                               twist_covariance=tr.velocity_covariance,
-                              camera_estimates=estimates, track=track, predicted_only=predicted_only)
+                              camera_estimates=estimates, track=track, predicted_only=predicted_only,
+                              from_odometry=from_odometry)
         x, y, yaw = track.pose
         T = geo.transform_from_se2(x, y, yaw, self._z)
         T6 = geo.make_transform(geo.matrix_from_rpy(self._roll_pitch[0], self._roll_pitch[1], yaw), [x, y, self._z])
@@ -803,7 +962,8 @@ class LocalizationPipeline(_RingPipeline):
                           covariance=pose_covariance_from_se2(track.covariance),
                           twist=self.filter.body_twist,
                           twist_covariance=pose_covariance_from_se2(self.filter.velocity_covariance),
-                          camera_estimates=estimates, track=track, predicted_only=predicted_only)
+                          camera_estimates=estimates, track=track, predicted_only=predicted_only,
+                          from_odometry=from_odometry)
 
 
 # --- mapping ---------------------------------------------------------------------------------------

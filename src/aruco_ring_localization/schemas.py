@@ -35,6 +35,7 @@ from .errors import ConfigError
 from .gating import GateParams
 from .kalman import FilterParams
 from .localization import LocalizationParams
+from .odometry import MotionParams
 from .mapping import METHODS, MappingOptions
 from .markers import MarkerSizes, parse_id_list
 from .tracker6 import Tracker6Params
@@ -158,6 +159,8 @@ class LocalizerConfig:
                                                        "(used when filter/model is 6dof)")
     timing: TimingParams = section(TimingParams, "stale frames and motion inputs, pauses")
     limits: InputLimitParams = section(InputLimitParams, "physical limits of the motion inputs and initialpose")
+    motion: MotionParams = section(MotionParams, "free-running cameras and odometry in the filter (issue 12; "
+                                                 "docs/localization.md)")
     output: LocalizerOutputParams = section(LocalizerOutputParams, "frames and publishing")
 
 

@@ -124,7 +124,7 @@ class IdentityTest(unittest.TestCase):
     @classmethod
     def _on_diag(cls, msg):
         for s in msg.status:
-            if s.name == "aruco_ring localizer: filter":
+            if s.name.endswith("localizer: filter"):  # diagnostic_updater: "<node name>: filter"
                 cls.diag = {kv.key: kv.value for kv in s.values}
 
     @classmethod

@@ -15,11 +15,14 @@ import numpy as np
 import rospkg
 import rospy
 import rostest
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from fiducial_msgs.msg import FiducialArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
+from nav_msgs.srv import GetMap
 from rosgraph_msgs.msg import Clock
 
 from aruco_ring_localization import geometry as geo
+from aruco_ring_localization.marker_map import MarkerMap
 from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.ros.conversions import model_to_camera_info, observations_to_fiducials
 from aruco_ring_localization.simulation.ring_sim import RingSimulator, perturb_ring
@@ -52,6 +55,8 @@ class LocalizerSimTest(unittest.TestCase):
         cls.poses = []
         cls.lock = threading.Lock()
         rospy.Subscriber("/localizer/pose", PoseWithCovarianceStamped, cls._on_pose, queue_size=50)
+        cls.diags = []  # (stamp, {name: DiagnosticStatus}) of each /diagnostics array
+        rospy.Subscriber("/diagnostics", DiagnosticArray, cls._on_diag, queue_size=50)
         cls.truth = {}
 
     @classmethod
@@ -60,6 +65,16 @@ class LocalizerSimTest(unittest.TestCase):
         yaw = np.arctan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
         with cls.lock:
             cls.poses.append((msg.header.stamp.to_sec(), msg.pose.pose.position.x, msg.pose.pose.position.y, yaw))
+
+    @classmethod
+    def _on_diag(cls, msg):
+        with cls.lock:
+            cls.diags.append((msg.header.stamp.to_sec(), {st.name: st for st in msg.status}))
+
+    def _diags_between(self, a: float, b: float):
+        """The full arrays (every camera and the filter) stamped in [a, b)."""
+        with self.lock:
+            return [d for t, d in self.diags if a <= t < b and len(d) == len(self.ring.names) + 1]
 
     def _play(self, t0: float, t1: float, path_t0: float = 0.0, cameras=None, rate_hz: float = 10.0):
         """Publish clock + detections from sim time t0 to t1 (robot at _path(t - t0 + path_t0))."""
@@ -130,6 +145,55 @@ class LocalizerSimTest(unittest.TestCase):
         self.assertGreater(len(poses), 20, f"only {len(poses)} poses after the time jump")
         err = self._errors(poses)
         self.assertLess(err[:, 0].max(), TOL_M, f"after the jump: max position error {err[:, 0].max() * 100:.2f} cm")
+
+    def test_4_every_camera_silent_is_an_error(self):
+        # only the clock moves: no detections from any camera for 4 s
+        for k in range(40):
+            self.clock_pub.publish(Clock(clock=rospy.Time.from_sec(30.0 + 0.1 * k)))
+            rospy.rostime.wallsleep(0.1)
+        diags = self._diags_between(32.0, 34.0)
+        self.assertTrue(diags, "no /diagnostics array stamped 32-34 s while every camera was silent")
+        last = diags[-1]
+        self.assertEqual(last["localizer: filter"].level, DiagnosticStatus.ERROR, last["localizer: filter"].message)
+        for name in self.ring.names:
+            self.assertEqual(last[f"localizer: camera {name}"].level, DiagnosticStatus.WARN)
+
+    def test_5_diagnostics_follow_diagnostic_updater_conventions(self):
+        full = self._diags_between(100.0, 200.0)
+        self.assertGreater(len(full), 5, f"only {len(full)} full /diagnostics arrays in tests 1-3")
+        expected = {f"localizer: camera {n}" for n in self.ring.names} | {"localizer: filter"}
+        for d in full:
+            self.assertEqual(set(d), expected)
+            for name in self.ring.names:
+                self.assertEqual(d[f"localizer: camera {name}"].hardware_id, name)
+            self.assertTrue(d["localizer: filter"].hardware_id)
+        # 1 Hz on the node's (simulated) clock
+        with self.lock:
+            stamps = np.array(sorted(t for t, d in self.diags if 100.0 <= t < 106.0 and len(d) == len(expected)))
+        self.assertGreater(len(stamps), 2)
+        self.assertAlmostEqual(float(np.median(np.diff(stamps))), 1.0, delta=0.2)
+        # tracking with 8 cameras: OK; with 7 silent (test 2, after silent_after): WARN for them, cam0 OK
+        self.assertEqual(self._diags_between(103.0, 106.0)[-1]["localizer: filter"].level, DiagnosticStatus.OK)
+        silent = self._diags_between(109.0, 111.5)
+        self.assertTrue(silent, "no /diagnostics array stamped 109-111.5 s (7 cameras silent)")
+        self.assertEqual(silent[-1]["localizer: camera cam0"].level, DiagnosticStatus.OK)
+        for name in self.ring.names[1:]:
+            self.assertEqual(silent[-1][f"localizer: camera {name}"].level, DiagnosticStatus.WARN, name)
+
+    def test_6_static_map_service_gives_the_marker_grid(self):
+        rospy.wait_for_service("/localizer/static_map", timeout=30.0)
+        grid = rospy.ServiceProxy("/localizer/static_map", GetMap)().map
+        marker_map = MarkerMap.load(f"{rospkg.RosPack().get_path(PKG)}/test/data/lab_truth_map.yaml")
+        self.assertEqual(grid.header.frame_id, marker_map.frame_id)
+        self.assertAlmostEqual(grid.info.resolution, 0.05, places=6)
+        data = np.array(grid.data, np.int8).reshape(grid.info.height, grid.info.width)
+        self.assertEqual(set(np.unique(data).tolist()), {-1, 100})
+        res, ox, oy = grid.info.resolution, grid.info.origin.position.x, grid.info.origin.position.y
+        for e in marker_map:
+            x, y = e.T_map_marker[:2, 3]
+            self.assertEqual(data[int((y - oy) // res), int((x - ox) // res)], 100, f"marker {e.marker_id}'s cell")
+        # the markers are a small part of the room
+        self.assertLess(np.count_nonzero(data == 100), 0.2 * data.size)
 
 
 if __name__ == "__main__":

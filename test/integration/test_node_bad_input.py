@@ -316,8 +316,9 @@ def test_diagnostics_and_markers_callbacks_run(node, world):
     _feed(node, world, n_frames=1)
     node.publish_diagnostics()
     node.publish_markers()
-    arr = node.pub_diag.publish.call_args[0][0]
-    assert any("filter" in s.name for s in arr.status)
+    arr = node.diagnostics.updater.publisher.publish.call_args[0][0]  # diagnostic_updater's /diagnostics
+    assert any(s.name.endswith(": filter") for s in arr.status), [s.name for s in arr.status]
+    assert {s.hardware_id for s in arr.status if ": camera " in s.name} == set(node.pipeline.input.camera_names)
 
 
 # --- fuzz ------------------------------------------------------------------------------------

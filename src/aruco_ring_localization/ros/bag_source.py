@@ -40,7 +40,7 @@ from ..ring import CameraRing
 from ..schemas import DetectorConfig
 from .apriltag import APRILTAG_MSGS_TYPE, APRILTAG_ROS_TYPE, apriltag_msgs_to_observations, apriltag_ros_to_observations
 from .conversions import (camera_info_to_model, fiducial_array_to_observations, make_transform_stamped, msg_to_transform,
-                          stamp_to_sec)
+                          pose_msg_to_transform, stamp_to_sec)
 
 logger = logging.getLogger(__name__)
 
@@ -355,8 +355,12 @@ class BagSource:
         if name == "cmd_vel":
             return pipeline.on_motion("cmd_vel", None, (msg.linear.x, msg.linear.y), msg.angular.z, t)
         tw = msg.twist.twist
+        try:   # as the node: with motion.odometry the pose predicts the filter; a bad one is not the gate's problem
+            T_odom_base = pose_msg_to_transform(msg.pose.pose, "odom.pose.pose")
+        except ArucoRingError:
+            T_odom_base = None
         return pipeline.on_motion("odom", stamp_to_sec(msg.header.stamp), (tw.linear.x, tw.linear.y), tw.angular.z,
-                                  t)
+                                  t, T_odom_base)
 
     def _progress_bar(self, total: int):
         if not self.progress:

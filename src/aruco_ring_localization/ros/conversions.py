@@ -154,7 +154,7 @@ def image_msg_to_gray(msg) -> np.ndarray:
     gives the same pixels for mono8, bgr8 and compressed png/jpeg (mono16 within one grey level),
     but ``compressed_imgmsg_to_cv2(msg, "mono8")`` fails on single-channel compressed images (it
     converts BGR to grey whatever was decoded), its errors do not name the bad field, and it would
-    pull 142 Debian packages (a second OpenCV, GDAL, ffmpeg) into every install for what
+    pull about 140 Debian packages (a second OpenCV, GDAL, ffmpeg) into every install for what
     ``np.frombuffer`` and ``cv2.imdecode`` do here.
 
     Raises:

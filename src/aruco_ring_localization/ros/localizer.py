@@ -7,12 +7,15 @@ bag, with the same parameters (config/localization.yaml).
 
 Subscribes: ``<ns>/fiducial_vertices`` + ``<ns>/camera_info`` per camera (through
 :class:`ros.ring_input.RingSubscriber`), ``cmd_vel`` (geometry_msgs/Twist), ``odom``
-(nav_msgs/Odometry, optional), ``initialpose`` (geometry_msgs/PoseWithCovarianceStamped, rviz
+(nav_msgs/Odometry, optional; with ``motion/odometry`` its pose predicts the filter and each message
+gives a pose out), ``imu`` (sensor_msgs/Imu, with ``motion/imu`` only: its yaw rate), ``initialpose`` (geometry_msgs/PoseWithCovarianceStamped, rviz
 "2D Pose Estimate").
 Publishes: ``~pose`` (PoseWithCovarianceStamped, REP-103 covariance order, robot_localization
 ready), ``~odometry`` (nav_msgs/Odometry with the filter's twist), ``~camera_estimates``
 (PoseArray, one per camera), ``~markers`` (MarkerArray, markers in view highlighted),
-``/diagnostics``, tf ``map -> odom`` or ``map -> base_link``. Service: ``~reset`` (std_srvs/Trigger).
+``/diagnostics`` (diagnostic_updater), ``~marker_grid`` (nav_msgs/OccupancyGrid, latched: the marker
+map for map_server-style tools), tf ``map -> odom`` or ``map -> base_link``. Services: ``~reset``
+(std_srvs/Trigger), ``~static_map`` (nav_msgs/GetMap, map_server's service type: that grid).
 
 Another node publishing the tf child frame we publish (a second localizer, gmapping's
 ``map -> odom``) is warned about, throttled, at its first such message (docs/security.md).
@@ -23,22 +26,26 @@ docs/parameters.md).
 from __future__ import annotations
 
 import sys
-from typing import List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence
 
+import diagnostic_updater
 import numpy as np
 import rospy
 import tf2_ros
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped, Twist
-from nav_msgs.msg import Odometry
+from nav_msgs.msg import OccupancyGrid, Odometry
+from nav_msgs.srv import GetMap, GetMapResponse
+from sensor_msgs.msg import Imu
 from std_srvs.srv import Trigger, TriggerResponse
 from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import Marker, MarkerArray
 
 from .. import geometry as geo
 from ..errors import ArucoRingError, ConfigError
+from ..marker_grid import marker_grid
 from ..marker_map import MarkerMap
-from ..pipeline import LocalizationPipeline, PoseOutput
+from ..pipeline import LocalizationPipeline, PoseOutput, StatusReport
 from ..ring import CameraRing
 from ..schemas import LocalizerConfig
 from . import log_bridge
@@ -70,14 +77,20 @@ class LocalizerNode:
         self.pub_odom = rospy.Publisher("~odometry", Odometry, queue_size=10)
         self.pub_cams = rospy.Publisher("~camera_estimates", PoseArray, queue_size=5)
         self.pub_markers = rospy.Publisher("~markers", MarkerArray, queue_size=1, latch=True)
-        self.pub_diag = rospy.Publisher("/diagnostics", DiagnosticArray, queue_size=5)
+        self.diagnostics = Diagnostics(self.pipeline.input.camera_names)
         # One detection message kept per camera when we fall behind: an older one would be overtaken.
         self.ring_input = RingSubscriber(self.pipeline, self.publish, "localizer", use_tf=config.input.use_tf,
                                          tf_buffer=self.tf_buffer, queue_size=1, buff_size=BUFF_SIZE)
         rospy.Subscriber("cmd_vel", Twist, self.on_cmd_vel, queue_size=5)
         rospy.Subscriber("odom", Odometry, self.on_odom, queue_size=5)
+        if config.motion.imu:
+            rospy.Subscriber("imu", Imu, self.on_imu, queue_size=20)
         rospy.Subscriber("initialpose", PoseWithCovarianceStamped, self.on_initialpose, queue_size=1)
         rospy.Service("~reset", Trigger, self.on_reset)
+        # map_server-style: the marker map as an OccupancyGrid (markers 100, the rest unknown)
+        self.grid_msg = self.marker_grid_msg()
+        rospy.Publisher("~marker_grid", OccupancyGrid, queue_size=1, latch=True).publish(self.grid_msg)
+        rospy.Service("~static_map", GetMap, lambda _req: GetMapResponse(map=self.grid_msg))
         rospy.Timer(rospy.Duration(out.diagnostics_period), self.publish_diagnostics, reset=True)
         rospy.Timer(rospy.Duration(out.markers_period), self.publish_markers, reset=True)
         self._tf_child: Optional[str] = None   # the child frame we last put on tf
@@ -101,6 +114,9 @@ class LocalizerNode:
             T_odom_base = None  # the twist is what the gate uses; a bad pose is not its problem
         self.ring_input.call(self.pipeline.on_motion, "odom", stamp_to_sec(msg.header.stamp),
                              (t.linear.x, t.linear.y), t.angular.z, NOW, T_odom_base)
+
+    def on_imu(self, msg: Imu) -> None:
+        self.ring_input.call(self.pipeline.on_imu, stamp_to_sec(msg.header.stamp), msg.angular_velocity.z, NOW)
 
     def on_initialpose(self, msg: PoseWithCovarianceStamped) -> None:
         try:
@@ -144,10 +160,11 @@ class LocalizerNode:
         od.twist.twist.linear.x, od.twist.twist.linear.y, od.twist.twist.angular.z = (float(v) for v in out.twist)
         od.twist.covariance = [float(v) for v in out.twist_covariance.ravel()]
         self.pub_odom.publish(od)
-        pa = PoseArray()
-        pa.header = msg.header
-        pa.poses = [pose_to_msg(T) for T in out.camera_estimates.values()]
-        self.pub_cams.publish(pa)
+        if not out.from_odometry:   # an odometry step has no camera estimates
+            pa = PoseArray()
+            pa.header = msg.header
+            pa.poses = [pose_to_msg(T) for T in out.camera_estimates.values()]
+            self.pub_cams.publish(pa)
         if self.config.output.publish_tf:
             self.publish_tf(out.T_map_base, stamp)
 
@@ -209,16 +226,65 @@ class LocalizerNode:
             arr.markers.append(t)
         self.pub_markers.publish(arr)
 
+    def marker_grid_msg(self) -> OccupancyGrid:
+        """The marker map as nav_msgs/OccupancyGrid (marker_grid.py: 5 cm cells, unknown but under a marker)."""
+        grid = marker_grid(self.marker_map)
+        msg = OccupancyGrid()
+        msg.header.stamp = rospy.Time.now()
+        msg.header.frame_id = self.map_frame
+        msg.info.map_load_time = msg.header.stamp
+        msg.info.resolution = grid.resolution
+        msg.info.width, msg.info.height = grid.width, grid.height
+        msg.info.origin.position.x, msg.info.origin.position.y = grid.origin
+        msg.info.origin.orientation.w = 1.0
+        msg.data = grid.data.reshape(-1).tolist()
+        return msg
+
     def publish_diagnostics(self, _event=None) -> None:
         with self.ring_input.lock:
             reports = self.pipeline.diagnostics(self.ring_input.now())
-        arr = DiagnosticArray()
-        arr.header.stamp = rospy.Time.now()
-        for r in reports:
-            arr.status.append(DiagnosticStatus(level=DiagnosticStatus.OK if r.ok else DiagnosticStatus.WARN,
-                                               name=r.name, message=r.message, hardware_id=r.hardware_id,
-                                               values=[KeyValue(k, v) for k, v in r.values]))
-        self.pub_diag.publish(arr)
+        self.diagnostics.publish(reports)
+
+
+class Diagnostics:
+    """``/diagnostics`` through diagnostic_updater: one task per camera (``<node>: camera NAME``,
+    hardware_id the camera's name) and one for the filter (``<node>: filter``, hardware_id
+    ``localizer``), published together every ``output/diagnostics_period`` (1 s).
+
+    Levels: OK; WARN for a silent camera or a filter that is not tracking; ERROR for the filter
+    when every camera is silent (nothing can be localized). config/diagnostics_aggregator.yaml
+    groups them for rqt_robot_monitor.
+    """
+
+    def __init__(self, camera_names: Sequence[str]):
+        self.updater = diagnostic_updater.Updater()
+        self.updater.setHardwareID("aruco_ring")
+        self._reports: Dict[str, StatusReport] = {}
+        self._all_silent = False
+        for task in [f"camera {n}" for n in camera_names] + ["filter"]:
+            self.updater.add(task, lambda stat, task=task: self._fill(task, stat))
+
+    def publish(self, reports: Sequence[StatusReport]) -> None:
+        # the pipeline names a status "aruco_ring localizer: camera X"; the updater prefixes the node's name
+        self._reports = {r.name.split(": ", 1)[-1]: r for r in reports}
+        cameras = [r for task, r in self._reports.items() if task.startswith("camera ")]
+        self._all_silent = bool(cameras) and not any(r.ok for r in cameras)
+        self.updater.force_update()
+
+    def _fill(self, task: str, stat: diagnostic_updater.DiagnosticStatusWrapper) -> diagnostic_updater.DiagnosticStatusWrapper:
+        r = self._reports.get(task)
+        if r is None:
+            stat.summary(DiagnosticStatus.STALE, "no report yet")
+            return stat
+        level = DiagnosticStatus.OK if r.ok else DiagnosticStatus.WARN
+        message = r.message
+        if task == "filter" and self._all_silent:
+            level, message = DiagnosticStatus.ERROR, f"every camera silent; {message}"
+        stat.summary(level, message)
+        stat.hardware_id = r.hardware_id
+        for k, v in r.values:
+            stat.add(k, v)
+        return stat
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:

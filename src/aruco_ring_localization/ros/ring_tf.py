@@ -149,7 +149,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         # after rviz) would stay in error. Sent again each second while someone listens.
         if markers.get_num_connections():
             markers.publish(marker_msg)
-    rospy.Timer(rospy.Duration(1.0), resend)
+    rospy.Timer(rospy.Duration(1.0), resend, reset=True)  # survives a bag loop (time moved back)
     rospy.loginfo("ring_tf: published %d static transforms %s -> {%s} from %s", len(transforms),
                   ring.base_frame, ", ".join(t.child_frame_id for t in transforms), ring_file)
     rospy.spin()

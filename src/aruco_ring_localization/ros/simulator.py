@@ -2,7 +2,9 @@
 
 Every ``1/rate`` seconds it moves the robot (waypoint driver or ``cmd_vel``), then publishes:
 
-* per ring camera ``<ns>`` (``ring/camK`` from the ring file, only ``cameras.names`` if given):
+* per ring camera ``<ns>`` (``ring/camK`` from the ring file, only ``cameras.names`` if given),
+  stamped with the camera's exposure time (the frame's time with ``cameras.trigger: synchronized``;
+  its own phase and jitter, within one frame period before it, with ``free``):
   - corners mode: ``<ns>/fiducial_vertices`` (fiducial_msgs/FiducialArray, header.frame_id = the
     camera's optical frame, noisy projected corners of the visible markers, empty when none);
   - image mode: ``<ns>/image_raw`` (sensor_msgs/Image, mono8, rendered) for the detectors;
@@ -206,7 +208,10 @@ class SimulatorNode:
         if not cameras and not c.lockstep.topics:
             return None, {}
         # The gate exists before any subscriber whose callback reports to it.
-        self.gate = FrameGate([cam.name for cam in cameras] + list(c.lockstep.topics))
+        # Free-running cameras stamp a frame with their exposure time, within (t - dt, t]: any answer
+        # newer than the previous frame's time is this frame's.
+        tolerance = 0.995 * self.dt if c.cameras.trigger == "free" else 1e-6
+        self.gate = FrameGate([cam.name for cam in cameras] + list(c.lockstep.topics), tolerance=tolerance)
         subs = {cam.name: rospy.Subscriber(f"{cam.namespace}/fiducial_vertices", FiducialArray,
                                            self._on_detections, callback_args=cam.name, queue_size=5)
                 for cam in cameras}
@@ -313,14 +318,15 @@ class SimulatorNode:
         stamp = rospy.Time.from_sec(t)
         self.seq += 1
         self._publish_robot(state, stamp)
+        cam_stamps = {cam.name: rospy.Time.from_sec(core.camera_stamp(cam.name)) for cam in self.cams}
         for cam in self.cams:
             info = self.info_msgs[cam.name]
-            info.header.stamp = stamp
+            info.header.stamp = cam_stamps[cam.name]
             self.info_pubs[cam.name].publish(info)
         if self.config.mode == "corners":
-            for name, obs in core.detections(t).items():
+            for name, obs in core.detections().items():
                 msg = FiducialArray()
-                msg.header.stamp = stamp
+                msg.header.stamp = cam_stamps[name]
                 msg.header.frame_id = core.calibrated_ring[name].frame_id
                 msg.image_seq = self.seq
                 msg.fiducials = observations_to_fiducials(obs)
@@ -328,7 +334,7 @@ class SimulatorNode:
         else:
             for name, img in core.images().items():
                 msg = Image()
-                msg.header.stamp = stamp
+                msg.header.stamp = cam_stamps[name]
                 msg.header.frame_id = core.calibrated_ring[name].frame_id
                 msg.height, msg.width = img.shape
                 msg.encoding = "mono8"

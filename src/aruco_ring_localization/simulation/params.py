@@ -8,7 +8,7 @@ classes take their own defaults from these sections (``RingSimulator(pixel_noise
 and nowhere else.
 
 Sections, and what will join them (the structure is ready for it): ``cameras`` (which cameras,
-what they see; later their trigger: synchronized or free-running, rate jitter, phases),
+what they see, their trigger: synchronized or free-running with phases and jitter),
 ``ring`` (the calibration and the true rig's error from it; later per-frame vibration),
 ``render`` (images mode; later exposure and motion blur), ``robot`` (start, waypoints, limits),
 ``ground_truth``, ``odometry``, ``gmapping`` (a perfect gmapping's tf and grid), ``laser``,
@@ -27,6 +27,7 @@ from ..config import param, section
 from ..errors import ConfigError
 
 MODES = ("corners", "images")
+TRIGGERS = ("synchronized", "free")
 WAYPOINT_SETS = ("test_positions", "test_orientations", "paper", "mapping_stations", "mapping_pose", "none")
 DRIVES = ("cmd_vel", "direct", "teleport")
 
@@ -78,10 +79,23 @@ class CameraParams:
     names: tuple = param([], "camera names to simulate (e.g. [cam1, cam5]); empty = every ring camera")
     max_range: float = param(8.0, "markers farther than this from a camera are not seen", unit="m")
     pixel_noise: float = param(0.3, "corners mode: Gaussian corner noise per coordinate", unit="px")
+    trigger: str = param("synchronized", "synchronized: every camera exposes at the frame's time | free: "
+                                         "free-running, each camera at its own phase and jitter, stamped with "
+                                         "its own exposure time (docs/simulation.md, \"Free-running cameras\")")
+    phase_spread: float = param(1.0, "free: each camera's phase (how long before the frame's time it exposes) "
+                                     "is drawn once, uniform in [0, phase_spread) frame periods; at most 1")
+    jitter_std: float = param(0.002, "free: per-frame Gaussian jitter of each camera's exposure time (the rate "
+                                     "wobbles); the exposure stays within one frame period before the frame's "
+                                     "time", unit="s")
 
     def __post_init__(self) -> None:
         _positive("max_range", self.max_range)
         _non_negative("pixel_noise", self.pixel_noise)
+        if self.trigger not in TRIGGERS:
+            raise ConfigError(f"expected one of {' | '.join(TRIGGERS)}, got {self.trigger!r}", key="trigger")
+        if not (np.isfinite(self.phase_spread) and 0.0 <= self.phase_spread <= 1.0):
+            raise ConfigError(f"must be within [0, 1] frame periods, got {self.phase_spread!r}", key="phase_spread")
+        _non_negative("jitter_std", self.jitter_std)
 
 
 @dataclass(frozen=True)

@@ -202,16 +202,22 @@ class RingSimulator:
         simulator's own seeded generator. Every camera reports (possibly an empty list), in
         aruco_detect order within an image (ascending id is not guaranteed by aruco_detect either).
         """
-        gen = rng if rng is not None else self.rng
         frame = RingFrame(stamp=float(stamp))
         for cam in self.ring.cameras:
-            obs = []
-            for marker_id, corners in self.visible_camera(T_world_base, cam):
-                noisy = corners + gen.normal(0.0, self.pixel_noise, corners.shape) if self.pixel_noise > 0 \
-                    else corners.copy()
-                obs.append(MarkerObservation(marker_id, noisy))
-            frame.cameras[cam.name] = CameraFrame(camera=cam.name, stamp=float(stamp), observations=obs)
+            frame.cameras[cam.name] = CameraFrame(camera=cam.name, stamp=float(stamp),
+                                                  observations=self.observe_camera(T_world_base, cam, rng))
         return frame
+
+    def observe_camera(self, T_world_base: PoseLike, camera: Union[str, RingCamera],
+                       rng: Optional[np.random.Generator] = None) -> List[MarkerObservation]:
+        """One camera's noisy detections (corners mode) from the robot pose (see :meth:`observe`)."""
+        gen = rng if rng is not None else self.rng
+        obs = []
+        for marker_id, corners in self.visible_camera(T_world_base, camera):
+            noisy = corners + gen.normal(0.0, self.pixel_noise, corners.shape) if self.pixel_noise > 0 \
+                else corners.copy()
+            obs.append(MarkerObservation(marker_id, noisy))
+        return obs
 
     def visible_camera(self, T_world_base: PoseLike, camera: Union[str, RingCamera]) -> List[Tuple[int, np.ndarray]]:
         """[(marker_id, true corners)] for one camera."""

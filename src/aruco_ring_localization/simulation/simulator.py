@@ -7,9 +7,19 @@ a perfect gmapping's ``map -> odom`` and occupancy grid).
 
 The true rig is the ring file perturbed by a seeded calibration error (``ring.calibration_*``):
 the estimators get the ring file, the simulator sees with the true rig.
+
+Cameras (``cameras.trigger``): *synchronized*, every camera exposes at the frame's time ``t``;
+*free*, each camera exposes at its own time ``t - offset``, ``offset`` = the camera's phase (drawn
+once, uniform in ``[0, phase_spread)`` frame periods) plus a per-frame Gaussian jitter
+(``jitter_std``), kept within ``[0, 0.99]`` frame periods, so a camera's exposure of frame ``t``
+lies in ``(t - dt, t]``. Each camera sees the robot where it was at its exposure time and its
+messages are stamped with it. :meth:`SimulatorCore.true_pose_at` gives the ground truth at any
+stamp: the robot's trajectory interpolated between the simulated steps (linear in x, y and yaw,
+exactly what interpolating ``sim/ground_truth`` between two frames gives).
 """
 from __future__ import annotations
 
+import bisect
 import logging
 import threading
 from typing import Dict, List, Optional, Tuple
@@ -26,6 +36,45 @@ from .ring_sim import RingSimulator, perturb_ring
 from .scene import Scene
 
 logger = logging.getLogger(__name__)
+
+#: Largest exposure offset of a free-running camera, in frame periods: its frame-t exposure lies in
+#: (t - dt, t], after the previous frame's time (what the lockstep gate relies on).
+MAX_OFFSET = 0.99
+#: Trajectory samples kept for :meth:`SimulatorCore.true_pose_at` (at 10 Hz: 10,000 s).
+HISTORY = 100000
+
+
+def interpolate_se2(a: np.ndarray, b: np.ndarray, w: float) -> np.ndarray:
+    """(x, y, yaw) a fraction ``w`` of the way from pose ``a`` to ``b`` (yaw along the shorter arc)."""
+    out = a + w * (b - a)
+    out[2] = geo.wrap_angle(a[2] + w * geo.angle_diff(b[2], a[2]))
+    return out
+
+
+class CameraClock:
+    """When each camera exposes, for frame time ``t`` (``cameras.trigger``, see the module's docstring).
+
+    Its own seeded generator, so the synchronized lab draws exactly what it did before free cameras.
+    """
+
+    def __init__(self, cameras: List[str], trigger: str, rate: float, phase_spread: float, jitter_std: float,
+                 seed: int = 0):
+        self.cameras = list(cameras)
+        self.free = trigger == "free"
+        self.dt = 1.0 / float(rate)
+        self.jitter_std = float(jitter_std)
+        self.rng = np.random.default_rng([int(seed), 0xf3ee])
+        self.phases = {c: float(self.rng.uniform(0.0, phase_spread)) * self.dt if self.free else 0.0
+                       for c in self.cameras}
+
+    def offsets(self) -> Dict[str, float]:
+        """{camera: seconds before the frame's time at which it exposes this frame} (all 0 when synchronized)."""
+        if not self.free:
+            return {c: 0.0 for c in self.cameras}
+        jitter = self.rng.normal(0.0, self.jitter_std, len(self.cameras)) if self.jitter_std > 0 \
+            else np.zeros(len(self.cameras))
+        return {c: float(np.clip(self.phases[c] + j, 0.0, MAX_OFFSET * self.dt))
+                for c, j in zip(self.cameras, jitter)}
 
 
 def waypoint_list(scene: Scene, which: str) -> List[Tuple[float, float, float]]:
@@ -77,6 +126,13 @@ class SimulatorCore:
         self.state = RobotState(self.robot.base.pose.copy(), np.zeros(3), np.zeros(3), np.zeros(3), -1)
         self._teleport: Optional[Tuple[float, float, float]] = None
         self._lock = threading.Lock()
+        cams = config.cameras
+        self.camera_clock = CameraClock(self.cameras, cams.trigger, config.rate, cams.phase_spread, cams.jitter_std,
+                                        seed=config.seed)
+        #: {camera: exposure time} of the current frame (set by :meth:`step`).
+        self.stamps: Dict[str, float] = {}
+        self._times: List[float] = []
+        self._poses: List[np.ndarray] = []
 
     def request_teleport(self, x: float, y: float, yaw: float) -> bool:
         """Carry the robot to (x, y, yaw rad) in the world before the next step (a kidnap: the
@@ -93,8 +149,42 @@ class SimulatorCore:
             pending, self._teleport = self._teleport, None
         if pending is not None:
             self.robot.base.teleport(pending)
+            self._record(t - 1e-9, np.array(pending, dtype=float))   # no interpolation across a kidnap
+        elif not self._times:
+            self._record(t - dt, self.robot.base.pose.copy())       # at rest before the first frame
         self.state = self.robot.step(t, dt)
+        self._record(t, self.state.pose)
+        self.stamps = {c: t - off for c, off in self.camera_clock.offsets().items()}
         return self.state
+
+    def _record(self, t: float, pose: np.ndarray) -> None:
+        if self._times and t <= self._times[-1]:
+            # the clock went back (a time jump, a bag loop): the old trajectory means nothing now
+            self._times, self._poses = [], []
+        self._times.append(float(t))
+        self._poses.append(np.array(pose, dtype=float).reshape(3))
+        if len(self._times) > HISTORY:
+            del self._times[:len(self._times) - HISTORY]
+            del self._poses[:len(self._poses) - HISTORY]
+
+    def true_se2_at(self, stamp: float) -> np.ndarray:
+        """base_link's true (x, y, yaw) in the world at ``stamp`` (s): the trajectory interpolated
+        between the simulated steps; held at its ends (before the first step: where it started)."""
+        if not self._times:
+            return self.state.pose.copy()
+        k = bisect.bisect_left(self._times, stamp)
+        if k <= 0:
+            return self._poses[0].copy()
+        if k >= len(self._times):
+            return self._poses[-1].copy()
+        if self._times[k] == stamp:
+            return self._poses[k].copy()
+        t0, t1 = self._times[k - 1], self._times[k]
+        return interpolate_se2(self._poses[k - 1], self._poses[k], (stamp - t0) / (t1 - t0))
+
+    def true_pose_at(self, stamp: float) -> np.ndarray:
+        """base_link's true 4x4 pose ``T_world_base`` at ``stamp`` (s) (see :meth:`true_se2_at`)."""
+        return Scene.T_world_base(self.true_se2_at(stamp))
 
     @property
     def finished(self) -> bool:
@@ -108,14 +198,24 @@ class SimulatorCore:
     def T_world_base(self) -> np.ndarray:
         return Scene.T_world_base(self.state.pose)
 
-    def detections(self, stamp: float) -> Dict[str, list]:
-        """Corners mode: {camera: [MarkerObservation]} for the simulated cameras."""
-        frame = self.sim.observe(self.T_world_base(), stamp)
-        return {c: frame.cameras[c].observations for c in self.cameras}
+    def camera_stamp(self, camera: str) -> float:
+        """The exposure time of ``camera``'s current frame (the frame's time when synchronized)."""
+        return self.stamps.get(camera, self._times[-1] if self._times else 0.0)
+
+    def detections(self, stamp: Optional[float] = None) -> Dict[str, list]:
+        """Corners mode: {camera: [MarkerObservation]} for the simulated cameras, each seen from the
+        robot's true pose at the camera's exposure time (:meth:`camera_stamp`). ``stamp`` is unused
+        (kept for callers of the synchronized simulator: it was the frame's time)."""
+        out = {}
+        for cam in self.true_ring.cameras:   # every ring camera draws its noise, as before free cameras
+            obs = self.sim.observe_camera(self.true_pose_at(self.camera_stamp(cam.name)), cam)
+            if cam.name in self.cameras:
+                out[cam.name] = obs
+        return out
 
     def images(self) -> Dict[str, np.ndarray]:
-        """Image mode: {camera: mono8 image}."""
-        return self.sim.render(self.T_world_base(), cameras=self.cameras)
+        """Image mode: {camera: mono8 image}, each rendered at the camera's exposure time."""
+        return {c: self.sim.render(self.true_pose_at(self.camera_stamp(c)), cameras=[c])[c] for c in self.cameras}
 
     def scan(self) -> np.ndarray:
         return self.laser.scan(self.state.pose)
