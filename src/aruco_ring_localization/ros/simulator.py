@@ -51,7 +51,7 @@ from ..ring import CameraRing
 from ..simulation.lockstep import FrameGate, SimClock
 from ..simulation.motion import RobotState
 from ..simulation.params import SimulatorConfig
-from ..simulation.scene import Scene
+from ..simulation.scene import Scene, resolve_scene_file
 from ..simulation.simulator import SimulatorCore
 
 __all__ = ["SimulatorConfig", "SimulatorCore", "main", "header_stamp"]
@@ -412,7 +412,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     rospy.init_node("simulator", argv=list(argv) if argv is not None else None)
     try:
         config = read_config(SimulatorConfig)
-        scene = Scene.load(config.scene.file or _package_file("config", "lab_scene.yaml"))
+        scene = Scene.load(resolve_scene_file(config.scene.file) if config.scene.file
+                           else _package_file("config", "lab_scene.yaml"))
         ring = CameraRing.load(config.ring.file or _package_file("config", "ring.yaml"))
         core = SimulatorCore(config, scene, ring)
         node = SimulatorNode(core)
