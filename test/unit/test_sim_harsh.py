@@ -157,3 +157,44 @@ def test_the_harsh_lab_core_blurs_while_driving_and_not_at_rest(ring):
     assert views_moving > 5 and views_still > 0
     img = core.images()["cam0"]
     assert img.shape == (ring["cam0"].model.height, ring["cam0"].model.width)
+
+
+def test_the_fisheye_ring_renders_detects_and_localizes():
+    """config/ring_fisheye.yaml (equidistant lenses, ~131 deg): the renderer, the detector and the
+    joint estimator through the pipeline handle it (exact rig, true map)."""
+    from aruco_ring_localization.config import with_overrides as overrides
+    from aruco_ring_localization.detection import Detector, DetectorParams
+    from aruco_ring_localization.detections import CameraFrame, RingFrame
+    from aruco_ring_localization.pipeline import LocalizationPipeline, feed_ring_frame
+    from aruco_ring_localization.schemas import LocalizerConfig
+
+    fish = CameraRing.load(os.path.join(REPO, "config", "ring_fisheye.yaml"))
+    assert all(c.model.is_fisheye for c in fish.cameras)
+    assert all(np.degrees(c.model.horizontal_fov()) > 120 for c in fish.cameras)
+    scene = Scene.default()
+    sim = RingSimulator(scene, fish, pixel_noise=0.0, seed=3)
+    det = Detector(DetectorParams(dictionary=scene.dictionary))
+    exact = fish.with_extrinsics_std(0.0, 0.0)
+    config = overrides(LocalizerConfig(), {"input.use_tf": False, "input.camera_info_fallback": True})
+    rng = np.random.default_rng(1)
+    corner_err, found, visible = [], 0, 0
+    for k, pose in enumerate([scene.test_positions[0], scene.test_positions[13]]):
+        T = Scene.T_world_base(pose)
+        frame = RingFrame(stamp=10.0 * k + 1.0)
+        truth = sim.visible(T)
+        for name, img in sim.render(T, rng=rng).items():
+            obs = det.detect(img)
+            frame.cameras[name] = CameraFrame(name, frame.stamp, obs)
+            got = {o.marker_id: o.corners for o in obs}
+            visible += len(truth[name])
+            for marker_id, corners in truth[name]:
+                if marker_id in got:
+                    found += 1
+                    corner_err.append(np.abs(got[marker_id] - corners).max())
+        pipe = LocalizationPipeline(config, exact, scene.truth_map())
+        feed_ring_frame(pipe, frame)
+        est = pipe.last_track.localization
+        e = geo.se2_from_transform(est.T_map_base) - np.asarray(pose)
+        assert np.hypot(e[0], e[1]) < 0.005 and abs(geo.wrap_angle(e[2])) < np.radians(0.1), e
+    assert visible > 40 and found >= 0.95 * visible, (found, visible)
+    assert np.median(corner_err) < 0.3 and max(corner_err) < 1.0
