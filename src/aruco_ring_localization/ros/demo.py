@@ -1,7 +1,7 @@
 """``make demo``: the paper's experiment (§III) end to end on the simulated lab, with the real ROS nodes.
 
 ``python -m aruco_ring_localization.ros.demo [--fusion joint|paper] [--method refined|paper]
-[--mode corners|images] [--gui] [--out results/demo]``
+[--mode corners|images] [--lab harsh|kind] [--gui] [--out results/demo]``
 
 1. starts its own roscore (a free port, so it never disturbs a running ROS);
 2. mapping: ``launch/demo.launch phase:=mapping``: the ``simulator`` node (simulation.launch, its
@@ -52,8 +52,8 @@ from ..evaluation.stops import detect_stops
 from ..evaluation.report import Progress, StopPlan, StopRecord, console_text, plan_stops, write_report
 from ..fileio import atomic_write_text
 from ..marker_map import MarkerMap
-from ..simulation.params import SimulatorConfig
-from ..simulation.scene import Scene
+from ..simulation.params import LABS, SimulatorConfig, lab_config
+from ..simulation.scene import Scene, resolve_scene_file
 
 logger = logging.getLogger(__name__)
 
@@ -140,8 +140,9 @@ def simulator_configs(args: argparse.Namespace, scene) -> Tuple[SimulatorConfig,
     ``hold_frames`` frames, driven at up to 0.5 m/s; the clock runs as fast as the localizer
     answers (lockstep on ``localizer/pose``, and on the detectors in images mode).
     """
-    base = with_overrides(SimulatorConfig(), {"mode": args.mode, "rate": args.rate, "seed": args.seed,
-                                              "clock.publish": True})
+    # The lab (--lab): harsh = config/lab_harsh.yaml over the simulator's defaults; kind = the defaults.
+    base = with_overrides(lab_config(getattr(args, "lab", "kind")),
+                          {"mode": args.mode, "rate": args.rate, "seed": args.seed, "clock.publish": True})
     mapping = with_overrides(base, {"robot.waypoints": "none", "clock.speed": MAPPING_SPEED})
     route = [tuple(scene.mapping_pose)] + [s.pose for s in plan_stops(scene.test_positions, scene.test_orientations)]
     localization = with_overrides(base, {
@@ -283,6 +284,10 @@ def _parse(argv: Optional[Sequence[str]]) -> argparse.Namespace:
     p.add_argument("--mode", choices=("images", "corners"), default=os.environ.get("DEMO_MODE", "auto"),
                    help="images: rendered images through the detector nodes; corners: simulated detections "
                         "(default: images when the detector node exists)")
+    p.add_argument("--lab", choices=LABS, default=os.environ.get("DEMO_LAB") or "harsh",
+                   help="harsh (config/lab_harsh.yaml: free-running cameras, tilted plate, vibration, motion blur, "
+                        "light, pillars) | kind (flat, rigid, synchronized); DEMO_LAB in the environment does the "
+                        "same (default harsh)")
     p.add_argument("--out", default=str(REPO / "results" / "demo"), help="output directory")
     p.add_argument("--gui", action="store_true", default=os.environ.get("GUI", "") not in ("", "0"),
                    help="also open rviz (needs DISPLAY); GUI=1 in the environment does the same")
@@ -397,14 +402,15 @@ def run(args: argparse.Namespace) -> int:
     progress = Progress()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    scene = Scene.default()
+    lab_scene = lab_config(args.lab).scene.file
+    scene = Scene.load(resolve_scene_file(lab_scene)) if lab_scene else Scene.default()
     mapping_cfg, loc_cfg = simulator_configs(args, scene)
     route = [(x, y, float(np.radians(yaw))) for x, y, yaw in loc_cfg.robot.plan]
     stops = plan_stops(scene.test_positions, scene.test_orientations)
     progress(f"simulated lab '{scene.name}': {len(scene.markers)} markers, plate {scene.plate.size[0]:.2f} x "
              f"{scene.plate.size[1]:.2f} m; true rig = ring.yaml + "
              f"{1000 * loc_cfg.ring.calibration_trans_std:.0f} mm / {loc_cfg.ring.calibration_rot_std_deg:.1f} deg "
-             f"calibration error; mode {args.mode}")
+             f"calibration error; mode {args.mode}; {args.lab} lab")
     common = [f"map_file:={out / 'map.yaml'}", f"mode:={args.mode}", f"gui:={'true' if args.gui else 'false'}"]
     with RosSession(out / "logs", progress) as ros:
         progress(f"roscore on port {ros.port} (logs: {out / 'logs'})")

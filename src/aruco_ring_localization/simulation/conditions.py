@@ -181,3 +181,50 @@ def _unit_grids(h: int, w: int) -> Tuple[np.ndarray, np.ndarray]:
         _GRIDS[(h, w)] = (np.ascontiguousarray(np.broadcast_to(u[None, :], (h, w))),
                           np.ascontiguousarray(np.broadcast_to(v[:, None], (h, w))))
     return _GRIDS[(h, w)]
+
+
+class LabConditions:
+    """A lab's per-frame conditions for code that simulates still frames itself (the benchmarks):
+    the floor (the robot's true pose at an SE(2) stop), the ring's vibration and the photometry,
+    drawn afresh for each frame, from the simulator's parameters (e.g. ``params.lab_config("harsh")``).
+    A robot at rest has no motion blur and its free-running cameras all see the same pose, so those
+    two do not apply here; :class:`~.simulator.SimulatorCore` models them for a moving robot.
+
+    Args:
+        config: the simulator's parameters (its ``plate``, ``ring``, ``render``, ``rate``, ``seed``).
+        scene: the hall (the plate's centre, the robot's footprint).
+        cameras: the ring's camera names.
+    """
+
+    def __init__(self, config, scene, cameras: Sequence[str], seed: Optional[int] = None):
+        s = config.seed if seed is None else seed
+        self.floor = Floor(config.plate, scene.plate.centre, scene.robot.footprint, seed=s)
+        self.vibration = RingVibration(config.ring, seed=s)
+        self.photometry = Photometry(config.render, cameras, rate=config.rate, seed=s)
+        self.cameras = list(cameras)
+
+    def T_world_base(self, pose: Sequence[float]) -> np.ndarray:
+        """base_link's true 4x4 pose at rest at (x, y, yaw) on the floor."""
+        return self.floor.T_world_base(pose)
+
+    def views(self, ring, T_world_base: np.ndarray) -> Dict[str, np.ndarray]:
+        """{camera: the base pose it sees through this frame} (this frame's vibration drawn)."""
+        shake = self.vibration.draw(self.cameras)
+        if self.vibration.rigid:
+            return {c: T_world_base for c in self.cameras}
+        return {c: RingVibration.shaken_base(T_world_base, ring[c].T_base_cam, shake[c]) for c in self.cameras}
+
+    def observe(self, sim, T_world_base: np.ndarray, stamp: float):
+        """Corners mode: a :class:`RingFrame` of one still frame (``sim``: a RingSimulator, true rig)."""
+        from ..detections import CameraFrame, RingFrame
+
+        frame = RingFrame(stamp=float(stamp))
+        for c, T in self.views(sim.ring, T_world_base).items():
+            frame.cameras[c] = CameraFrame(camera=c, stamp=float(stamp), observations=sim.observe_camera(T, c))
+        return frame
+
+    def render(self, sim, T_world_base: np.ndarray, rng: Optional[np.random.Generator] = None
+               ) -> Dict[str, np.ndarray]:
+        """Images mode: {camera: mono8 image} of one still frame, shaken and lit as this frame is."""
+        light = self.photometry.draw()
+        return {c: sim.render_views([T], c, light.get(c), rng=rng) for c, T in self.views(sim.ring, T_world_base).items()}
