@@ -53,8 +53,10 @@ def test_the_demo_runs_the_harsh_lab_by_default():
     mapping, localization = demo.simulator_configs(_args(lab="harsh"), Scene.default())
     harsh = lab_config("harsh")
     for cfg in (mapping, localization):
-        assert (cfg.plate, cfg.ring, cfg.cameras, cfg.render, cfg.scene) == \
-            (harsh.plate, harsh.ring, harsh.cameras, harsh.render, harsh.scene)
+        assert (cfg.plate, cfg.ring, cfg.render, cfg.scene, cfg.cameras.trigger) == \
+            (harsh.plate, harsh.ring, harsh.render, harsh.scene, "free")
+    # 100 ms of phases at the demo's 5 Hz
+    assert localization.cameras.phase_spread == pytest.approx(0.5)
     assert demo.simulator_configs(_args(lab="kind"), Scene.default())[0].plate == SimulatorConfig().plate
 
 

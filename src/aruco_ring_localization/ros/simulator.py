@@ -351,7 +351,7 @@ class SimulatorNode:
         from .conversions import make_transform_stamped, pose_to_msg
 
         c, core = self.config, self.core
-        T_world_base = Scene.T_world_base(state.pose)
+        T_world_base = core.T_world_base()   # in 3D: on the plate (tilted in the harsh lab)
         T_odom_base = Scene.T_world_base(state.odom_pose)
         tfs = [make_transform_stamped(T_world_base, c.ground_truth.parent, c.ground_truth.frame, stamp)]
         if c.odometry.publish_tf:
