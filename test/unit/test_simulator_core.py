@@ -181,8 +181,9 @@ def test_simulation_launch_args_only_override_when_given():
     assert set(args) == set(mapped) | launch_only, sorted(set(args) ^ (set(mapped) | launch_only))
     for arg in mapped:
         assert args[arg] in ("yaml", "$(arg sim_time)"), f"arg {arg} defaults to {args[arg]!r}, not the YAML's value"
-    loads = [r.get("file") for r in node.iter("rosparam")]
-    assert loads == ["$(arg config)", "$(find aruco_ring_localization)/config/lab_$(arg lab).yaml"]
+    loads = [(r.get("file"), r.get("if")) for r in node.iter("rosparam")]
+    assert loads == [("$(arg config)", None), ("$(find aruco_ring_localization)/config/lab_$(arg lab).yaml",
+                                               "$(eval arg('lab') != 'kind')")]
     assert args["config"].endswith("/config/simulator.yaml") and args["lab"] == "kind"
 
 
