@@ -102,9 +102,9 @@ def simulator_config(mode: str, speed: float, rate: float, base_file: Optional[s
 
 def write_truth_map(config, path: str) -> str:
     """The true map of the configured scene (what the localizer localizes against), at ``path``."""
-    from aruco_ring_localization.simulation.scene import Scene
+    from aruco_ring_localization.simulation.scene import Scene, resolve_scene_file
 
-    scene = Scene.load(config.scene.file) if config.scene.file else Scene.default()
+    scene = Scene.load(resolve_scene_file(config.scene.file)) if config.scene.file else Scene.default()
     scene.truth_map().save(path, backups=0)
     return path
 

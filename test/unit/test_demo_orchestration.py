@@ -45,6 +45,21 @@ def test_simulator_configs_of_the_two_phases(tmp_path):
     assert load_config(SimulatorConfig, load_yaml_file(str(path)), warn=said.append) == localization and not said
 
 
+def test_the_demo_runs_the_harsh_lab_by_default():
+    from aruco_ring_localization.simulation.params import lab_config
+
+    args = demo._parse([])
+    assert args.lab == "harsh"
+    mapping, localization = demo.simulator_configs(_args(lab="harsh"), Scene.default())
+    harsh = lab_config("harsh")
+    for cfg in (mapping, localization):
+        assert (cfg.plate, cfg.ring, cfg.render, cfg.scene, cfg.cameras.trigger) == \
+            (harsh.plate, harsh.ring, harsh.render, harsh.scene, "free")
+    # 100 ms of phases at the demo's 5 Hz
+    assert localization.cameras.phase_spread == pytest.approx(0.5)
+    assert demo.simulator_configs(_args(lab="kind"), Scene.default())[0].plate == SimulatorConfig().plate
+
+
 def _drive(config: SimulatorConfig, scene: Scene, frames_after: int = 15):
     """Ground truth of the simulator core driving the config's route, one pose per frame."""
     core = SimulatorCore(config, scene, CameraRing.load(os.path.join(REPO, "config", "ring.yaml")))

@@ -10,7 +10,7 @@ from aruco_ring_localization.config import load_config, with_overrides
 from aruco_ring_localization.errors import ConfigError
 from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.simulation.params import SimulatorConfig
-from aruco_ring_localization.simulation.scene import Scene
+from aruco_ring_localization.simulation.scene import Scene, resolve_scene_file
 from aruco_ring_localization.simulation.simulator import SimulatorCore, waypoint_list
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", ".."))
@@ -177,12 +177,35 @@ def test_simulation_launch_args_only_override_when_given():
         assert p.get("if") == f"$(eval arg('{arg}') != 'yaml')", f"param {p.get('name')} is set unconditionally"
         assert p.get("name").replace("/", ".") in keys, f"{p.get('name')} is not a simulator parameter"
         mapped[arg] = p.get("name")
-    launch_only = {"config", "detectors", "corner_refinement", "sim_time"}
+    launch_only = {"config", "lab", "detectors", "corner_refinement", "sim_time"}
     assert set(args) == set(mapped) | launch_only, sorted(set(args) ^ (set(mapped) | launch_only))
     for arg in mapped:
         assert args[arg] in ("yaml", "$(arg sim_time)"), f"arg {arg} defaults to {args[arg]!r}, not the YAML's value"
-    loads = [r.get("file") for r in node.iter("rosparam")]
-    assert loads == ["$(arg config)"] and args["config"].endswith("/config/simulator.yaml")
+    loads = [(r.get("file"), r.get("if")) for r in node.iter("rosparam")]
+    assert loads == [("$(arg config)", None), ("$(find aruco_ring_localization)/config/lab_$(arg lab).yaml",
+                                               "$(eval arg('lab') != 'kind')")]
+    assert args["config"].endswith("/config/simulator.yaml") and args["lab"] == "kind"
+
+
+@pytest.mark.parametrize("lab", ["harsh", "kind"])
+def test_lab_files_hold_only_simulator_keys(lab):
+    """config/lab_<lab>.yaml (loaded over config/simulator.yaml by simulation.launch lab:=...) holds
+    known keys only, with valid values; kind changes nothing, harsh changes each harsh model."""
+    from aruco_ring_localization.camera import load_yaml_file
+    from aruco_ring_localization.simulation.params import lab_config, lab_file
+
+    unknown = []
+    load_config(SimulatorConfig, load_yaml_file(lab_file(lab)) or {}, source=lab_file(lab), unknown=unknown,
+                warn=lambda msg: None)
+    assert not unknown, unknown
+    c = lab_config(lab)
+    if lab == "kind":
+        assert c == SimulatorConfig()
+    else:
+        assert c.cameras.trigger == "free" and 0 < c.plate.tilt_deg + c.plate.bump_deg <= 0.5
+        assert c.ring.vibration_rot_std_deg == 0.05 and c.render.exposure_time > 0
+        assert c.render.gain_std > 0 and c.render.illumination_gradient > 0
+        assert Scene.load(resolve_scene_file(c.scene.file)).occluders
 
 
 def test_header_stamp_reads_any_stamped_message():

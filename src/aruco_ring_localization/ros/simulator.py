@@ -51,7 +51,7 @@ from ..ring import CameraRing
 from ..simulation.lockstep import FrameGate, SimClock
 from ..simulation.motion import RobotState
 from ..simulation.params import SimulatorConfig
-from ..simulation.scene import Scene
+from ..simulation.scene import Scene, resolve_scene_file
 from ..simulation.simulator import SimulatorCore
 
 __all__ = ["SimulatorConfig", "SimulatorCore", "main", "header_stamp"]
@@ -351,7 +351,7 @@ class SimulatorNode:
         from .conversions import make_transform_stamped, pose_to_msg
 
         c, core = self.config, self.core
-        T_world_base = Scene.T_world_base(state.pose)
+        T_world_base = core.T_world_base()   # in 3D: on the plate (tilted in the harsh lab)
         T_odom_base = Scene.T_world_base(state.odom_pose)
         tfs = [make_transform_stamped(T_world_base, c.ground_truth.parent, c.ground_truth.frame, stamp)]
         if c.odometry.publish_tf:
@@ -412,7 +412,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     rospy.init_node("simulator", argv=list(argv) if argv is not None else None)
     try:
         config = read_config(SimulatorConfig)
-        scene = Scene.load(config.scene.file or _package_file("config", "lab_scene.yaml"))
+        scene = Scene.load(resolve_scene_file(config.scene.file) if config.scene.file
+                           else _package_file("config", "lab_scene.yaml"))
         ring = CameraRing.load(config.ring.file or _package_file("config", "ring.yaml"))
         core = SimulatorCore(config, scene, ring)
         node = SimulatorNode(core)

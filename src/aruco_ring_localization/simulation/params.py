@@ -9,21 +9,24 @@ and nowhere else.
 
 Sections, and what will join them (the structure is ready for it): ``cameras`` (which cameras,
 what they see, their trigger: synchronized or free-running with phases and jitter),
-``ring`` (the calibration and the true rig's error from it; later per-frame vibration),
-``render`` (images mode; later exposure and motion blur), ``robot`` (start, waypoints, limits),
+``ring`` (the calibration, the true rig's error from it, per-frame vibration), ``plate`` (a floor
+that is not flat), ``render`` (images mode: blur, noise, exposure and motion blur, illumination),
+``robot`` (start, waypoints, limits),
 ``ground_truth``, ``odometry``, ``gmapping`` (a perfect gmapping's tf and grid), ``laser``,
 ``clock`` (owning ``/clock``, its speed), ``lockstep``
-(waiting for the consumers of each frame). A plate that is not flat would be a ``plate`` section.
+(waiting for the consumers of each frame). Every default is the kind lab; config/lab_harsh.yaml
+sets the harsher one's (docs/simulation.md, "The harsh lab").
 Units: SI; angles in radians unless the key ends in ``_deg``.
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Iterator, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
-from ..config import param, section
+from ..config import param, section, with_overrides
 from ..errors import ConfigError
 
 MODES = ("corners", "images")
@@ -55,7 +58,8 @@ def _pose_deg(name: str, value: Sequence[Any]) -> None:
 class SceneParams:
     """The hall: walls, plate, markers, test poses (docs/simulation.md, "Scene file format")."""
 
-    file: str = param("", "scene YAML; empty = the package's config/lab_scene.yaml")
+    file: str = param("", "scene YAML; empty = the package's config/lab_scene.yaml; a name that is not an "
+                          "existing path is looked for in the package's config/ (e.g. lab_scene_harsh.yaml)")
 
 
 @dataclass(frozen=True)
@@ -66,10 +70,42 @@ class RingParams:
     calibration_trans_std: float = param(0.002, "true rig vs ring file: Gaussian translation per axis, "
                                                 "in each camera's frame", unit="m")
     calibration_rot_std_deg: float = param(0.2, "true rig vs ring file: Gaussian rotation per axis", unit="deg")
+    vibration_rot_std_deg: float = param(0.0, "ring vibration: every frame each camera's true extrinsics turn "
+                                              "by a fresh Gaussian rotation per axis (its own frame); 0 = rigid",
+                                         unit="deg")
+    vibration_trans_std: float = param(0.0, "ring vibration: every frame each camera moves by a fresh Gaussian "
+                                            "translation per axis", unit="m")
 
     def __post_init__(self) -> None:
-        _non_negative("calibration_trans_std", self.calibration_trans_std)
-        _non_negative("calibration_rot_std_deg", self.calibration_rot_std_deg)
+        for name in ("calibration_trans_std", "calibration_rot_std_deg", "vibration_rot_std_deg",
+                     "vibration_trans_std"):
+            _non_negative(name, getattr(self, name))
+
+
+@dataclass(frozen=True)
+class PlateParams:
+    """The floor under the robot: flat (the kind lab) or tilted with bumps, so the robot rolls and pitches.
+
+    The floor's height is ``tilt`` (a plane rising along ``tilt_direction_deg``) plus ``bump``
+    (a sum of two seeded sinusoidal waves of ``bump_wavelength``, scaled so that their slope is at
+    most ``bump_deg``). base_link stands on it: its height is the floor's and its z axis the
+    floor's normal, averaged over the robot's footprint (the wheels span it); the wheel odometry
+    stays planar.
+    """
+
+    tilt_deg: float = param(0.0, "slope of the plate as a whole", unit="deg")
+    tilt_direction_deg: float = param(0.0, "direction the plate rises toward (about z, 0 = +x)", unit="deg")
+    bump_deg: float = param(0.0, "largest slope of the bumps", unit="deg")
+    bump_wavelength: float = param(1.5, "wavelength of the bumps", unit="m")
+
+    def __post_init__(self) -> None:
+        for name in ("tilt_deg", "bump_deg"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and 0.0 <= value <= 5.0):
+                raise ConfigError(f"must be within [0, 5] deg, got {value!r}", key=name)
+        if not np.isfinite(self.tilt_direction_deg):
+            raise ConfigError(f"must be a number, got {self.tilt_direction_deg!r}", key="tilt_direction_deg")
+        _positive("bump_wavelength", self.bump_wavelength)
 
 
 @dataclass(frozen=True)
@@ -106,12 +142,27 @@ class RenderParams:
     noise_std: float = param(2.0, "sensor noise, Gaussian sigma", unit="grey levels")
     supersample: int = param(2, "samples per pixel along each axis on the markers (1 = point sampling: "
                                 "edges snap to pixel boundaries)")
+    exposure_time: float = param(0.0, "motion blur: each image averages the views along this exposure, "
+                                      "centred on its stamp, while the robot moves; 0 = instantaneous", unit="s")
+    blur_samples: int = param(4, "motion blur: views averaged over the exposure while moving")
+    gain_std: float = param(0.0, "exposure changes: each camera's image gain wanders (log-normal, this "
+                                 "stationary sigma of log gain, about 2 s correlation); 0 = fixed gain")
+    illumination_gradient: float = param(0.0, "uneven light: brightness varies linearly across each image by "
+                                              "up to this fraction either side, its direction drifting per "
+                                              "camera; 0 = even")
 
     def __post_init__(self) -> None:
         _non_negative("blur_sigma", self.blur_sigma)
         _non_negative("noise_std", self.noise_std)
         if self.supersample < 1:
             raise ConfigError(f"must be 1 or more, got {self.supersample!r}", key="supersample")
+        _non_negative("exposure_time", self.exposure_time)
+        if self.blur_samples < 1:
+            raise ConfigError(f"must be 1 or more, got {self.blur_samples!r}", key="blur_samples")
+        _non_negative("gain_std", self.gain_std)
+        if not (np.isfinite(self.illumination_gradient) and 0.0 <= self.illumination_gradient < 1.0):
+            raise ConfigError(f"must be within [0, 1), got {self.illumination_gradient!r}",
+                              key="illumination_gradient")
 
 
 @dataclass(frozen=True)
@@ -256,6 +307,7 @@ class SimulatorConfig:
     seed: int = param(0, "seed of every random draw (rig error, noise, images, odometry)")
     scene: SceneParams = section(SceneParams)
     ring: RingParams = section(RingParams)
+    plate: PlateParams = section(PlateParams)
     cameras: CameraParams = section(CameraParams)
     render: RenderParams = section(RenderParams)
     robot: RobotParams = section(RobotParams)
@@ -270,3 +322,36 @@ class SimulatorConfig:
         if self.mode not in MODES:
             raise ConfigError(f"expected corners or images, got {self.mode!r}", key="mode")
         _positive("rate", self.rate)
+
+
+# --- the labs: kind (the schema's defaults) and harsh (config/lab_harsh.yaml) ---------------------
+
+LABS = ("harsh", "kind")
+
+#: The package's config/ directory: config/lab_<lab>.yaml.
+CONFIG_DIR = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..", "..", "config"))
+
+
+def lab_file(lab: str) -> str:
+    """config/lab_<lab>.yaml: the keys of config/simulator.yaml that the lab changes."""
+    if lab not in LABS:
+        raise ConfigError(f"expected one of {' | '.join(LABS)}, got {lab!r}", key="lab")
+    return os.path.join(CONFIG_DIR, f"lab_{lab}.yaml")
+
+
+def lab_config(lab: str, base: Optional[SimulatorConfig] = None) -> SimulatorConfig:
+    """``base`` (default: the schema's defaults, the kind lab) with ``lab``'s keys applied, as
+    simulation.launch ``lab:=`` loads config/lab_<lab>.yaml over config/simulator.yaml."""
+    from ..camera import load_yaml_file
+
+    path = lab_file(lab)
+    values = load_yaml_file(path) or {}
+    return with_overrides(base if base is not None else SimulatorConfig(), dict(_dotted(values)), source=path)
+
+
+def _dotted(values: Mapping[str, Any], prefix: str = "") -> Iterator[Tuple[str, Any]]:
+    for k, v in values.items():
+        if isinstance(v, Mapping):
+            yield from _dotted(v, f"{prefix}{k}.")
+        else:
+            yield f"{prefix}{k}", v

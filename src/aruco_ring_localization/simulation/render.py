@@ -13,7 +13,11 @@ Per camera image (mono8, the camera's size):
    sampled there (``cv2.remap``, from a mip level that matches the marker's size on the image,
    so small markers are area-filtered rather than aliased); each pixel averages 2 x 2 such
    samples (``supersample``), so an edge's sub-pixel position survives in the grey level;
-3. optical blur (Gaussian, ``blur_sigma`` px) and sensor noise (Gaussian, ``noise_std`` grey
+3. the scene's occluding posts (``posts[].occludes``), painted with the markers in distance order
+   where each pixel's ray hits the column;
+4. with :meth:`RingRenderer.render_views`: the mean of several such images along the exposure
+   (motion blur) and a gain and brightness gradient (:mod:`.conditions`, clipped at 255);
+5. optical blur (Gaussian, ``blur_sigma`` px) and sensor noise (Gaussian, ``noise_std`` grey
    levels, drawn from a seeded bank at a random offset per image).
 
 Each marker gets its own seeded print contrast (black 15..45, white 200..235), like real prints
@@ -23,7 +27,7 @@ under uneven light. Pixel centres are at integer coordinates, as in OpenCV and
 from __future__ import annotations
 
 import logging
-from typing import Dict, List, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
@@ -124,6 +128,7 @@ class RingRenderer:
         quiet = float(scene.quiet_zone_modules)
         self.sheet_scale = (modules + 2.0 * quiet) / modules
         self._rays: Dict[str, Tuple[np.ndarray, np.ndarray, Tuple[float, float, float, float]]] = {}
+        self._ray_extents: Dict[int, Tuple[np.ndarray, ...]] = {}
         self._textures: Dict[int, List[np.ndarray]] = {}
         for m in scene.markers:
             # Seeded per id, so a marker looks the same whatever else is in the scene.
@@ -154,6 +159,33 @@ class RingRenderer:
         ``sim`` is the :class:`RingSimulator` (unused beyond the scene today; kept so a renderer
         can share the simulator's visibility cache). ``rng`` draws the noise offsets.
         """
+        return self.render_views([T_world_base], name, rng)
+
+    def render_views(self, views: Sequence[np.ndarray], name: str, rng: np.random.Generator,
+                     photometry: Optional[Tuple[float, float, float]] = None) -> np.ndarray:
+        """One camera's mono8 image averaged over the robot poses ``views`` (4x4 each: the exposure's
+        motion blur), times ``photometry`` (gain, gradient, direction: :class:`conditions.Photometry`),
+        then optical blur and sensor noise. One view without photometry is :meth:`render_camera`."""
+        from .conditions import apply_photometry
+
+        img = self._scene_image(views[0], name)
+        if len(views) > 1:
+            acc = img.astype(np.float32)
+            for T in views[1:]:
+                acc += self._scene_image(T, name)
+            img = acc * np.float32(1.0 / len(views))
+        if len(views) > 1 or photometry is not None:
+            img = apply_photometry(img, photometry)
+        H, W = img.shape
+        if self.blur_sigma > 0:
+            img = cv2.GaussianBlur(img, (0, 0), self.blur_sigma)
+        if self.noise_std > 0:
+            oy, ox = (int(v) for v in rng.integers(0, self._noise_pad, 2))
+            img = cv2.addWeighted(img, 1.0, self._noise[oy:oy + H, ox:ox + W], 1.0, -128.0)
+        return img
+
+    def _scene_image(self, T_world_base: np.ndarray, name: str) -> np.ndarray:
+        """The background, the markers and the occluding posts (far to near), before blur and noise."""
         cam = self.ring[name]
         model = cam.model
         W, H = model.width, model.height
@@ -176,15 +208,67 @@ class RingRenderer:
             if np.any(sheet[:, 2] <= self.min_depth):
                 continue
             draw.append((float(np.linalg.norm(p0)), m, T_cam_marker, half))
+        centre = T_world_cam[:3, 3]
+        for post in self.scene.occluders:   # painted in distance order with the markers (a post is convex)
+            draw.append((float(np.hypot(*(np.asarray(post.centre) - centre[:2]))), post, None, 0.0))
         draw.sort(key=lambda d: -d[0])
         for _, m, T_cam_marker, half in draw:
-            self._draw_marker(img, model, xn, yn, fov, m.marker_id, T_cam_marker, half)
-        if self.blur_sigma > 0:
-            img = cv2.GaussianBlur(img, (0, 0), self.blur_sigma)
-        if self.noise_std > 0:
-            oy, ox = (int(v) for v in rng.integers(0, self._noise_pad, 2))
-            img = cv2.addWeighted(img, 1.0, self._noise[oy:oy + H, ox:ox + W], 1.0, -128.0)
+            if T_cam_marker is None:
+                self._draw_post(img, model, xn, yn, m, T_world_cam)
+            else:
+                self._draw_marker(img, model, xn, yn, fov, m.marker_id, T_cam_marker, half)
         return img
+
+    def _extents(self, xn: np.ndarray, yn: np.ndarray):
+        """Per column the range of x/z, per row the range of y/z of the image's rays (cached)."""
+        key = id(xn)
+        if key not in self._ray_extents:
+            self._ray_extents[key] = (xn.min(axis=0), xn.max(axis=0), yn.min(axis=1), yn.max(axis=1))
+        return self._ray_extents[key]
+
+    def _draw_post(self, img: np.ndarray, model: CameraModel, xn: np.ndarray, yn: np.ndarray, post,
+                   T_world_cam: np.ndarray) -> None:
+        """Paint an occluding post (a grey column, its faces shaded by their direction) where each
+        pixel's ray hits it; only within the bounding box of its projection (the whole image when a
+        part of it is behind the camera)."""
+        h = post.side / 2.0
+        cx, cy = post.centre
+        pts = np.array([[cx + sx * h, cy + sy * h, z] for sx in (-1, 1) for sy in (-1, 1) for z in (0.0, post.height)])
+        pc = geo.transform_points(geo.inverse(T_world_cam), pts)
+        if np.all(pc[:, 2] <= 0.0):
+            return
+        if np.all(pc[:, 2] > 1e-3):
+            # The column is convex: in normalised (x/z, y/z) coordinates it lies within its vertices' box;
+            # the columns and rows of the raw image whose rays reach that box bound it (lens included).
+            nx, ny = pc[:, 0] / pc[:, 2], pc[:, 1] / pc[:, 2]
+            col_lo, col_hi, row_lo, row_hi = self._extents(xn, yn)
+            cols = np.flatnonzero((col_hi >= nx.min()) & (col_lo <= nx.max()))
+            rows = np.flatnonzero((row_hi >= ny.min()) & (row_lo <= ny.max()))
+            if not cols.size or not rows.size:
+                return
+            x0, x1, y0, y1 = int(cols[0]), int(cols[-1]) + 1, int(rows[0]), int(rows[-1]) + 1
+        else:
+            x0, y0, x1, y1 = 0, 0, model.width, model.height
+        rx, ry = xn[y0:y1, x0:x1], yn[y0:y1, x0:x1]
+        R = T_world_cam[:3, :3].astype(np.float32)
+        o = T_world_cam[:3, 3]
+        # World directions of the rays (x/z, y/z, 1); a camera is below the column's top and above
+        # the floor, so a ray enters it through a side face: slabs in x and y, then the height there.
+        d = [R[i, 0] * rx + R[i, 1] * ry + R[i, 2] for i in range(3)]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tx1, tx2 = (cx - h - o[0]) / d[0], (cx + h - o[0]) / d[0]
+            ty1, ty2 = (cy - h - o[1]) / d[1], (cy + h - o[1]) / d[1]
+        tx_near, tx_far = np.minimum(tx1, tx2), np.maximum(tx1, tx2)
+        ty_near, ty_far = np.minimum(ty1, ty2), np.maximum(ty1, ty2)
+        near = np.maximum(tx_near, ty_near)
+        z = o[2] + near * d[2]
+        hit = (near <= np.minimum(tx_far, ty_far)) & (near > 0) & (z >= 0.0) & (z <= post.height)
+        if not np.any(hit):
+            return
+        # faces normal to x (entered by the x slab) darker than those normal to y; lighter upward
+        shade = np.where(tx_near >= ty_near, 85.0, 120.0) + 15.0 * (z / post.height)
+        roi = img[y0:y1, x0:x1]
+        roi[hit] = np.clip(np.round(shade[hit]), 0, 255).astype(np.uint8)
 
     def _draw_marker(self, img: np.ndarray, model: CameraModel, xn: np.ndarray, yn: np.ndarray, fov, marker_id: int,
                      T_cam_marker: np.ndarray, half: float) -> None:

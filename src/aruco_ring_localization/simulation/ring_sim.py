@@ -11,8 +11,9 @@ Two output modes share one visibility model:
 A marker is visible in a camera when all four corners are in front of it (z > ``min_depth``) and
 inside the image (``margin`` px from the border), its face points toward the camera (angle
 between the face normal and the ray to the camera < ``max_view_angle``), it is within
-``max_range`` and at least ``min_marker_px`` pixels wide (square root of the image area), and no
-nearer marker's printed sheet (marker + quiet zone) overlaps its sheet in the image.
+``max_range`` and at least ``min_marker_px`` pixels wide (square root of the image area), no
+nearer marker's printed sheet (marker + quiet zone) overlaps its sheet in the image, and no
+occluding post (``posts[].occludes`` in the scene) hides any part of it.
 
 The simulator knows the TRUE rig (:func:`perturb_ring` of the calibrated ring file): what the
 estimators are given is the calibrated one, so no result relies on a perfect calibration.
@@ -129,6 +130,10 @@ class RingSimulator:
                                   for m in scene.markers])
         self._centres_w = np.stack([m.T_world_marker[:3, 3] for m in scene.markers])
         self._normals_w = np.stack([m.normal for m in scene.markers])
+        self._occluders = scene.occluders
+        g = np.array([-0.5, 0.0, 0.5])
+        probe = np.array([[u, v, 0.0] for u in g for v in g])
+        self._probe_w = np.stack([geo.transform_points(m.T_world_marker, probe * m.size) for m in scene.markers])
 
     # --- geometry --------------------------------------------------------------------------------
 
@@ -167,7 +172,7 @@ class RingSimulator:
                     candidates.append((k, px, float(angles[k]), size))
         out = []
         for k, px, angle, size in candidates:
-            if self._occluded(k, sheet_c, in_front_sheet, dist):
+            if self._occluded(k, sheet_c, in_front_sheet, dist) or self._behind_post(k, T_world_cam):
                 continue
             T_cam_marker = T_cam_world @ self.scene.markers[k].T_world_marker
             out.append(VisibleMarker(int(self._ids[k]), px, float(dist[k]), angle, size, T_cam_marker))
@@ -186,6 +191,15 @@ class RingSimulator:
             if area > 1e-9:
                 return True
         return False
+
+    def _behind_post(self, k: int, T_world_cam: np.ndarray) -> bool:
+        """True when an occluding post (scene ``posts[].occludes``) hides any part of marker k: any of
+        9 points of its square (corners, edge midpoints, centre) seen through a post."""
+        if not self._occluders:
+            return False
+        origin = T_world_cam[:3, 3]
+        d = self._probe_w[k] - origin          # segments camera -> points, t in (0, 1)
+        return any(np.isfinite(post.ray_hits(origin, d, t_max=1.0 - 1e-6)).any() for post in self._occluders)
 
     def visible(self, T_world_base: PoseLike) -> Dict[str, List[Tuple[int, np.ndarray]]]:
         """{camera name: [(marker_id, true corners (4, 2) raw px)]} for every ring camera (nearest first)."""
@@ -228,15 +242,27 @@ class RingSimulator:
     def render(self, T_world_base: PoseLike, rng: Optional[np.random.Generator] = None,
                cameras: Optional[Sequence[str]] = None) -> Dict[str, np.ndarray]:
         """{camera name: mono8 image (height, width)} rendered from the true pose (image mode)."""
+        gen = rng if rng is not None else self.rng
+        names = list(cameras) if cameras is not None else self.ring.names
+        T = as_transform(T_world_base)
+        return {name: self.renderer.render_camera(self, T, name, gen) for name in names}
+
+    @property
+    def renderer(self):
+        """The image-mode renderer (:class:`.render.RingRenderer`), made on first use."""
         if self._renderer is None:
             from .render import RingRenderer
             r = self.render_params
             self._renderer = RingRenderer(self.scene, self.ring, seed=self.seed, blur_sigma=r.blur_sigma,
                                           noise_std=r.noise_std, supersample=r.supersample)
+        return self._renderer
+
+    def render_views(self, views: Sequence[PoseLike], camera: str, photometry=None,
+                     rng: Optional[np.random.Generator] = None) -> np.ndarray:
+        """One camera's mono8 image averaged over several robot poses (motion blur over the exposure),
+        with a gain and gradient (:meth:`.render.RingRenderer.render_views`)."""
         gen = rng if rng is not None else self.rng
-        names = list(cameras) if cameras is not None else self.ring.names
-        T = as_transform(T_world_base)
-        return {name: self._renderer.render_camera(self, T, name, gen) for name in names}
+        return self.renderer.render_views([as_transform(T) for T in views], camera, gen, photometry)
 
 
 def _dictionary_modules(dictionary: int) -> int:

@@ -30,6 +30,21 @@ DEFAULT_SCENE_FILE = os.path.abspath(os.path.join(os.path.dirname(__file__), "..
 
 Pose2 = Tuple[float, float, float]
 
+#: The package's config/ directory (where a bare scene file name such as ``lab_scene_harsh.yaml`` is found).
+CONFIG_DIR = os.path.dirname(DEFAULT_SCENE_FILE)
+
+
+def resolve_scene_file(path: str) -> str:
+    """The scene file a ``scene.file`` value names: empty = config/lab_scene.yaml; a path that exists
+    (absolute or relative to the working directory) as is; otherwise a file of that name in the
+    package's config/ (so a YAML file can say ``lab_scene_harsh.yaml`` wherever the package is)."""
+    if not path:
+        return DEFAULT_SCENE_FILE
+    if os.path.isabs(path) or os.path.exists(path):
+        return path
+    packaged = os.path.join(CONFIG_DIR, path)
+    return packaged if os.path.exists(packaged) else path
+
 
 @dataclass(frozen=True)
 class SceneMarker:
@@ -89,12 +104,35 @@ class Plate:
 
 @dataclass(frozen=True)
 class Post:
-    """A vertical square column (the laser sees it): ``centre`` (x, y), ``side``, ``height`` (m)."""
+    """A vertical square column (the laser sees it): ``centre`` (x, y), ``side``, ``height`` (m).
+
+    With ``occludes`` it is opaque to the cameras too: it hides the markers behind it (corners mode)
+    and is drawn (images mode). The kind lab's thin posts that carry markers do not.
+    """
 
     name: str
     centre: Tuple[float, float]
     side: float
     height: float
+    occludes: bool = False
+
+    def ray_hits(self, origin: np.ndarray, directions: np.ndarray, t_max: float = np.inf) -> np.ndarray:
+        """Distance along each ray ``origin + t d`` (world frame; ``directions`` (N, 3)) at which it
+        enters the column, for ``0 < t < t_max``; ``inf`` where it misses (slab test)."""
+        lo = np.array([self.centre[0] - self.side / 2, self.centre[1] - self.side / 2, 0.0])
+        hi = np.array([self.centre[0] + self.side / 2, self.centre[1] + self.side / 2, self.height])
+        d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / d
+            t1 = (lo - origin) * inv
+            t2 = (hi - origin) * inv
+        # a ray parallel to a slab: inside it (t from -inf to inf) or outside it (nan: never)
+        t1 = np.where(np.isnan(t1), np.inf, t1)
+        t2 = np.where(np.isnan(t2), np.inf, t2)
+        near = np.max(np.minimum(t1, t2), axis=1)
+        far = np.min(np.maximum(t1, t2), axis=1)
+        hit = (near <= far) & (near > 0.0) & (near < t_max)
+        return np.where(hit, near, np.inf)
 
     def segments(self) -> np.ndarray:
         """(4, 2, 2) outline segments."""
@@ -184,7 +222,8 @@ class Scene:
             posts.append(Post(name=str(p.get("name", f"post{i}")),
                               centre=tuple(_floats(p.get("centre"), 2, source, key + ".centre")),
                               side=_float(p.get("side", 0.1), source, key + ".side", positive=True),
-                              height=_float(p.get("height", 1.5), source, key + ".height", positive=True)))
+                              height=_float(p.get("height", 1.5), source, key + ".height", positive=True),
+                              occludes=_bool(p.get("occludes", False), source, key + ".occludes")))
         robot_d = data.get("robot") or {}
         if not isinstance(robot_d, Mapping):
             raise ConfigError("expected a mapping {footprint: [length, width]}", path=source, key="robot")
@@ -233,6 +272,11 @@ class Scene:
     def T_world_base(pose: Sequence[float]) -> np.ndarray:
         """(x, y, yaw rad) -> 4x4 pose of base_link on the floor."""
         return geo.transform_from_se2(float(pose[0]), float(pose[1]), float(pose[2]))
+
+    @property
+    def occluders(self) -> List[Post]:
+        """The posts the cameras cannot see through."""
+        return [p for p in self.posts if p.occludes]
 
     def obstacle_segments(self) -> np.ndarray:
         """(N, 2, 2) 2D segments a planar laser sees: the walls and the posts."""
@@ -290,6 +334,12 @@ def _mapping(data: Mapping[str, Any], key: str, source: str) -> Mapping[str, Any
     if not isinstance(v, Mapping):
         raise ConfigError("missing or not a mapping", path=source, key=key)
     return v
+
+
+def _bool(value: Any, source: str, key: str) -> bool:
+    if not isinstance(value, bool):
+        raise ConfigError(f"expected true or false, got {value!r}", path=source, key=key)
+    return value
 
 
 def _float(value: Any, source: str, key: str, positive: bool = False) -> float:

@@ -32,6 +32,7 @@ from ..ring import CameraRing
 from .laser import LaserScanner, occupancy_grid
 from .motion import RobotState, SimRobot
 from .params import SimulatorConfig
+from .conditions import Floor, Photometry, RingVibration
 from .ring_sim import RingSimulator, perturb_ring
 from .scene import Scene
 
@@ -117,6 +118,13 @@ class SimulatorCore:
         self.cameras = [c for c in ring.names if not config.cameras.names or c in config.cameras.names]
         self.sim = RingSimulator(scene, self.true_ring, pixel_noise=config.cameras.pixel_noise,
                                  max_range=config.cameras.max_range, seed=config.seed, render=config.render)
+        self.floor = Floor(config.plate, scene.plate.centre, scene.robot.footprint, seed=config.seed)
+        self.vibration = RingVibration(config.ring, seed=config.seed)
+        self.photometry = Photometry(config.render, self.cameras, rate=config.rate, seed=config.seed)
+        #: {camera: D} this frame's vibration of each camera (identities when the ring is rigid).
+        self.shake: Dict[str, np.ndarray] = {}
+        #: {camera: (gain, gradient, direction)} this frame's photometry (None: neutral).
+        self.light: Dict[str, Optional[Tuple[float, float, float]]] = {}
         r = config.robot
         start = (r.start_pose[0], r.start_pose[1], np.radians(r.start_pose[2])) if r.start_pose else scene.mapping_pose
         self.robot = SimRobot(start, plan_poses(config, scene), hold_time=r.hold_time,
@@ -155,6 +163,8 @@ class SimulatorCore:
         self.state = self.robot.step(t, dt)
         self._record(t, self.state.pose)
         self.stamps = {c: t - off for c, off in self.camera_clock.offsets().items()}
+        self.shake = self.vibration.draw(self.true_ring.names)
+        self.light = self.photometry.draw()
         return self.state
 
     def _record(self, t: float, pose: np.ndarray) -> None:
@@ -183,8 +193,33 @@ class SimulatorCore:
         return interpolate_se2(self._poses[k - 1], self._poses[k], (stamp - t0) / (t1 - t0))
 
     def true_pose_at(self, stamp: float) -> np.ndarray:
-        """base_link's true 4x4 pose ``T_world_base`` at ``stamp`` (s) (see :meth:`true_se2_at`)."""
-        return Scene.T_world_base(self.true_se2_at(stamp))
+        """base_link's true 4x4 pose ``T_world_base`` at ``stamp`` (s): standing on the floor (its
+        height, roll and pitch from ``plate``; flat in the kind lab) at :meth:`true_se2_at`."""
+        return self.floor.T_world_base(self.true_se2_at(stamp))
+
+    def _camera_view_base(self, camera: str, stamp: float) -> np.ndarray:
+        """The base pose through which ``camera`` sees at ``stamp``: the true pose, shaken by this
+        frame's vibration of the camera."""
+        T = self.true_pose_at(stamp)
+        D = self.shake.get(camera)
+        if D is None or self.vibration.rigid:
+            return T
+        return RingVibration.shaken_base(T, self.true_ring[camera].T_base_cam, D)
+
+    def exposure_views(self, camera: str) -> List[np.ndarray]:
+        """The base poses (shaken) averaged into ``camera``'s current image: its exposure
+        (``render.exposure_time``, centred on the camera's stamp) sampled ``render.blur_samples``
+        times while the robot moves, one view otherwise. Past the last step the trajectory is
+        held (the few ms after the frame's time are not simulated yet)."""
+        s = self.camera_stamp(camera)
+        e = self.config.render.exposure_time
+        n = self.config.render.blur_samples
+        if e <= 0 or n <= 1:
+            return [self._camera_view_base(camera, s)]
+        ends = [self.true_se2_at(s - e / 2), self.true_se2_at(s + e / 2)]
+        if np.allclose(ends[0], ends[1], rtol=0.0, atol=1e-7):
+            return [self._camera_view_base(camera, s)]
+        return [self._camera_view_base(camera, s - e / 2 + e * (k + 0.5) / n) for k in range(n)]
 
     @property
     def finished(self) -> bool:
@@ -196,7 +231,8 @@ class SimulatorCore:
         return [tuple(float(v) for v in w) for w in (self.robot.driver.waypoints if self.robot.driver else [])]
 
     def T_world_base(self) -> np.ndarray:
-        return Scene.T_world_base(self.state.pose)
+        """base_link's true 4x4 pose now (on the floor: see :meth:`true_pose_at`)."""
+        return self.floor.T_world_base(self.state.pose)
 
     def camera_stamp(self, camera: str) -> float:
         """The exposure time of ``camera``'s current frame (the frame's time when synchronized)."""
@@ -208,14 +244,15 @@ class SimulatorCore:
         (kept for callers of the synchronized simulator: it was the frame's time)."""
         out = {}
         for cam in self.true_ring.cameras:   # every ring camera draws its noise, as before free cameras
-            obs = self.sim.observe_camera(self.true_pose_at(self.camera_stamp(cam.name)), cam)
+            obs = self.sim.observe_camera(self._camera_view_base(cam.name, self.camera_stamp(cam.name)), cam)
             if cam.name in self.cameras:
                 out[cam.name] = obs
         return out
 
     def images(self) -> Dict[str, np.ndarray]:
-        """Image mode: {camera: mono8 image}, each rendered at the camera's exposure time."""
-        return {c: self.sim.render(self.true_pose_at(self.camera_stamp(c)), cameras=[c])[c] for c in self.cameras}
+        """Image mode: {camera: mono8 image}, each rendered over the camera's exposure
+        (:meth:`exposure_views`), with this frame's photometry."""
+        return {c: self.sim.render_views(self.exposure_views(c), c, self.light.get(c)) for c in self.cameras}
 
     def scan(self) -> np.ndarray:
         return self.laser.scan(self.state.pose)
