@@ -32,7 +32,8 @@ Steps:
 
 Per-camera std: the adjustment's covariance of each camera with the ring's common motion (the
 gauge) projected out, in the camera's optical frame (the ring file's ``extrinsics_std``
-convention): how well each camera is known relative to the others.
+convention): how well each camera is known relative to the others (the ring's common
+motion, i.e. base_link's definition, is what the warnings are about).
 """
 from __future__ import annotations
 
@@ -454,7 +455,7 @@ def calibrate_ring(frames: Sequence[RingFrame], rough: CameraRing, sizes: Marker
     G = np.eye(4)       # T_rig_base: the base frame in the rig's current base frame
     if has_odo:
         st_frames = [keep[i] for i in range(len(T_W_st))]
-        pairs = [(a, b) for a in range(len(T_W_st)) for b in (a + 5, a + 15) if b < len(T_W_st)
+        pairs = [(a, b) for a in range(len(T_W_st)) for b in (a + 5, a + 15, a + 30) if b < len(T_W_st)
                  and st_frames[a] in odo and st_frames[b] in odo]
         if len(pairs) >= 3:
             Bs = [geo.inverse(T_W_st[a]) @ T_W_st[b] for a, b in pairs]           # rig motions
@@ -477,7 +478,7 @@ def calibrate_ring(frames: Sequence[RingFrame], rough: CameraRing, sizes: Marker
     for c in names:
         if c not in calibrated:
             final[c] = rough[c].T_base_cam.copy()
-    std = _camera_std(res, names, calibrated, rough)
+    std = _camera_std(res, res.problem, names, calibrated, rough)
     rough_height = float(np.mean([rough[c].T_base_cam[2, 3] for c in names]))
     warnings = observability_warnings(turn_deg, travel, has_odo, floor_map, camera_frames, opts, rough_height)
     for w in warnings:
@@ -551,7 +552,7 @@ def _adjust(dets, X, X_prior, T_W_s, T_W_m, sizes, names, opts: CalibrationOptio
     """The adjustment from the extrinsics ``X``, priors centred on ``X_prior``; returns it and
     {station index: frame index}."""
     ba = BAOptions(pixel_noise=opts.pixel_noise, refine_extrinsics=True, extrinsics_trans_sigma=opts.prior_trans,
-                   extrinsics_rot_sigma_deg=opts.prior_rot_deg, max_nfev=100, covariance=True)
+                   extrinsics_rot_sigma_deg=opts.prior_rot_deg, max_nfev=100, covariance=False)
     prob, frames, use = _problem(dets, X, T_W_s, T_W_m, sizes, names)
     prob.T_base_cams_start = prob.T_base_cams
     prob.T_base_cams = np.stack([X_prior[c] for c in names])
@@ -572,6 +573,7 @@ def _adjust(dets, X, X_prior, T_W_s, T_W_m, sizes, names, opts: CalibrationOptio
         prob2.T_base_cams = np.stack([X_prior[c] for c in names])
         res = bundle_adjust(prob2, ba)
     res.marker_ids = sorted({d.marker for d in use})       # type: ignore[attr-defined]
+    res.problem = prob2 if np.any(bad) else prob            # type: ignore[attr-defined]
     return res, {i: f for i, f in enumerate(frames)}
 
 
@@ -597,20 +599,45 @@ def _shift_to_floor(G, T_W_st, res, known) -> np.ndarray:
     return out
 
 
-def _camera_std(res: BAResult, names: List[str], calibrated: List[str], rough: CameraRing) -> Dict[str, np.ndarray]:
-    """Per-camera std (optical frame, rotation rad then translation m) with the gauge projected out."""
+def _camera_std(res: BAResult, prob: BAProblem, names: List[str], calibrated: List[str], rough: CameraRing
+                ) -> Dict[str, np.ndarray]:
+    """Per-camera std (optical frame, rotation rad then translation m) with the gauge fixed.
+
+    The gauge (every camera moved by the same small motion g = (phi, rho) of the base frame, the
+    robot poses by its inverse: ``w_c = -phi``, ``dt_c = [t_c]x phi - rho``) is fixed by "the
+    cameras' mean motion is zero" (``K x = 0``, ``K Gm = I``) added as a stiff constraint to the
+    corners' information at the solution (the priors left out: they only held the gauge), then
+    inverted: how well each camera is known relative to the others.
+    """
+    from .bundle_adjustment import _Model
+
     out: Dict[str, np.ndarray] = {c: np.asarray(rough[c].extrinsics_std, dtype=float) for c in names}
-    if res.camera_cov is None:
-        return out
+    at = BAProblem(T_W_markers=res.T_W_markers, sizes=prob.sizes, T_W_stations=res.T_W_stations,
+                   T_base_cams=res.T_base_cams, obs_marker=prob.obs_marker, obs_station=prob.obs_station,
+                   obs_camera=prob.obs_camera, obs_xy=prob.obs_xy, obs_focal=prob.obs_focal,
+                   fixed_marker=prob.fixed_marker, fixed_station=prob.fixed_station, obs_lens=prob.obs_lens)
+    model = _Model(at, BAOptions(pixel_noise=1.0, refine_extrinsics=True))
+    J = model.jacobian(np.zeros(model.n_params))[: model.n_obs_res]
+    H = (J.T @ J).toarray()
     C = len(names)
-    Gm = np.zeros((6 * C, 6))
+    K = np.zeros((6, model.n_params))
     for k in range(C):
         t = res.T_base_cams[k][:3, 3]
-        Gm[6 * k:6 * k + 3, :3] = -np.eye(3)
-        Gm[6 * k + 3:6 * k + 6, :3] = geo.skew(t)
-        Gm[6 * k + 3:6 * k + 6, 3:] = -np.eye(3)
-    P = np.eye(6 * C) - Gm @ np.linalg.pinv(Gm)
-    cov = camera_cov_in_optical_frames(P @ res.camera_cov @ P.T, res.T_base_cams)
+        c0 = model.col_c[k]
+        K[:3, c0:c0 + 3] = -np.eye(3) / C
+        K[3:, c0:c0 + 3] = -geo.skew(t) / C
+        K[3:, c0 + 3:c0 + 6] = -np.eye(3) / C
+    scale = float(np.max(np.diag(H)))
+    try:
+        cov_all = np.linalg.inv(H + scale * (K.T @ K))
+    except np.linalg.LinAlgError:
+        return out
+    # Corner residuals in px (pixel_noise 1): the measured corner variance.
+    n = model.n_obs_res
+    r = model.residuals(np.zeros(model.n_params))[:n]
+    s2 = float(r @ r) / max(n - model.n_params, 1)
+    cols = np.concatenate([model.col_c[k] + np.arange(6) for k in range(C)])
+    cov = camera_cov_in_optical_frames(s2 * cov_all[np.ix_(cols, cols)], res.T_base_cams)
     for k, c in enumerate(names):
         if c in calibrated:
             out[c] = np.sqrt(np.clip(np.diag(cov[6 * k:6 * k + 6, 6 * k:6 * k + 6]), 0.0, None))

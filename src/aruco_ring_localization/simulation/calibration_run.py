@@ -41,17 +41,31 @@ def calibration_poses(stations: Sequence[Sequence[float]], turn_step_deg: float 
     return out
 
 
-def odometry_poses(poses: Sequence[Tuple[float, float, float]], seed: int = 0, trans_noise: float = 0.002,
-                   rot_noise_deg: float = 0.05) -> List[np.ndarray]:
-    """T_odom_base per pose: the true relative motions with seeded noise per step, integrated (drifts)."""
+def odometry_poses(poses: Sequence[Tuple[float, float, float]], seed: int = 0, trans_frac: float = 0.01,
+                   rot_frac: float = 0.005, rot_noise_deg: float = 0.01) -> List[np.ndarray]:
+    """T_odom_base per pose: the true relative motions with seeded wheel-odometry noise per step (the
+    usual proportional model: ``trans_frac`` of the distance along and across the motion,
+    ``rot_frac`` of the turn plus ``rot_noise_deg``), integrated: it drifts."""
     rng = np.random.default_rng(seed)
     out = [np.eye(4)]
     for a, b in zip(poses[:-1], poses[1:]):
         D = geo.inverse(geo.transform_from_se2(*a)) @ geo.transform_from_se2(*b)
         dx, dy, dyaw = geo.se2_from_transform(D)
         step = float(np.hypot(dx, dy))
-        n = geo.transform_from_se2(dx + rng.normal(0.0, trans_noise) * (step > 0),
-                                   dy + rng.normal(0.0, trans_noise) * (step > 0),
-                                   dyaw + rng.normal(0.0, np.radians(rot_noise_deg)))
+        n = geo.transform_from_se2(dx + rng.normal(0.0, trans_frac * step), dy + rng.normal(0.0, trans_frac * step),
+                                   dyaw + rng.normal(0.0, rot_frac * abs(dyaw) + np.radians(rot_noise_deg)))
         out.append(out[-1] @ n)
     return out
+
+
+def rough_ring(true_ring, seed: int = 0, trans: float = 0.05, rot_deg: float = 10.0):
+    """The true ring as a drawing gives it: each camera moved by up to ``trans`` m per axis and turned
+    by up to ``rot_deg`` per axis of its optical frame (uniform, seeded)."""
+    rng = np.random.default_rng(seed)
+    extr = {}
+    for cam in true_ring.cameras:
+        D = np.eye(4)
+        D[:3, :3] = geo.rotation_from_rvec(np.radians(rng.uniform(-rot_deg, rot_deg, 3)))
+        D[:3, 3] = rng.uniform(-trans, trans, 3)
+        extr[cam.name] = cam.T_base_cam @ D
+    return true_ring.with_extrinsics(extr)
