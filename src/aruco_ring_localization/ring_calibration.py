@@ -469,7 +469,7 @@ def calibrate_ring(frames: Sequence[RingFrame], rough: CameraRing, sizes: Marker
         G[:3, :3] = R_tilt
         if c is not None:
             G[:3, 3] = c
-    floor_map = marker_map is not None and getattr(marker_map, "frame_convention", "floor") == "floor"
+    floor_map = marker_map is not None and marker_map.frame_convention == "floor"
     if floor_map:
         G = _height_from_map(G, T_W_st, res, marker_map, [m for m in sorted(T_W_m)])
     G_inv = geo.inverse(G)
