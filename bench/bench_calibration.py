@@ -4,8 +4,8 @@ The simulated lab (config/lab_scene.yaml) in **image mode** (rendered images of 
 detected by :class:`detection.Detector`), the true rig = the ring file perturbed as in the mapping
 benchmark (2 mm, 0.2 deg per axis, seed 1); the rough ring given to the calibration = the true rig
 with every camera moved by up to 5 cm and turned by up to 10 deg per axis (uniform, seed 5:
-:func:`simulation.calibration_run.rough_ring`). The robot turns a full turn on the spot at three
-of the scene's mapping stations and drives straight between them
+:func:`simulation.calibration_run.rough_ring`). The robot turns a full turn on the spot at each
+of the scene's 5 mapping stations and drives straight between them (6.9 m)
 (:func:`simulation.calibration_run.calibration_poses`), with a drifting wheel odometry
 (:func:`simulation.calibration_run.odometry_poses`, 1 % of the distance, 0.5 % of the turn).
 
@@ -66,7 +66,7 @@ def _frames(image_mode: bool, turn_step: float, seed: int = 0):
     true = perturb_ring(ring, seed=seed + 1)
     scene = Scene.default()
     sim = RingSimulator(scene, true, pixel_noise=PIXEL_NOISE, seed=seed)
-    poses = calibration_poses(scene.mapping_stations[:3], turn_step_deg=turn_step, drive_step=0.1)
+    poses = calibration_poses(scene.mapping_stations, turn_step_deg=turn_step, drive_step=0.1)
     detectors = {n: Detector(DetectorParams(dictionary=scene.dictionary)) for n in ring.names}
     frames: List[RingFrame] = []
     for k, p in enumerate(poses):
@@ -84,7 +84,7 @@ def _frames(image_mode: bool, turn_step: float, seed: int = 0):
 def run(quick: bool = False) -> dict:
     image_mode = not quick
     t0 = time.process_time()
-    scene, true, rough, frames, odo = _frames(image_mode, turn_step=8.0 if quick else 5.0)
+    scene, true, rough, frames, odo = _frames(image_mode, turn_step=8.0)
     sim_cpu = time.process_time() - t0
     sizes = MarkerSizes(scene.markers[0].size)
     truth = scene.truth_map()
@@ -115,7 +115,7 @@ def run(quick: bool = False) -> dict:
         "## Ring calibration from rough values",
         "",
         f"Simulated lab, **{mode}**, {len(frames)} frames at {RATE:g} Hz ({sim_cpu:.0f} s CPU to simulate): a full "
-        "turn on the spot at 3 mapping stations, straight drives between, drifting wheel odometry. True rig: the "
+        "turn on the spot at each of the 5 mapping stations, straight drives between (6.9 m), drifting wheel odometry. True rig: the "
         "ring file perturbed (2 mm, 0.2 deg per axis, seed 1); rough ring: the true rig with every camera moved "
         "uniformly by up to 5 cm and 10 deg per axis (seed 5): "
         f"{e_rough['mm']:.0f} mm / {e_rough['deg']:.1f} deg off at worst.",
