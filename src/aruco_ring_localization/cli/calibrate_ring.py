@@ -91,7 +91,7 @@ def _read_odometry(args: argparse.Namespace, topics):
 
 def run(args: argparse.Namespace) -> int:
     try:
-        import rosbag  # noqa: F401
+        from ..ros import bag_source  # noqa: F401  (needs rosbag)
     except ImportError as exc:
         sys.stderr.write(f"calibrate-ring: needs the ROS Python packages (rosbag; source .ws/env.sh): {exc}\n")
         return 2
