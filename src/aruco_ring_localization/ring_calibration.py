@@ -557,6 +557,7 @@ def _adjust(dets, X, X_prior, T_W_s, T_W_m, sizes, names, opts: CalibrationOptio
     prob.T_base_cams_start = prob.T_base_cams
     prob.T_base_cams = np.stack([X_prior[c] for c in names])
     res = bundle_adjust(prob, ba)
+    rms_first = res.rms_px_before
     bad = res.per_obs_rms_px > max(opts.max_obs_rms_px, 4.0 * float(np.median(res.per_obs_rms_px)))
     if np.any(bad):
         logger.info("calibrate-ring: %d of %d observations dropped (RMS > %.1f px) and adjusted again",
@@ -572,6 +573,7 @@ def _adjust(dets, X, X_prior, T_W_s, T_W_m, sizes, names, opts: CalibrationOptio
         prob2.T_base_cams_start = prob2.T_base_cams
         prob2.T_base_cams = np.stack([X_prior[c] for c in names])
         res = bundle_adjust(prob2, ba)
+        res.rms_px_before = rms_first         # the RMS at the initialisation, before either pass
     res.marker_ids = sorted({d.marker for d in use})       # type: ignore[attr-defined]
     res.problem = prob2 if np.any(bad) else prob            # type: ignore[attr-defined]
     return res, {i: f for i, f in enumerate(frames)}
