@@ -1,0 +1,646 @@
+"""Ring calibration from rough values: :func:`calibrate_ring`.
+
+Input: ring frames of the robot turning on the spot and driving among markers (a bag through
+``aruco_ring calibrate-ring``), the rough ring (a drawing's values, off by up to ~5 cm and ~10 deg
+per camera), the marker sizes, optionally the robot's odometry (``T_odom_base`` over time) and a
+known marker map. Output: every camera's ``T_base_cam`` free in 6-DOF, its std, and warnings
+naming the motion that was missing when something could not be determined.
+
+Steps:
+
+1. **Single-marker poses.** Every detection gets its IPPE pose ``T_cam_marker``
+   (:func:`pnp.solve_marker_ippe_undistorted`); ambiguous, far or badly fitting ones are not used
+   for the initialisation (they still enter the adjustment).
+2. **Per-camera motion.** Each camera alone chains the markers it sees into its own world and
+   follows itself through it (segments restart when it loses every known marker): its relative
+   motions ``A_ij = T_cam(i)^-1 T_cam(j)`` between frames ``i`` and ``j`` of one segment.
+3. **Hand-eye per camera.** The robot's motion ``B_ij`` (odometry when given, else the mean of what
+   every camera's motion says through its current extrinsics) relates to it by
+   ``B_ij X = X A_ij`` with ``X = T_base_cam``; ``X`` is solved by robust nonlinear least squares
+   from the rough value (a 6-parameter problem, well inside its basin from 10 deg). Without
+   odometry the robot's motion and the cameras are re-estimated in turn (3 rounds).
+4. **Joint bundle adjustment** (:func:`bundle_adjustment.bundle_adjust`) of every corner: markers,
+   one robot pose per frame used, every camera's extrinsics with loose priors (5 cm, 5 deg) around
+   the hand-eye values (they only hold the ring's common motion, the gauge; the data decide the
+   cameras relative to each other). Observations that still reproject badly are dropped and the
+   adjustment redone once.
+5. **base_link from the motion.** The ring is then placed in base_link: its z axis along the
+   robot's rotation axis (turning), its origin (x, y) at the centre of the turns on the spot; with
+   odometry the full pose by hand-eye against it (heading included), with a known map in a
+   ``floor`` frame the height too (base_link on the floor). What the motion cannot give stays the
+   rough ring's, and a warning says which motion was missing.
+
+Per-camera std: the adjustment's covariance of each camera with the ring's common motion (the
+gauge) projected out, in the camera's optical frame (the ring file's ``extrinsics_std``
+convention): how well each camera is known relative to the others (the ring's common
+motion, i.e. base_link's definition, is what the warnings are about).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from . import geometry as geo
+from .bundle_adjustment import BAOptions, BAProblem, BAResult, bundle_adjust, camera_cov_in_optical_frames
+from .detections import RingFrame
+from .errors import GeometryError, MeasurementError
+from .marker_map import MarkerMap
+from .markers import MarkerSizes
+from .pnp import solve_marker_ippe_undistorted
+from .ring import CameraRing, RingCamera
+
+logger = logging.getLogger(__name__)
+
+#: Frame lags (in used frames) of the relative motions of the hand-eye step.
+PAIR_LAGS = (1, 3, 8, 20)
+
+
+@dataclass(frozen=True)
+class CalibrationOptions:
+    """Settings of :func:`calibrate_ring` (``aruco_ring calibrate-ring``'s options)."""
+
+    max_frames: int = 400            # frames used, evenly spread over the recording
+    max_reprojection_px: float = 2.0   # single-marker poses fitting worse do not initialise
+    max_ambiguity: float = 0.6       # IPPE ambiguity ratio above which a pose does not initialise
+    max_distance: float = 6.0        # m; farther detections do not initialise
+    min_camera_frames: int = 10      # a camera with markers in fewer frames keeps its rough values
+    min_turn_deg: float = 45.0       # less total turning than this: the rotation axis / turn centre are not seen
+    min_travel: float = 0.5          # m; less driving than this (with odometry): heading from the rough ring
+    pixel_noise: float = 0.5         # px, the adjustment's corner noise
+    prior_trans: float = 0.05        # m, the adjustment's priors around the hand-eye values (gauge only)
+    prior_rot_deg: float = 5.0       # deg, idem
+    max_obs_rms_px: float = 3.0      # observations reprojecting worse after the first adjustment are dropped
+    handeye_rounds: int = 3          # without odometry: robot motion / cameras re-estimated in turn
+    handeye_max_trans: float = 0.10  # m; a hand-eye answer farther from the rough value is not kept
+    handeye_max_rot_deg: float = 15.0  # deg; idem
+
+
+@dataclass
+class RingCalibration:
+    """What :func:`calibrate_ring` found.
+
+    Attributes:
+        ring: the calibrated ring (the rough ring's cameras with new ``T_base_cam`` and
+            ``extrinsics_std``).
+        std: {camera: (6,) std, rotation about the optical x, y, z (rad), translation along them (m)}.
+        warnings: what the recording could not determine, naming the missing motion.
+        handeye: {camera: T_base_cam} after the hand-eye initialisation (before the adjustment).
+        frames_used, camera_frames: frames in the adjustment; frames with markers per camera.
+        turn_deg, travel_m: total turning and driving of the robot in the frames used.
+        rms_px_before, rms_px_after: the adjustment's corner RMS.
+        ba: the adjustment's result.
+    """
+
+    ring: CameraRing
+    std: Dict[str, np.ndarray]
+    warnings: List[str]
+    handeye: Dict[str, np.ndarray]
+    frames_used: int
+    camera_frames: Dict[str, int]
+    turn_deg: float
+    travel_m: float
+    rms_px_before: float
+    rms_px_after: float
+    ba: Optional[BAResult] = None
+    extra: Dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class _Det:
+    frame: int
+    camera: str
+    marker: int
+    xy: np.ndarray          # (4, 2) undistorted normalised
+    focal: np.ndarray       # (2,)
+    lens: np.ndarray        # (4, 2, 2)
+    T_cam_marker: Optional[np.ndarray]   # None: not good enough to initialise
+
+
+# --- 1. detections ------------------------------------------------------------------------------
+
+def _select_frames(frames: Sequence[RingFrame], max_frames: int) -> List[RingFrame]:
+    with_obs = [f for f in frames if f.observation_count() > 0] if frames else []
+    with_obs.sort(key=lambda f: f.stamp)
+    if len(with_obs) <= max_frames:
+        return with_obs
+    idx = np.unique(np.linspace(0, len(with_obs) - 1, max_frames).round().astype(int))
+    return [with_obs[i] for i in idx]
+
+
+def _detections(frames: Sequence[RingFrame], ring: CameraRing, sizes: MarkerSizes,
+                opts: CalibrationOptions) -> List[_Det]:
+    out: List[_Det] = []
+    for k, f in enumerate(frames):
+        for name, cf in f.cameras.items():
+            if name not in ring.names:
+                continue
+            model = cf.model or ring[name].model
+            focal = np.array([model.fx, model.fy])
+            for o in cf.observations:
+                xy = model.normalize(o.corners)
+                if xy.shape != (4, 2) or not np.all(np.isfinite(xy)):
+                    continue
+                size = sizes(o.marker_id)
+                T = None
+                try:
+                    cand = solve_marker_ippe_undistorted(xy, size, focal, mirror=True)
+                    if (cand.error <= opts.max_reprojection_px and cand.ambiguity <= opts.max_ambiguity
+                            and np.linalg.norm(cand.T_cam_marker[:3, 3]) <= opts.max_distance):
+                        T = cand.T_cam_marker
+                except (GeometryError, MeasurementError, ValueError):
+                    continue
+                out.append(_Det(k, name, int(o.marker_id), xy, focal, model.pixel_jacobian(xy), T))
+    return out
+
+
+# --- 2. per-camera motion -------------------------------------------------------------------------
+
+def camera_trajectory(dets: Sequence[_Det]) -> Dict[int, Tuple[int, np.ndarray]]:
+    """{frame: (segment, T_world_cam)} of one camera from its own detections (each ``T_cam_marker``).
+
+    The camera's world is the camera's pose at the segment's first frame; markers are placed when
+    first seen, the camera at each frame is the mean of what its known markers say; a frame seeing
+    no known marker starts a new segment (its own world).
+    """
+    by_frame: Dict[int, List[_Det]] = {}
+    for d in dets:
+        if d.T_cam_marker is not None:
+            by_frame.setdefault(d.frame, []).append(d)
+    out: Dict[int, Tuple[int, np.ndarray]] = {}
+    known: Dict[int, np.ndarray] = {}
+    seg = -1
+    for k in sorted(by_frame):
+        ds = by_frame[k]
+        ests = [known[d.marker] @ geo.inverse(d.T_cam_marker) for d in ds if d.marker in known]
+        if ests:
+            T = _robust_mean(ests)
+        else:
+            seg += 1
+            known = {}
+            T = np.eye(4)
+        out[k] = (seg, T)
+        for d in ds:
+            if d.marker not in known:
+                known[d.marker] = T @ d.T_cam_marker
+    return out
+
+
+def _robust_mean(Ts: Sequence[np.ndarray], max_dev: float = 0.05) -> np.ndarray:
+    if len(Ts) == 1:
+        return np.asarray(Ts[0])
+    P = np.array([T[:3, 3] for T in Ts])
+    med = np.median(P, axis=0)
+    keep = [T for T, p in zip(Ts, P) if np.linalg.norm(p - med) <= max(max_dev, 0.0)]
+    return geo.average_transforms(keep or list(Ts))
+
+
+def relative_motions(traj: Dict[int, Tuple[int, np.ndarray]], lags: Sequence[int] = PAIR_LAGS
+                     ) -> Dict[Tuple[int, int], np.ndarray]:
+    """{(i, j): T_cam(i)^-1 T_cam(j)} for frames ``lag`` apart (in the camera's frames) in one segment."""
+    ks = sorted(traj)
+    out: Dict[Tuple[int, int], np.ndarray] = {}
+    for a, i in enumerate(ks):
+        for lag in lags:
+            b = a + lag
+            if b >= len(ks):
+                break
+            j = ks[b]
+            if traj[j][0] != traj[i][0]:
+                continue
+            out[(i, j)] = geo.inverse(traj[i][1]) @ traj[j][1]
+    return out
+
+
+# --- 3. hand-eye --------------------------------------------------------------------------------
+
+def solve_hand_eye(B: Sequence[np.ndarray], A: Sequence[np.ndarray], X0: np.ndarray,
+                   rot_noise: float = np.radians(0.3), trans_noise: float = 0.005,
+                   prior_trans: Tuple[float, float, float] = (1.0, 1.0, 0.05)) -> Tuple[np.ndarray, np.ndarray]:
+    """``X`` (4x4) with ``B_k X = X A_k`` for the robot motions ``B`` and the camera motions ``A``.
+
+    Robust (soft L1) least squares from ``X0``: ``X = (exp(w) R0, t0 + dt)``; residuals the rotation
+    ``log(R_X^T R_B R_X R_A^T) / rot_noise`` and the translation
+    ``(R_B t_X + t_B - R_X t_A - t_X) / trans_noise``, plus a weak prior pulling ``dt`` to zero with
+    ``prior_trans`` std per base axis (what the motion does not determine, e.g. the height of a
+    camera when the robot only turns about z, stays ``X0``'s). Returns (X, 6x6 covariance of
+    (w, dt) from the Gauss-Newton information).
+    """
+    B = np.asarray(B, dtype=float)
+    A = np.asarray(A, dtype=float)
+    if len(B) == 0:
+        return np.asarray(X0, dtype=float).copy(), np.diag([1.0] * 3 + list(np.square(prior_trans)))
+    R0, t0 = X0[:3, :3], X0[:3, 3]
+    RB, tB, RA, tA = B[:, :3, :3], B[:, :3, 3], A[:, :3, :3], A[:, :3, 3]
+    ps = np.asarray(prior_trans, dtype=float)
+
+    def res(x: np.ndarray) -> np.ndarray:
+        R = geo.so3_exp(x[:3]) @ R0
+        t = t0 + x[3:]
+        E = np.einsum("ji,njk,kl,nml->nim", R, RB, R, RA)     # R^T R_B R R_A^T
+        r_rot = Rotation.from_matrix(E).as_rotvec() / rot_noise
+        r_t = (np.einsum("nij,j->ni", RB, t) + tB - np.einsum("ij,nj->ni", R, tA) - t) / trans_noise
+        return np.concatenate([r_rot.ravel(), r_t.ravel(), x[3:] / ps])
+
+    sol = least_squares(res, np.zeros(6), loss="soft_l1", f_scale=3.0, x_scale=np.r_[[0.05] * 3, [0.02] * 3])
+    X = np.eye(4)
+    X[:3, :3] = geo.so3_exp(sol.x[:3]) @ R0
+    X[:3, 3] = t0 + sol.x[3:]
+    J = sol.jac
+    try:
+        cov = np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        cov = np.linalg.pinv(J.T @ J)
+    return X, cov
+
+
+def _mean_motion(Ts: Sequence[np.ndarray]) -> np.ndarray:
+    return _robust_mean(Ts, max_dev=0.05) if len(Ts) > 2 else geo.average_transforms(Ts)
+
+
+# --- observability ----------------------------------------------------------------------------------
+
+def motion_extent(T_W_base: Sequence[np.ndarray]) -> Tuple[float, float, np.ndarray]:
+    """(total turn, deg; travelled distance, m; mean rotation axis in the base frame, unit) of a
+    sequence of robot poses (consecutive relative motions summed)."""
+    turn = 0.0
+    travel = 0.0
+    axis = np.zeros(3)
+    for a, b in zip(T_W_base[:-1], T_W_base[1:]):
+        D = geo.inverse(a) @ b
+        w = Rotation.from_matrix(D[:3, :3]).as_rotvec()
+        turn += float(np.linalg.norm(w))
+        travel += float(np.linalg.norm(D[:3, 3]))
+        # Sign-consistent accumulation (the rotation axis up to its direction).
+        axis += w if (w @ axis) >= 0 else -w
+    n = float(np.linalg.norm(axis))
+    return float(np.degrees(turn)), travel, (axis / n if n > 0 else np.array([0.0, 0.0, 1.0]))
+
+
+def observability_warnings(turn_deg: float, travel_m: float, has_odometry: bool, has_floor_map: bool,
+                           camera_frames: Dict[str, int], opts: CalibrationOptions,
+                           rough_height: float = float("nan")) -> List[str]:
+    """The warnings of a calibration, each naming the motion (or input) that was missing."""
+    out: List[str] = []
+    if turn_deg < opts.min_turn_deg:
+        out.append(f"no rotation: the robot turned only {turn_deg:.0f} deg in the recording (< {opts.min_turn_deg:g}): "
+                   "base_link's z axis (the ring's tilt) and its origin (x, y) relative to the cameras, and every "
+                   "camera's position relative to the others, are poorly determined and lean on the rough ring; "
+                   "turn the robot on the spot (a full turn) among markers")
+    if not has_floor_map:
+        out.append(f"planar motion only: the height (z) of the ring above base_link is not observable from a robot "
+                   f"driving on a floor; kept from the rough ring (mean camera height {rough_height:.3f} m); give "
+                   "--map with a map in a floor frame, or measure one camera's height")
+    if not has_odometry:
+        out.append("no odometry: base_link's heading relative to the cameras is not observable from the images; "
+                   "kept from the rough ring (the mean of its cameras' headings; each camera's heading relative to "
+                   "the others is calibrated); record odom in the bag, or measure one camera's heading")
+    elif travel_m < opts.min_travel:
+        out.append(f"no driving: the robot travelled {travel_m:.2f} m (< {opts.min_travel:g} m): the heading of "
+                   "base_link against the odometry is weakly determined; drive straight among markers too")
+    for name, n in sorted(camera_frames.items()):
+        if n < opts.min_camera_frames:
+            out.append(f"{name}: markers in only {n} frames (< {opts.min_camera_frames}): its extrinsics stay near "
+                       f"the rough values; drive or turn so that {name} sees markers")
+    return out
+
+
+# --- 5. base_link from the motion --------------------------------------------------------------------
+
+def _turn_centre(T_W_s: Sequence[np.ndarray], axis: np.ndarray, min_angle: float = np.radians(1.0)) -> Optional[np.ndarray]:
+    """The point (rig frame, in the plane through the origin orthogonal to ``axis``) that stays
+    still while the robot turns: least squares of ``(R_ij - I) p = -t_ij`` over consecutive motions
+    with a turn, reweighted (pairs that also drove are outliers)."""
+    rows, rhs = [], []
+    for a, b in zip(T_W_s[:-1], T_W_s[1:]):
+        D = geo.inverse(a) @ b
+        if geo.rotation_angle(D[:3, :3]) < min_angle:
+            continue
+        rows.append(D[:3, :3] - np.eye(3))
+        rhs.append(-D[:3, 3])
+    if len(rows) < 3:
+        return None
+    M, y = np.concatenate(rows), np.concatenate(rhs)
+    P = np.eye(3) - np.outer(axis, axis)
+    M = M @ P
+    w = np.ones(len(rows))
+    p = np.zeros(3)
+    for _ in range(5):
+        W = np.repeat(w, 3)
+        p = np.linalg.lstsq(M * W[:, None], y * W, rcond=None)[0]
+        r = np.linalg.norm((M @ p - y).reshape(-1, 3), axis=1)
+        s = max(1.4826 * float(np.median(r)), 1e-4)
+        w = 1.0 / np.maximum(1.0, r / (2.0 * s))
+    return P @ p
+
+
+def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking unit vector a to unit vector b."""
+    v = np.cross(a, b)
+    s, c = float(np.linalg.norm(v)), float(a @ b)
+    if s < 1e-12:
+        return np.eye(3)
+    return geo.so3_exp(v / s * np.arctan2(s, c))
+
+
+def _odometry_at(odometry: Sequence[Tuple[float, np.ndarray]], stamps: Sequence[float], max_dt: float = 0.06
+                 ) -> Dict[int, np.ndarray]:
+    """{frame index: T_odom_base} at each stamp, interpolated between the two nearest odometry poses."""
+    ts = np.array([t for t, _ in odometry])
+    order = np.argsort(ts)
+    ts = ts[order]
+    Ts = [odometry[i][1] for i in order]
+    out: Dict[int, np.ndarray] = {}
+    for k, t in enumerate(stamps):
+        j = int(np.searchsorted(ts, t))
+        if j == 0 or j >= len(ts):
+            jj = min(max(j, 0), len(ts) - 1)
+            if abs(ts[jj] - t) <= max_dt:
+                out[k] = np.asarray(Ts[jj])
+            continue
+        t0, t1 = ts[j - 1], ts[j]
+        if t1 - t0 > 2 * max_dt + 1e-9 and min(t - t0, t1 - t) > max_dt:
+            continue
+        u = 0.0 if t1 <= t0 else (t - t0) / (t1 - t0)
+        D = geo.inverse(Ts[j - 1]) @ Ts[j]
+        w = Rotation.from_matrix(D[:3, :3]).as_rotvec()
+        step = np.eye(4)
+        step[:3, :3] = geo.so3_exp(u * w)
+        step[:3, 3] = u * D[:3, 3]
+        out[k] = np.asarray(Ts[j - 1]) @ step
+    return out
+
+
+# --- the whole -------------------------------------------------------------------------------------
+
+def calibrate_ring(frames: Sequence[RingFrame], rough: CameraRing, sizes: MarkerSizes,
+                   odometry: Optional[Sequence[Tuple[float, np.ndarray]]] = None,
+                   marker_map: Optional[MarkerMap] = None,
+                   options: Optional[CalibrationOptions] = None) -> RingCalibration:
+    """Calibrate every camera's ``T_base_cam`` from a recording (see the module docstring).
+
+    Args:
+        frames: ring frames of the recording (any order; those without detections are skipped).
+        rough: the ring with its rough extrinsics (and the intrinsics, used when a frame's camera
+            carries no model of its own).
+        sizes: marker sides (the scale).
+        odometry: optional [(stamp, T_odom_base)] of the robot (gives base_link's heading).
+        marker_map: optional known map (initialises the markers; a ``floor`` map gives the height).
+        options: :class:`CalibrationOptions`.
+
+    Raises:
+        MeasurementError: too few usable frames or detections.
+    """
+    opts = options or CalibrationOptions()
+    used = _select_frames(frames, opts.max_frames)
+    if len(used) < 3:
+        raise MeasurementError(f"ring calibration needs frames with markers: {len(used)} of {len(frames)} frames "
+                               "have any detection")
+    dets = _detections(used, rough, sizes, opts)
+    names = rough.names
+    X = {c: rough[c].T_base_cam.copy() for c in names}
+    camera_frames = {c: len({d.frame for d in dets if d.camera == c and d.T_cam_marker is not None}) for c in names}
+    # 2. each camera's own motion.
+    motions = {c: relative_motions(camera_trajectory([d for d in dets if d.camera == c])) for c in names}
+    calibrated = [c for c in names if camera_frames[c] >= opts.min_camera_frames and motions[c]]
+    if not calibrated:
+        raise MeasurementError(f"ring calibration: no camera saw markers in {opts.min_camera_frames} frames or more "
+                               f"(frames with markers per camera: {camera_frames})")
+    # 3. hand-eye, against the odometry or the cameras' mean motion.
+    odo = _odometry_at(odometry, [f.stamp for f in used]) if odometry else {}
+    has_odo = len(odo) >= 3
+    rounds = 1 if has_odo else max(1, opts.handeye_rounds)
+    for _ in range(rounds):
+        if has_odo:
+            Bm = {p: geo.inverse(odo[p[0]]) @ odo[p[1]] for c in calibrated for p in motions[c]
+                  if p[0] in odo and p[1] in odo}
+        else:
+            per_pair: Dict[Tuple[int, int], List[np.ndarray]] = {}
+            for c in calibrated:
+                for p, A in motions[c].items():
+                    per_pair.setdefault(p, []).append(X[c] @ A @ geo.inverse(X[c]))
+            Bm = {p: _mean_motion(v) for p, v in per_pair.items() if len(v) >= (2 if len(calibrated) > 1 else 1)}
+        for c in calibrated:
+            ps = [p for p in motions[c] if p in Bm]
+            if len(ps) < 3:
+                continue
+            Xc, _ = solve_hand_eye([Bm[p] for p in ps], [motions[c][p] for p in ps], X[c])
+            # A hand-eye answer farther from the drawing than a drawing can be off (single-marker
+            # poses of small, far markers are noisy, a flipped one slipped through) is not kept.
+            dt, dr = geo.pose_distance(rough[c].T_base_cam, Xc)
+            if dt <= opts.handeye_max_trans and dr <= np.radians(opts.handeye_max_rot_deg):
+                X[c] = Xc
+            else:
+                logger.info("calibrate-ring: %s: hand-eye answer %.0f mm / %.1f deg from the rough value: not kept",
+                            c, 1000 * dt, np.degrees(dr))
+    handeye = {c: X[c].copy() for c in names}
+    # 4. initial robot poses and markers, then the adjustment.
+    T_W_s, T_W_m = _initial_world(dets, X, len(used), odo)
+    if marker_map is not None:
+        T_W_m = _markers_from_map(T_W_m, marker_map)
+    res, keep = _adjust(dets, X, {c: rough[c].T_base_cam for c in names}, T_W_s, T_W_m, sizes, names, opts)
+    X_ba = {c: res.T_base_cams[k] for k, c in enumerate(names)}
+    # Common motion of the ring against the rough values: the priors' pull only, taken out (what the
+    # motion determines of it is put back below).
+    D = geo.inverse(geo.average_transforms([X_ba[c] @ geo.inverse(rough[c].T_base_cam) for c in calibrated]))
+    X_ba = {c: D @ T for c, T in X_ba.items()}
+    stations = sorted(keep)
+    T_W_st = [res.T_W_stations[i] @ geo.inverse(D) for i in range(len(res.T_W_stations))]
+    turn_deg, travel, axis = motion_extent(T_W_st)
+    # 5. base_link from the motion.
+    G = np.eye(4)       # T_rig_base: the base frame in the rig's current base frame
+    if has_odo:
+        st_frames = [keep[i] for i in range(len(T_W_st))]
+        pairs = [(a, b) for a in range(len(T_W_st)) for b in (a + 5, a + 15, a + 30) if b < len(T_W_st)
+                 and st_frames[a] in odo and st_frames[b] in odo]
+        if len(pairs) >= 3:
+            Bs = [geo.inverse(T_W_st[a]) @ T_W_st[b] for a, b in pairs]           # rig motions
+            Os = [geo.inverse(odo[st_frames[a]]) @ odo[st_frames[b]] for a, b in pairs]
+            # Delta G = G O: hand-eye with the rig motion as "B" and odometry as "A".
+            G, _ = solve_hand_eye(Bs, Os, np.eye(4), rot_noise=np.radians(0.2), trans_noise=0.01,
+                                  prior_trans=(1.0, 1.0, 1e-4))
+    elif turn_deg >= opts.min_turn_deg:
+        R_tilt = _rotation_between(np.array([0.0, 0.0, 1.0]), axis if axis[2] >= 0 else -axis)
+        c = _turn_centre(T_W_st, R_tilt[:, 2])
+        G[:3, :3] = R_tilt
+        if c is not None:
+            G[:3, 3] = c
+    floor_map = marker_map is not None and marker_map.frame_convention == "floor"
+    if floor_map:
+        G = _height_from_map(G, T_W_st, res, marker_map, [m for m in sorted(T_W_m)])
+    G_inv = geo.inverse(G)
+    final = {c: G_inv @ X_ba[c] for c in names}
+    # Cameras the recording does not calibrate keep their rough values.
+    for c in names:
+        if c not in calibrated:
+            final[c] = rough[c].T_base_cam.copy()
+    std = _camera_std(res, res.problem, names, calibrated, rough)
+    rough_height = float(np.mean([rough[c].T_base_cam[2, 3] for c in names]))
+    warnings = observability_warnings(turn_deg, travel, has_odo, floor_map, camera_frames, opts, rough_height)
+    for w in warnings:
+        logger.warning("calibrate-ring: %s", w)
+    cams = [RingCamera(c.name, c.frame_id, c.model, final[c.name], c.namespace, tuple(float(v) for v in std[c.name]))
+            for c in rough]
+    return RingCalibration(ring=CameraRing(cams, rough.base_frame), std=std, warnings=warnings, handeye=handeye,
+                           frames_used=len(stations), camera_frames=camera_frames, turn_deg=turn_deg,
+                           travel_m=travel, rms_px_before=res.rms_px_before, rms_px_after=res.rms_px_after, ba=res)
+
+
+def _initial_world(dets: Sequence[_Det], X: Dict[str, np.ndarray], n_frames: int, odo: Dict[int, np.ndarray]
+                   ) -> Tuple[Dict[int, np.ndarray], Dict[int, np.ndarray]]:
+    """Robot pose per frame and marker poses, grown in time order through the extrinsics ``X``."""
+    by_frame: Dict[int, List[_Det]] = {}
+    for d in dets:
+        if d.T_cam_marker is not None:
+            by_frame.setdefault(d.frame, []).append(d)
+    T_W_s: Dict[int, np.ndarray] = {}
+    T_W_m: Dict[int, np.ndarray] = {}
+    last: Optional[int] = None
+    for k in range(n_frames):
+        ds = by_frame.get(k, [])
+        ests = [T_W_m[d.marker] @ geo.inverse(X[d.camera] @ d.T_cam_marker) for d in ds if d.marker in T_W_m]
+        if ests:
+            T = _robust_mean(ests)
+        elif last is None and ds:
+            T = np.eye(4)
+        elif last is not None and k in odo and last in odo:
+            T = T_W_s[last] @ geo.inverse(odo[last]) @ odo[k]
+        else:
+            continue
+        T_W_s[k] = T
+        last = k
+        for d in ds:
+            if d.marker not in T_W_m:
+                T_W_m[d.marker] = T @ X[d.camera] @ d.T_cam_marker
+    return T_W_s, T_W_m
+
+
+def _markers_from_map(T_W_m: Dict[int, np.ndarray], marker_map: MarkerMap) -> Dict[int, np.ndarray]:
+    """The known map's markers expressed in W (fitted on the markers both have), others kept."""
+    known = {e.marker_id: e.T_map_marker for e in marker_map}
+    common = [m for m in T_W_m if m in known]
+    if len(common) < 3:
+        return T_W_m
+    T_W_map = geo.rigid_fit([known[m][:3, 3] for m in common], [T_W_m[m][:3, 3] for m in common])
+    return {m: (T_W_map @ known[m] if m in known else T) for m, T in T_W_m.items()}
+
+
+def _problem(dets: Sequence[_Det], X: Dict[str, np.ndarray], T_W_s: Dict[int, np.ndarray],
+             T_W_m: Dict[int, np.ndarray], sizes: MarkerSizes, names: List[str], mask: Optional[np.ndarray] = None):
+    use = [d for i, d in enumerate(dets) if d.frame in T_W_s and d.marker in T_W_m and (mask is None or mask[i])]
+    frames = sorted({d.frame for d in use})
+    mids = sorted({d.marker for d in use})
+    fi = {f: i for i, f in enumerate(frames)}
+    mi = {m: i for i, m in enumerate(mids)}
+    ci = {c: i for i, c in enumerate(names)}
+    prob = BAProblem(
+        T_W_markers=np.stack([T_W_m[m] for m in mids]), sizes=np.array([sizes(m) for m in mids]),
+        T_W_stations=np.stack([T_W_s[f] for f in frames]), T_base_cams=np.stack([X[c] for c in names]),
+        obs_marker=np.array([mi[d.marker] for d in use]), obs_station=np.array([fi[d.frame] for d in use]),
+        obs_camera=np.array([ci[d.camera] for d in use]), obs_xy=np.stack([d.xy for d in use]),
+        obs_focal=np.stack([d.focal for d in use]), obs_lens=np.stack([d.lens for d in use]),
+        fixed_marker=0, fixed_station=None)
+    return prob, frames, use
+
+
+def _adjust(dets, X, X_prior, T_W_s, T_W_m, sizes, names, opts: CalibrationOptions
+            ) -> Tuple[BAResult, Dict[int, int]]:
+    """The adjustment from the extrinsics ``X``, priors centred on ``X_prior``; returns it and
+    {station index: frame index}."""
+    ba = BAOptions(pixel_noise=opts.pixel_noise, refine_extrinsics=True, extrinsics_trans_sigma=opts.prior_trans,
+                   extrinsics_rot_sigma_deg=opts.prior_rot_deg, max_nfev=100, covariance=False)
+    prob, frames, use = _problem(dets, X, T_W_s, T_W_m, sizes, names)
+    prob.T_base_cams_start = prob.T_base_cams
+    prob.T_base_cams = np.stack([X_prior[c] for c in names])
+    res = bundle_adjust(prob, ba)
+    rms_first = res.rms_px_before
+    bad = res.per_obs_rms_px > max(opts.max_obs_rms_px, 4.0 * float(np.median(res.per_obs_rms_px)))
+    if np.any(bad):
+        logger.info("calibrate-ring: %d of %d observations dropped (RMS > %.1f px) and adjusted again",
+                    int(bad.sum()), len(bad), opts.max_obs_rms_px)
+        X2 = {c: res.T_base_cams[k] for k, c in enumerate(names)}
+        S2 = {f: res.T_W_stations[i] for i, f in enumerate(frames)}
+        mids = sorted({d.marker for d in use})
+        M2 = {m: res.T_W_markers[i] for i, m in enumerate(mids)}
+        keep_ids = {id(d) for d, b in zip(use, bad) if not b}
+        mask = np.array([id(d) in keep_ids for d in dets])
+        prob2, frames, use = _problem(dets, X2, S2, M2, sizes, names, mask)
+        # The priors stay centred where they were; the start is the first solution.
+        prob2.T_base_cams_start = prob2.T_base_cams
+        prob2.T_base_cams = np.stack([X_prior[c] for c in names])
+        res = bundle_adjust(prob2, ba)
+        res.rms_px_before = rms_first         # the RMS at the initialisation, before either pass
+    res.marker_ids = sorted({d.marker for d in use})       # type: ignore[attr-defined]
+    res.problem = prob2 if np.any(bad) else prob            # type: ignore[attr-defined]
+    return res, {i: f for i, f in enumerate(frames)}
+
+
+def _height_from_map(G: np.ndarray, T_W_st: Sequence[np.ndarray], res: BAResult, marker_map: MarkerMap,
+                     _mids) -> np.ndarray:
+    """Shift base_link along its z so that it sits on the known map's floor (z = 0) on average."""
+    # The map frame in W from the adjusted markers: fit the markers' positions.
+    known = {e.marker_id: e.T_map_marker[:3, 3] for e in marker_map}
+    return _shift_to_floor(G, T_W_st, res, known)
+
+
+def _shift_to_floor(G, T_W_st, res, known) -> np.ndarray:
+    mids = getattr(res, "marker_ids", None)
+    if mids is None:
+        return G
+    common = [k for k, m in enumerate(mids) if m in known]
+    if len(common) < 3:
+        return G
+    T_map_W = geo.rigid_fit([res.T_W_markers[k][:3, 3] for k in common], [known[mids[k]] for k in common])
+    z = [float((T_map_W @ T @ G)[2, 3]) for T in T_W_st]
+    out = G.copy()
+    out[:3, 3] -= float(np.mean(z)) * G[:3, 2]
+    return out
+
+
+def _camera_std(res: BAResult, prob: BAProblem, names: List[str], calibrated: List[str], rough: CameraRing
+                ) -> Dict[str, np.ndarray]:
+    """Per-camera std (optical frame, rotation rad then translation m) with the gauge fixed.
+
+    The gauge (every camera moved by the same small motion g = (phi, rho) of the base frame, the
+    robot poses by its inverse: ``w_c = -phi``, ``dt_c = [t_c]x phi - rho``) is fixed by "the
+    cameras' mean motion is zero" (``K x = 0``, ``K Gm = I``) added as a stiff constraint to the
+    corners' information at the solution (the priors left out: they only held the gauge), then
+    inverted: how well each camera is known relative to the others.
+    """
+    from .bundle_adjustment import _Model
+
+    out: Dict[str, np.ndarray] = {c: np.asarray(rough[c].extrinsics_std, dtype=float) for c in names}
+    at = BAProblem(T_W_markers=res.T_W_markers, sizes=prob.sizes, T_W_stations=res.T_W_stations,
+                   T_base_cams=res.T_base_cams, obs_marker=prob.obs_marker, obs_station=prob.obs_station,
+                   obs_camera=prob.obs_camera, obs_xy=prob.obs_xy, obs_focal=prob.obs_focal,
+                   fixed_marker=prob.fixed_marker, fixed_station=prob.fixed_station, obs_lens=prob.obs_lens)
+    model = _Model(at, BAOptions(pixel_noise=1.0, refine_extrinsics=True))
+    J = model.jacobian(np.zeros(model.n_params))[: model.n_obs_res]
+    H = (J.T @ J).toarray()
+    C = len(names)
+    K = np.zeros((6, model.n_params))
+    for k in range(C):
+        t = res.T_base_cams[k][:3, 3]
+        c0 = model.col_c[k]
+        K[:3, c0:c0 + 3] = -np.eye(3) / C
+        K[3:, c0:c0 + 3] = -geo.skew(t) / C
+        K[3:, c0 + 3:c0 + 6] = -np.eye(3) / C
+    scale = float(np.max(np.diag(H)))
+    try:
+        cov_all = np.linalg.inv(H + scale * (K.T @ K))
+    except np.linalg.LinAlgError:
+        return out
+    # Corner residuals in px (pixel_noise 1): the measured corner variance.
+    n = model.n_obs_res
+    r = model.residuals(np.zeros(model.n_params))[:n]
+    s2 = float(r @ r) / max(n - model.n_params, 1)
+    cols = np.concatenate([model.col_c[k] + np.arange(6) for k in range(C)])
+    cov = camera_cov_in_optical_frames(s2 * cov_all[np.ix_(cols, cols)], res.T_base_cams)
+    for k, c in enumerate(names):
+        if c in calibrated:
+            out[c] = np.sqrt(np.clip(np.diag(cov[6 * k:6 * k + 6, 6 * k:6 * k + 6]), 0.0, None))
+    return out
