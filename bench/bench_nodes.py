@@ -138,7 +138,55 @@ def _wait(cond, timeout: float, what: str) -> None:
         time.sleep(0.002)
 
 
-def measure(frames: int, warmup: int, workdir: str) -> dict:
+class _Profiler:
+    """``py-spy record`` (raw collapsed stacks) of some node processes, when ``py_spy`` is given."""
+
+    def __init__(self, py_spy: str, out_dir: str):
+        self.py_spy, self.out_dir = py_spy, out_dir
+        self.procs: List[subprocess.Popen] = []
+
+    def start(self, name: str, pid: int) -> None:
+        if not self.py_spy:
+            return
+        os.makedirs(self.out_dir, exist_ok=True)
+        out = os.path.join(self.out_dir, f"{name}.txt")
+        self.procs.append(subprocess.Popen([self.py_spy, "record", "--pid", str(pid), "--rate", "250", "--format",
+                                            "raw", "--output", out], stdout=subprocess.DEVNULL,
+                                           stderr=subprocess.DEVNULL))
+
+    def stop(self) -> None:
+        for proc in self.procs:
+            proc.send_signal(signal.SIGINT)
+        for proc in self.procs:
+            try:
+                proc.wait(30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+        self.procs = []
+
+
+def top_functions(raw_file: str, n: int = 12) -> List[str]:
+    """Lines 'inclusive % self % function (file:line)' of a py-spy raw (collapsed) profile."""
+    inclusive: Dict[str, int] = {}
+    own: Dict[str, int] = {}
+    total = 0
+    with open(raw_file, encoding="utf-8", errors="replace") as handle:
+        for line in handle:
+            stack, _, count = line.rstrip("\n").rpartition(" ")
+            if not stack or not count.isdigit():
+                continue
+            c = int(count)
+            total += c
+            frames = stack.split(";")
+            for f in set(frames):
+                inclusive[f] = inclusive.get(f, 0) + c
+            own[frames[-1]] = own.get(frames[-1], 0) + c
+    rows = sorted(own.items(), key=lambda kv: -kv[1])[:n]
+    return [f"{100.0 * c / max(1, total):5.1f} % self, {100.0 * inclusive[f] / max(1, total):5.1f} % incl  {f}"
+            for f, c in rows]
+
+
+def measure(frames: int, warmup: int, workdir: str, py_spy: str = "", profile_dir: str = "") -> dict:
     import numpy as np
     import rospy
     from fiducial_msgs.msg import FiducialArray
@@ -188,6 +236,7 @@ def measure(frames: int, warmup: int, workdir: str) -> dict:
         rospy.Subscriber(f"/ring/{c}/fiducial_vertices", FiducialArray, on_vertices, callback_args=c,
                          queue_size=50)
     rospy.Subscriber("/localizer/pose", PoseWithCovarianceStamped, on_pose, queue_size=50)
+    profiler = _Profiler(py_spy, profile_dir)
     try:
         pids = {c: _node_pid(f"/ring/{c}/detector") for c in CAMERAS}
         pids["localizer"] = _node_pid("/localizer")
@@ -232,6 +281,9 @@ def measure(frames: int, warmup: int, workdir: str) -> dict:
                 missing_poses += 1
             after = {n: cpu_seconds(p) for n, p in pids.items()}
             recorded.append((t, {c: got[c][key] for c in CAMERAS}))
+            if k == warmup - 1:
+                profiler.start("detector_cam0", pids["cam0"])
+                profiler.start("localizer", pids["localizer"])
             if k < warmup:
                 continue
             for n in pids:
@@ -248,6 +300,7 @@ def measure(frames: int, warmup: int, workdir: str) -> dict:
                     errors.extend(np.linalg.norm(pts - corners, axis=1))
         thread_counts = {n: threads(p) for n, p in pids.items()}
     finally:
+        profiler.stop()
         launch.stop()
 
     # --- pass 2: mapper on the recorded detections -----------------------------------------------
@@ -267,6 +320,7 @@ def measure(frames: int, warmup: int, workdir: str) -> dict:
                 det_pubs[c].publish(msgs[c])
             time.sleep(DT)
         time.sleep(1.0)
+        profiler.start("mapper", mapper_pid)
         m0 = cpu_seconds(mapper_pid)
         w0 = time.monotonic()
         for i, (t, msgs) in enumerate(counted):
@@ -283,6 +337,7 @@ def measure(frames: int, warmup: int, workdir: str) -> dict:
         mapper_cpu = cpu_seconds(mapper_pid) - m0
         mapper_threads = threads(mapper_pid)
     finally:
+        profiler.stop()
         launch.stop()
     rospy.signal_shutdown("done")
 
@@ -326,12 +381,15 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--warmup", type=int, default=5, help="ring frames played first, not counted")
     parser.add_argument("--out", default="", help="write the JSON here (default: stdout)")
     parser.add_argument("--keep", action="store_true", help="keep the work folder (logs)")
+    parser.add_argument("--py-spy", default="", help="path of a py-spy executable: profile cam0's detector, the "
+                                                      "localizer and the mapper (raw stacks in --profile-dir)")
+    parser.add_argument("--profile-dir", default="results/bench/profiles", help="where the profiles go")
     args = parser.parse_args(argv)
     workdir = tempfile.mkdtemp(prefix="bench_nodes_")
     master, log = _start_master(workdir)
     try:
         load0 = os.getloadavg()
-        out = measure(args.frames, args.warmup, workdir)
+        out = measure(args.frames, args.warmup, workdir, args.py_spy, args.profile_dir)
         load1 = os.getloadavg()
         out["_load"] = [load0[0], load1[0], load1[1]]
     finally:
@@ -345,6 +403,11 @@ def main(argv: Optional[List[str]] = None) -> int:
             shutil.rmtree(workdir, ignore_errors=True)
         else:
             sys.stderr.write(f"[bench_nodes] logs in {workdir}\n")
+    if args.py_spy:
+        for name in ("detector_cam0", "localizer", "mapper"):
+            path = os.path.join(args.profile_dir, f"{name}.txt")
+            if os.path.exists(path):
+                sys.stderr.write(f"--- {name} (py-spy, {path})\n" + "\n".join(top_functions(path)) + "\n")
     text = json.dumps(out, indent=2)
     if args.out:
         with open(args.out, "w", encoding="utf-8") as handle:

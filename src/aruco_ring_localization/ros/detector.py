@@ -264,9 +264,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     """Run the node until shutdown; 1 on a bad parameter (fatal log naming it)."""
     import rospy
 
+    from ..threads import limit_threads
     from . import log_bridge
     from .params import read_config
 
+    limit_threads()  # one BLAS / OpenCV thread: 8 detectors share the cores (threads.py)
     rospy.init_node("detector", argv=list(argv) if argv is not None else None)
     log_bridge.install()
     try:

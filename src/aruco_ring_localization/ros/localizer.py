@@ -40,6 +40,7 @@ from ..errors import ArucoRingError, ConfigError
 from ..marker_map import MarkerMap
 from ..pipeline import LocalizationPipeline, PoseOutput
 from ..ring import CameraRing
+from ..threads import limit_threads
 from ..schemas import LocalizerConfig
 from . import log_bridge
 from .conversions import msg_to_transform, pose_msg_to_transform, pose_to_msg, stamp_to_sec
@@ -222,6 +223,7 @@ class LocalizerNode:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
+    limit_threads()  # one BLAS / OpenCV thread (threads.py)
     rospy.init_node("localizer", argv=list(argv) if argv is not None else None)
     log_bridge.install()
     try:
