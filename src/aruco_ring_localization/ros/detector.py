@@ -37,7 +37,7 @@ from typing import Callable, List, Optional, Sequence
 import numpy as np
 
 from ..camera import CameraModel
-from ..detection import Detector, MarkerPose, annotate, marker_poses
+from ..detection import Detector, MarkerPose, TrackingDetector, annotate, marker_poses
 from ..detections import MarkerObservation
 from ..errors import ArucoRingError, ConfigError, MeasurementError
 from ..schemas import DetectorConfig
@@ -89,7 +89,9 @@ class DetectorCore:
     def __init__(self, params: DetectorConfig, warn: Optional[Callable[[str], None]] = None,
                  name: str = "detector", clock: Callable[[], float] = time.monotonic):
         self.params = params
-        self.detector = Detector(params.detector_params())
+        # Regions around the previous image's markers between whole-image searches (detection.py).
+        self.detector = TrackingDetector(Detector(params.detector_params()), full_every=params.tracking_full_every,
+                                         edge_px=params.tracking_edge_px)
         self.sizes = params.sizes()
         self.ignored = params.ignored()
         self.name = name
