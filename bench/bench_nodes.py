@@ -58,6 +58,13 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / TICK
 
 
+def system_seconds(pid: int) -> float:
+    """stime of a process, s (the kernel's share: syscalls, page faults, thread wake-ups)."""
+    with open(f"/proc/{pid}/stat", encoding="ascii") as handle:
+        fields = handle.read().rsplit(")", 1)[1].split()
+    return int(fields[12]) / TICK
+
+
 def threads(pid: int) -> int:
     with open(f"/proc/{pid}/status", encoding="ascii") as handle:
         for line in handle:
@@ -151,7 +158,7 @@ class _Profiler:
         os.makedirs(self.out_dir, exist_ok=True)
         out = os.path.join(self.out_dir, f"{name}.txt")
         self.procs.append(subprocess.Popen([self.py_spy, "record", "--pid", str(pid), "--rate", "250", "--format",
-                                            "raw", "--output", out], stdout=subprocess.DEVNULL,
+                                            "raw", "--output", out, "--nonblocking"], stdout=subprocess.DEVNULL,
                                            stderr=subprocess.DEVNULL))
 
     def stop(self) -> None:
@@ -163,6 +170,43 @@ class _Profiler:
             except subprocess.TimeoutExpired:
                 proc.kill()
         self.procs = []
+
+
+def _thread_report(py_spy: str, pid: int, name: str) -> None:
+    """CPU seconds of each thread of a process with the Python frame py-spy shows it in (stderr)."""
+    per_tid = {}
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            per_tid[int(tid)] = cpu_seconds_task(pid, int(tid))
+        except OSError:
+            pass
+    dump = subprocess.run([py_spy, "dump", "--pid", str(pid)], capture_output=True, text=True).stdout
+    where: Dict[int, str] = {}
+    tid = None
+    for line in dump.splitlines():
+        if line.startswith("Thread "):
+            parts = line.split()
+            try:
+                tid = int(parts[1], 16) if parts[1].startswith("0x") else int(parts[1])
+            except ValueError:
+                tid = None
+            # 'Thread 0x7F.. (active): "name"' - the native id is printed in parentheses by newer py-spy
+            for p in parts:
+                if p.strip("():,").isdigit():
+                    tid = int(p.strip("():,"))
+            where[tid] = line
+        elif tid is not None and where.get(tid, "").startswith("Thread ") and line.strip():
+            where[tid] = line.strip()
+            tid = None
+    sys.stderr.write(f"--- threads of {name} (pid {pid}): CPU s, frame\n")
+    for t, c in sorted(per_tid.items(), key=lambda kv: -kv[1])[:15]:
+        sys.stderr.write(f"  {t} {c:7.2f}  {where.get(t, '?')}\n")
+
+
+def cpu_seconds_task(pid: int, tid: int) -> float:
+    with open(f"/proc/{pid}/task/{tid}/stat", encoding="ascii") as handle:
+        fields = handle.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / TICK
 
 
 def top_functions(raw_file: str, n: int = 12) -> List[str]:
@@ -246,6 +290,7 @@ def measure(frames: int, warmup: int, workdir: str, py_spy: str = "", profile_di
         clock_pub.publish(Clock(clock=rospy.Time.from_sec(t0 - 1.0)))
         time.sleep(2.0)  # the localizer's tf listener gets ring_tf's static transforms
         cpu = {k: 0.0 for k in pids}
+        sys_cpu = {k: 0.0 for k in pids}
         detections = 0
         visible_total = 0
         errors: List[float] = []
@@ -269,6 +314,7 @@ def measure(frames: int, warmup: int, workdir: str, py_spy: str = "", profile_di
                 img.data = images[c].tobytes()
                 msgs[c] = img
             before = {n: cpu_seconds(p) for n, p in pids.items()}
+            sys_before = {n: system_seconds(p) for n, p in pids.items()}
             clock_pub.publish(Clock(clock=stamp))
             for c in CAMERAS:
                 infos[c].header.stamp = stamp
@@ -280,6 +326,7 @@ def measure(frames: int, warmup: int, workdir: str, py_spy: str = "", profile_di
             except RuntimeError:
                 missing_poses += 1
             after = {n: cpu_seconds(p) for n, p in pids.items()}
+            sys_after = {n: system_seconds(p) for n, p in pids.items()}
             recorded.append((t, {c: got[c][key] for c in CAMERAS}))
             if k == warmup - 1:
                 profiler.start("detector_cam0", pids["cam0"])
@@ -288,6 +335,7 @@ def measure(frames: int, warmup: int, workdir: str, py_spy: str = "", profile_di
                 continue
             for n in pids:
                 cpu[n] += after[n] - before[n]
+                sys_cpu[n] += sys_after[n] - sys_before[n]
             for c in CAMERAS:
                 found = {f.fiducial_id: f for f in got[c][key].fiducials}
                 for marker_id, corners in visible[c]:
@@ -299,6 +347,9 @@ def measure(frames: int, warmup: int, workdir: str, py_spy: str = "", profile_di
                     pts = np.array([[f.x0, f.y0], [f.x1, f.y1], [f.x2, f.y2], [f.x3, f.y3]])
                     errors.extend(np.linalg.norm(pts - corners, axis=1))
         thread_counts = {n: threads(p) for n, p in pids.items()}
+        if py_spy:
+            for name in ("localizer", "cam0"):
+                _thread_report(py_spy, pids[name], name)
     finally:
         profiler.stop()
         launch.stop()
@@ -353,6 +404,8 @@ def measure(frames: int, warmup: int, workdir: str, py_spy: str = "", profile_di
         "ring_10hz_cores": (8 * det_mean + loc_ms) * 10.0 / 1000.0,
         "detector_node_detection_rate": detections / max(1, visible_total),
         "detector_node_corner_err_px_median": float(np.median(errors)) if errors else float("nan"),
+        "_system_share": {"detectors": sum(sys_cpu[c] for c in CAMERAS) / max(1e-9, sum(cpu[c] for c in CAMERAS)),
+                          "localizer": sys_cpu["localizer"] / max(1e-9, cpu["localizer"])},
         "_frames": n,
         "_warmup": warmup,
         "_visible": visible_total,
