@@ -153,7 +153,8 @@ class Detector:
         self.params = params if params is not None else DetectorParams()
         dictionary = cv2.aruco.getPredefinedDictionary(int(self.params.dictionary))
         self._detector = cv2.aruco.ArucoDetector(dictionary, self.params.opencv())
-        self._roi_detector = cv2.aruco.ArucoDetector(dictionary, self.params.opencv())
+        self._roi_params = self.params.opencv()  # perimeter limits rescaled per region (detect_in)
+        self._roi_detector = cv2.aruco.ArucoDetector(dictionary, self._roi_params)
 
     def detect(self, gray: np.ndarray) -> List[MarkerObservation]:
         """Markers in a grayscale image.
@@ -203,7 +204,7 @@ class Detector:
             if x1 - x0 < 8 or y1 - y0 < 8:
                 continue
             scale = full / float(max(x1 - x0, y1 - y0))
-            p = self.params.opencv()
+            p = self._roi_params
             p.minMarkerPerimeterRate = float(self.params.min_marker_perimeter_rate) * scale
             p.maxMarkerPerimeterRate = float(self.params.max_marker_perimeter_rate) * scale
             self._roi_detector.setDetectorParameters(p)

@@ -125,13 +125,18 @@ class DetectorCore:
 
     # --- image ---------------------------------------------------------------------------------
 
-    def on_image(self, msg, now: Optional[float] = None) -> Optional[Detections]:
+    def on_image(self, msg, now: Optional[float] = None, want_poses: bool = True,
+                 want_image: bool = True) -> Optional[Detections]:
         """Detect markers in a ``sensor_msgs/Image`` or ``sensor_msgs/CompressedImage``.
 
         Args:
             msg: the image message (header, encoding, width, height, step, data, is_bigendian; or
                 header, format, data).
             now: current ROS time, s (only for ``max_image_age``).
+            want_poses: estimate the poses (when ``do_pose_estimation``); the node passes False
+                while nobody subscribes to ``fiducial_transforms`` (the ring's localizer and mapper
+                use the vertices): the poses were 10-15 % of the node's CPU.
+            want_image: draw the annotated image (when ``publish_images``).
 
         Returns:
             :class:`Detections` to publish, or None when the image was unusable or stale (a
@@ -157,8 +162,9 @@ class DetectorCore:
             observations = [o for o in observations if o.marker_id not in self.ignored]
         if not header.frame_id and self.camera_frame_id:
             header.frame_id = self.camera_frame_id
-        poses = self._poses(observations, gray.shape)
-        annotated = annotate(gray, observations, poses or (), self.model) if self.params.publish_images else None
+        poses = self._poses(observations, gray.shape) if want_poses else None
+        annotated = annotate(gray, observations, poses or (), self.model) \
+            if self.params.publish_images and want_image else None
         return Detections(header=header, observations=observations, poses=poses, annotated=annotated)
 
     def _poses(self, observations: Sequence[MarkerObservation], shape) -> Optional[List[MarkerPose]]:
@@ -248,7 +254,12 @@ class DetectorNode:
     def on_image(self, msg) -> None:
         rospy = self.rospy
         try:
-            det = self.core.on_image(msg, now=rospy.get_time())
+            # Poses and annotated images only for someone who listens (rospy drops unsent messages,
+            # but only after we paid for them).
+            det = self.core.on_image(
+                msg, now=rospy.get_time(),
+                want_poses=self.transforms_pub is not None and self.transforms_pub.get_num_connections() > 0,
+                want_image=self.image_pub is not None and self.image_pub.get_num_connections() > 0)
             if det is None:
                 return
             self.vertices_pub.publish(fiducial_array_msg(det))
