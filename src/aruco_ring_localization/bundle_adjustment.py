@@ -396,7 +396,11 @@ def _solve_lm(model: _Model, x0: np.ndarray, f_scale: float, opts: BAOptions, ma
         accepted = False
         while nfev < max_nfev:
             try:
-                dx = splu((H + sp.diags(lam * d)).tocsc()).solve(-g)
+                # H + lam D is symmetric positive definite: SuperLU's symmetric mode (minimum degree
+                # on A^T + A, diagonal pivots) is 4x cheaper than its default COLAMD + partial
+                # pivoting on the 300-marker hall's 2,328 unknowns, at the same residual (issue 16).
+                dx = splu((H + sp.diags(lam * d)).tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                          options=dict(SymmetricMode=True)).solve(-g)
             except RuntimeError:        # singular: damp harder
                 lam *= 10.0
                 continue
