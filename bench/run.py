@@ -77,6 +77,37 @@ def run_one(name: str, path: str, quick: bool) -> dict:
     return out
 
 
+def _split_sections(text: str) -> List[str]:
+    """The doc's parts: the header, then one string per '## ' section."""
+    parts: List[str] = []
+    for line in text.splitlines(keepends=True):
+        if line.startswith("## ") or not parts:
+            parts.append(line)
+        else:
+            parts[-1] += line
+    return parts
+
+
+def merge_doc(path: str, sections: List[str], run_lines: List[str], names: List[str]) -> str:
+    """With --only: the existing doc with the sections just run replaced (same '## ' title) or
+    appended, and a header line saying which sections were rerun when, on what."""
+    with open(path, encoding="utf-8") as handle:
+        parts = _split_sections(handle.read())
+    head, old = parts[0], parts[1:]
+    titles = [p.splitlines()[0] for p in old]
+    for sec in sections:
+        title = sec.splitlines()[0] if sec else ""
+        body = sec.rstrip() + "\n\n"
+        if title in titles:
+            old[titles.index(title)] = body
+        else:
+            old.append(body)
+            titles.append(title)
+    note = (f"- Rerun with --only {','.join(names)}: " + "; ".join(line.lstrip("- ") for line in run_lines))
+    head = head.rstrip() + "\n" + note + "\n\n"
+    return head + "".join(p if p.endswith("\n\n") else p.rstrip() + "\n\n" for p in old).rstrip() + "\n"
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repetitions (smoke run)")
@@ -126,6 +157,8 @@ def main(argv=None) -> int:
     if failed:
         header.append(f"- FAILED: {', '.join(failed)}")
     text = "\n".join(header) + "\n\n" + "\n".join(sections)
+    if args.only and os.path.exists(args.doc):
+        text = merge_doc(args.doc, sections, header[5:], wanted)  # header[5:]: date, machine, mode lines
     os.makedirs(os.path.dirname(args.doc), exist_ok=True)
     with open(args.doc, "w", encoding="utf-8") as handle:
         handle.write(text)

@@ -510,6 +510,9 @@ def _solve_lm(model: _Model, x0: np.ndarray, f_scale: float, opts: BAOptions, ma
         accepted = False
         while nfev < max_nfev:
             try:
+                # SuperLU's default ordering and partial pivoting: its symmetric mode (diagonal pivots)
+                # was 4x cheaper on the 300-marker hall, but nearly singular systems of the real
+                # recordings (test_10, test_13) then ended in a covariance that is not positive definite.
                 dx = splu((H + sp.diags(lam * d)).tocsc()).solve(-g)
             except RuntimeError:        # singular: damp harder
                 lam *= 10.0

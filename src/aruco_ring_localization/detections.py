@@ -232,15 +232,35 @@ def sanitize_observations(observations: Sequence[MarkerObservation], ignore: Col
         if obs.marker_id < 0:
             drop("negative id")   # no dictionary has one: a corrupt message
             continue
-        c = np.asarray(obs.corners, dtype=np.float64)
-        if c.shape != (4, 2) or not np.all(np.isfinite(c)):
-            drop("non-finite")
-            continue
-        candidates.append(obs if c is obs.corners else MarkerObservation(int(obs.marker_id), c))
-        arrays.append(c)
+        candidates.append(obs)
     if not candidates:
         return [], reasons
-    q = np.stack(arrays)
+    # One array for the whole image (a few numpy calls per image, not per marker: this runs for
+    # every camera message); the marker-by-marker check only when some corners are not (4, 2).
+    try:
+        q = np.array([o.corners for o in candidates], dtype=np.float64)
+    except (ValueError, TypeError):
+        q = None
+    if q is not None and q.shape == (len(candidates), 4, 2):
+        finite = np.isfinite(q).all(axis=(1, 2))
+        drop("non-finite", int(np.count_nonzero(~finite)))
+        candidates = [o if isinstance(o.corners, np.ndarray) and o.corners.dtype == np.float64
+                      else MarkerObservation(int(o.marker_id), q[k])
+                      for k, o in enumerate(candidates) if finite[k]]
+        q = q[finite]
+    else:
+        checked = []
+        for obs in candidates:
+            c = np.asarray(obs.corners, dtype=np.float64)
+            if c.shape != (4, 2) or not np.all(np.isfinite(c)):
+                drop("non-finite")
+                continue
+            checked.append(obs if c is obs.corners else MarkerObservation(int(obs.marker_id), c))
+            arrays.append(c)
+        candidates = checked
+        q = np.stack(arrays) if arrays else None
+    if not candidates:
+        return [], reasons
     ok = np.ones(len(candidates), dtype=bool)
     if width and height:
         size = np.array([width, height], dtype=np.float64)

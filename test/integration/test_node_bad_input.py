@@ -92,8 +92,11 @@ def node(world, monkeypatch):
 
     _, ring, truth = world
     rec = Recorder()
-    for name in ("Publisher", "Subscriber", "Service", "Timer"):  # a new recorder per object
+    for name in ("Subscriber", "Service", "Timer"):  # a new recorder per object
         monkeypatch.setattr(rospy, name, mock.MagicMock(name=name, side_effect=lambda *a, **k: mock.MagicMock()))
+    # Publishers with one subscriber each: the node builds messages only for topics someone listens to.
+    monkeypatch.setattr(rospy, "Publisher", mock.MagicMock(
+        name="Publisher", side_effect=lambda *a, **k: mock.MagicMock(**{"get_num_connections.return_value": 1})))
     monkeypatch.setattr(tf2_ros, "TransformListener", mock.MagicMock())
     monkeypatch.setattr(tf2_ros, "TransformBroadcaster", mock.MagicMock())
     monkeypatch.setattr(tf2_ros, "Buffer", _buffer_without_master)

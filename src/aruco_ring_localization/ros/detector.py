@@ -37,7 +37,7 @@ from typing import Callable, List, Optional, Sequence
 import numpy as np
 
 from ..camera import CameraModel
-from ..detection import Detector, MarkerPose, annotate, marker_poses
+from ..detection import Detector, MarkerPose, TrackingDetector, annotate, marker_poses
 from ..detections import MarkerObservation
 from ..errors import ArucoRingError, ConfigError, MeasurementError
 from ..schemas import DetectorConfig
@@ -89,7 +89,9 @@ class DetectorCore:
     def __init__(self, params: DetectorConfig, warn: Optional[Callable[[str], None]] = None,
                  name: str = "detector", clock: Callable[[], float] = time.monotonic):
         self.params = params
-        self.detector = Detector(params.detector_params())
+        # Regions around the previous image's markers between whole-image searches (detection.py).
+        self.detector = TrackingDetector(Detector(params.detector_params()), full_every=params.tracking_full_every,
+                                         edge_px=params.tracking_edge_px)
         self.sizes = params.sizes()
         self.ignored = params.ignored()
         self.name = name
@@ -123,13 +125,18 @@ class DetectorCore:
 
     # --- image ---------------------------------------------------------------------------------
 
-    def on_image(self, msg, now: Optional[float] = None) -> Optional[Detections]:
+    def on_image(self, msg, now: Optional[float] = None, want_poses: bool = True,
+                 want_image: bool = True) -> Optional[Detections]:
         """Detect markers in a ``sensor_msgs/Image`` or ``sensor_msgs/CompressedImage``.
 
         Args:
             msg: the image message (header, encoding, width, height, step, data, is_bigendian; or
                 header, format, data).
             now: current ROS time, s (only for ``max_image_age``).
+            want_poses: estimate the poses (when ``do_pose_estimation``); the node passes False
+                while nobody subscribes to ``fiducial_transforms`` (the ring's localizer and mapper
+                use the vertices): the poses were 10-15 % of the node's CPU.
+            want_image: draw the annotated image (when ``publish_images``).
 
         Returns:
             :class:`Detections` to publish, or None when the image was unusable or stale (a
@@ -155,8 +162,9 @@ class DetectorCore:
             observations = [o for o in observations if o.marker_id not in self.ignored]
         if not header.frame_id and self.camera_frame_id:
             header.frame_id = self.camera_frame_id
-        poses = self._poses(observations, gray.shape)
-        annotated = annotate(gray, observations, poses or (), self.model) if self.params.publish_images else None
+        poses = self._poses(observations, gray.shape) if want_poses else None
+        annotated = annotate(gray, observations, poses or (), self.model) \
+            if self.params.publish_images and want_image else None
         return Detections(header=header, observations=observations, poses=poses, annotated=annotated)
 
     def _poses(self, observations: Sequence[MarkerObservation], shape) -> Optional[List[MarkerPose]]:
@@ -246,7 +254,12 @@ class DetectorNode:
     def on_image(self, msg) -> None:
         rospy = self.rospy
         try:
-            det = self.core.on_image(msg, now=rospy.get_time())
+            # Poses and annotated images only for someone who listens (rospy drops unsent messages,
+            # but only after we paid for them).
+            det = self.core.on_image(
+                msg, now=rospy.get_time(),
+                want_poses=self.transforms_pub is not None and self.transforms_pub.get_num_connections() > 0,
+                want_image=self.image_pub is not None and self.image_pub.get_num_connections() > 0)
             if det is None:
                 return
             self.vertices_pub.publish(fiducial_array_msg(det))
@@ -264,9 +277,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     """Run the node until shutdown; 1 on a bad parameter (fatal log naming it)."""
     import rospy
 
+    from ..threads import limit_threads
     from . import log_bridge
     from .params import read_config
 
+    limit_threads()  # one BLAS / OpenCV thread: 8 detectors share the cores (threads.py)
     rospy.init_node("detector", argv=list(argv) if argv is not None else None)
     log_bridge.install()
     try:

@@ -47,6 +47,7 @@ from ..marker_grid import marker_grid
 from ..marker_map import MarkerMap
 from ..pipeline import LocalizationPipeline, PoseOutput, StatusReport
 from ..ring import CameraRing
+from ..threads import limit_threads
 from ..schemas import LocalizerConfig
 from . import log_bridge
 from .conversions import msg_to_transform, pose_msg_to_transform, pose_to_msg, stamp_to_sec
@@ -91,6 +92,7 @@ class LocalizerNode:
         self.grid_msg = self.marker_grid_msg()
         rospy.Publisher("~marker_grid", OccupancyGrid, queue_size=1, latch=True).publish(self.grid_msg)
         rospy.Service("~static_map", GetMap, lambda _req: GetMapResponse(map=self.grid_msg))
+        self._markers_seen: Optional[set] = None  # markers in view in the last ~markers array
         rospy.Timer(rospy.Duration(out.diagnostics_period), self.publish_diagnostics, reset=True)
         rospy.Timer(rospy.Duration(out.markers_period), self.publish_markers, reset=True)
         self._tf_child: Optional[str] = None   # the child frame we last put on tf
@@ -146,23 +148,30 @@ class LocalizerNode:
             self._publish(out)
 
     def _publish(self, out: PoseOutput) -> None:
+        # Messages are built only for topics someone listens to (rospy would drop them unsent, but
+        # after we paid for building them): the pose is wanted almost always, the rest often not.
         stamp = rospy.Time.from_sec(out.stamp)
-        msg = PoseWithCovarianceStamped()
-        msg.header.stamp = stamp
-        msg.header.frame_id = self.map_frame
-        msg.pose.pose = pose_to_msg(out.T_map_base)
-        msg.pose.covariance = [float(v) for v in out.covariance.ravel()]
-        self.pub_pose.publish(msg)
-        od = Odometry()
-        od.header = msg.header
-        od.child_frame_id = self.base_frame
-        od.pose = msg.pose
-        od.twist.twist.linear.x, od.twist.twist.linear.y, od.twist.twist.angular.z = (float(v) for v in out.twist)
-        od.twist.covariance = [float(v) for v in out.twist_covariance.ravel()]
-        self.pub_odom.publish(od)
-        if not out.from_odometry:   # an odometry step has no camera estimates
+        want_odom = self.pub_odom.get_num_connections() > 0
+        if want_odom or self.pub_pose.get_num_connections() > 0:
+            msg = PoseWithCovarianceStamped()
+            msg.header.stamp = stamp
+            msg.header.frame_id = self.map_frame
+            msg.pose.pose = pose_to_msg(out.T_map_base)
+            msg.pose.covariance = out.covariance.ravel().tolist()
+            self.pub_pose.publish(msg)
+            if want_odom:
+                od = Odometry()
+                od.header = msg.header
+                od.child_frame_id = self.base_frame
+                od.pose = msg.pose
+                od.twist.twist.linear.x, od.twist.twist.linear.y, od.twist.twist.angular.z = \
+                    (float(v) for v in out.twist)
+                od.twist.covariance = out.twist_covariance.ravel().tolist()
+                self.pub_odom.publish(od)
+        if not out.from_odometry and self.pub_cams.get_num_connections() > 0:  # an odometry step has no camera estimates
             pa = PoseArray()
-            pa.header = msg.header
+            pa.header.stamp = stamp
+            pa.header.frame_id = self.map_frame
             pa.poses = [pose_to_msg(T) for T in out.camera_estimates.values()]
             self.pub_cams.publish(pa)
         if self.config.output.publish_tf:
@@ -195,9 +204,14 @@ class LocalizerNode:
                 return
 
     def publish_markers(self, _event=None) -> None:
+        """~markers (latched): again only when the markers in view changed (or a new subscriber
+        came: the latch already gave it the last array, so that is not needed)."""
         period = self.config.output.markers_period
         with self.ring_input.lock:
             seen = self.pipeline.markers_in_view(self.ring_input.now(), 2.0 * period)
+        if seen == self._markers_seen:
+            return
+        self._markers_seen = set(seen)
         arr = MarkerArray()
         stamp = rospy.Time.now()
         for e in self.marker_map:
@@ -288,6 +302,7 @@ class Diagnostics:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
+    limit_threads()  # one BLAS / OpenCV thread (threads.py)
     rospy.init_node("localizer", argv=list(argv) if argv is not None else None)
     log_bridge.install()
     try:
