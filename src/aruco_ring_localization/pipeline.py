@@ -49,6 +49,7 @@ from .gating import GateDecision, MotionGate
 from .kalman import PoseFilter
 from .localization import LocalizationResult, RingLocalizer
 from .mapping import MapBuilder
+from .marker_check import MarkerCheck
 from .marker_map import MarkerMap
 from .ring import CameraRing, apply_refined_extrinsics
 from .schemas import LocalizerConfig, MapperConfig, RingInputParams
@@ -383,6 +384,9 @@ class LocalizationPipeline(_RingPipeline):
         self.localizer = RingLocalizer(self.input.ring, marker_map, config.estimator)
         self.gate = MotionGate(config.gate)
         self.filter = PoseFilter(config.filter)
+        #: moved-marker detection (marker_check.py), None when marker_check.enabled is false.
+        self.marker_check = MarkerCheck(marker_map, config.marker_check, self.warn) \
+            if config.marker_check.enabled else None
         self._motion: Dict[str, _Motion] = {}
         self._z = 0.0                        # height of base_link in the map (last accepted measurement)
         self._roll_pitch = (0.0, 0.0)        # ... and its roll, pitch
@@ -532,6 +536,23 @@ class LocalizationPipeline(_RingPipeline):
         x, y, yaw = self.filter.predicted(stamp)
         return geo.transform_from_se2(x, y, yaw, self._z)
 
+    def remap_markers(self, marker_ids: Sequence[int]) -> List[Tuple[int, float, str]]:
+        """Re-estimate each marker from its recent observations with the others fixed, in the map in
+        memory (the ``~remap_marker`` service); returns (id, moved m, "") or (id, nan, why not) each."""
+        if self.marker_check is None:
+            raise ConfigError("marker_check is disabled: no observations kept to re-map from",
+                              key="marker_check.enabled")
+        out = []
+        for mid in marker_ids:
+            try:
+                _, moved = self.marker_check.remap(int(mid))
+            except MeasurementError as exc:
+                out.append((int(mid), float("nan"), str(exc)))
+                continue
+            self.localizer._axes_cache.pop(int(mid), None)
+            out.append((int(mid), moved, ""))
+        return out
+
     def markers_in_view(self, now: float, window: float) -> set:
         """Ids of the mapped markers used within ``window`` s before ``now``."""
         return {m for m, t in self._in_view.items() if 0.0 <= now - t < window}
@@ -574,7 +595,22 @@ class LocalizationPipeline(_RingPipeline):
                   ("latency_ms_median", f"{np.median(lat):.2f}")]
         values += [(f"rejected_{k.replace(' ', '_')}", str(v)) for k, v in sorted(self.rejected_counts.items())]
         out.append(StatusReport("aruco_ring localizer: filter", "localizer", ok, message, values))
+        if self.marker_check is not None:
+            out.append(self._marker_report())
         return out
+
+    def _marker_report(self) -> StatusReport:
+        """The moved-marker check's status: WARN naming each moved marker and how far it moved."""
+        mc = self.marker_check
+        moved = sorted(mc.moved.values(), key=lambda m: m.marker_id)
+        message = ("moved (dropped from the pose): " + ", ".join(f"{m.marker_id} by {100 * m.distance:.1f} cm"
+                                                                  for m in moved)) if moved else "no moved marker"
+        values = [("moved_markers", " ".join(str(m.marker_id) for m in moved)),
+                  ("frames_checked", str(mc.frames_checked)), ("declared", str(mc.declarations))]
+        values += [(f"marker_{m.marker_id}_moved_cm", f"{100 * m.distance:.1f}") for m in moved]
+        values += [(f"marker_{m.marker_id}_displacement_m", " ".join(f"{v:.3f}" for v in m.displacement))
+                   for m in moved]
+        return StatusReport("aruco_ring localizer: markers", "localizer", not moved, message, values)
 
     # --- the pipeline -------------------------------------------------------------------------
 
@@ -667,6 +703,8 @@ class LocalizationPipeline(_RingPipeline):
         return (max((m.speed for m in fresh), default=0.0), max((m.yaw_rate for m in fresh), default=0.0))
 
     def _reset(self, pose, stamp: Optional[float]) -> None:
+        if self.marker_check is not None:
+            self.marker_check.reset()
         self.gate.reset()
         self.filter.reset(pose, stamp)
         if pose is not None:
@@ -687,7 +725,15 @@ class LocalizationPipeline(_RingPipeline):
             time_jump = True
             logger.warning("localizer: time jumped back to %.3f s: filter reset", stamp)
         pred = self.prediction(stamp)
-        loc = self.localizer.process(ring_frame, pred)
+        check = self.marker_check
+        loc = self.localizer.process(ring_frame if check is None else check.strip(ring_frame), pred)
+        if check is not None and loc.ok and not loc.ambiguous and pred is not None and \
+                geo.pose_distance(loc.T_map_base, pred)[0] <= self.config.gate.base_distance:
+            # Moved-marker check (marker_check.py) on a measurement near the prediction, before the
+            # filter: a marker declared moved now is dropped from this very frame's pose.
+            if check.update(ring_frame, loc.T_map_base, self.localizer.ring, stamp):
+                loc = self.localizer.process(check.strip(ring_frame), pred)
+            check.warn_moved(stamp if self._clock is None else self._clock)
         for k, v in loc.rejected.items():
             self.rejected_counts[k] = self.rejected_counts.get(k, 0) + v
         out = TrackResult(stamp=stamp, localization=loc, time_jump=time_jump)

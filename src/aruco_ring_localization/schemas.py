@@ -36,6 +36,7 @@ from .gating import GateParams
 from .kalman import FilterParams
 from .localization import LocalizationParams
 from .mapping import METHODS, MappingOptions
+from .marker_check import MarkerCheckParams
 from .markers import MarkerSizes, parse_id_list
 
 TF_MODES = ("auto", "map_to_odom", "map_to_base")
@@ -156,6 +157,8 @@ class LocalizerConfig:
     timing: TimingParams = section(TimingParams, "stale frames and motion inputs, pauses")
     limits: InputLimitParams = section(InputLimitParams, "physical limits of the motion inputs and initialpose")
     output: LocalizerOutputParams = section(LocalizerOutputParams, "frames and publishing")
+    marker_check: MarkerCheckParams = section(MarkerCheckParams, "moved-marker detection: each marker against "
+                                                                 "the pose from the others, over a window")
 
 
 # --- mapper --------------------------------------------------------------------------------------
