@@ -89,6 +89,10 @@ class MarkerCheckParams:
     remap_window: float = param(30.0, "~remap_marker uses a marker's observations of the last this many "
                                       "seconds", unit="s")
     remap_min_observations: int = param(10, "~remap_marker refuses with fewer observations than this")
+    save_on_remap: bool = param(False, "~remap_marker also writes the map file (atomically, keeping `backups` "
+                                       "generations); false: only ~save_map writes it")
+    backups: int = param(3, "previous versions of the map file kept as .bak, .bak.2, ... when the localizer "
+                            "writes it (as the mapper's map/backups)")
 
     def __post_init__(self) -> None:
         for name in ("window", "pixel_noise", "baseline_time", "baseline_distance", "systematic_std", "threshold",
@@ -97,7 +101,7 @@ class MarkerCheckParams:
                 raise ConfigError(f"must be > 0, got {getattr(self, name)!r}", key=f"marker_check.{name}")
         if not self.min_move >= 0:
             raise ConfigError(f"must be >= 0, got {self.min_move!r}", key="marker_check.min_move")
-        for name in ("min_observations", "min_other_markers", "remap_min_observations"):
+        for name in ("min_observations", "min_other_markers", "remap_min_observations", "backups"):
             if int(getattr(self, name)) < 1:
                 raise ConfigError(f"must be >= 1, got {getattr(self, name)!r}", key=f"marker_check.{name}")
 
@@ -393,6 +397,9 @@ class MarkerCheck:
         for other in list(self._evidence):
             if other not in self.moved:
                 self._evidence[other].items.clear()
+        q = self._records.get(mid)
+        while q and q[0].stamp < stamp:
+            q.popleft()   # where it was: re-mapping uses what it shows from the declaration on
         for (m, _), bl in self._baselines.items():
             if m != mid:
                 bl.pending.clear()   # residuals taken with the moved marker in the pose: never a baseline
@@ -456,11 +463,31 @@ class MarkerCheck:
 
 def estimate_marker_pose(records: Sequence[MarkerObservationRecord], size: float,
                          T_init: np.ndarray) -> Tuple[np.ndarray, float]:
-    """The marker pose ``T_map_marker`` that best reprojects ``records`` (camera poses fixed).
+    """The marker pose ``T_map_marker`` from ``records`` (camera poses fixed): per camera, the pose
+    that best reprojects its views (:func:`_fit_marker_pose`), then the average over cameras
+    weighted by their views. Not one fit over every camera: two cameras of the ring see a marker
+    4 m away under a few degrees, so their relative calibration error (0.15 deg) would put its
+    depth 15 cm off by triangulation; each camera's own depth (from the marker's size, averaged
+    over its views) is good to millimetres. Returns (T, RMS px of every view at T)."""
+    if not records:
+        raise MeasurementError("no observations")
+    cams: Dict[str, List[MarkerObservationRecord]] = {}
+    for r in records:
+        cams.setdefault(r.camera, []).append(r)
+    fits = [(_fit_marker_pose(rs, size, T_init)[0], len(rs)) for rs in cams.values()]
+    w = [n for _, n in fits]
+    T = np.eye(4)
+    T[:3, :3] = geo.average_rotations([F[:3, :3] for F, _ in fits], w)
+    T[:3, 3] = np.average([F[:3, 3] for F, _ in fits], axis=0, weights=w)
+    obj = marker_corners(size)
+    err = [r.model.project(geo.transform_points(geo.inverse(r.T_map_cam) @ T, obj)) - r.corners for r in records]
+    return T, float(np.sqrt(np.mean(np.sum(np.concatenate(err) ** 2, axis=1))))
 
-    Robust (soft-L1 at 2 px) least squares over the marker's 6 DOF from ``T_init`` and from the
-    average of the single-view IPPE poses (the better one wins). Returns (T, RMS px).
-    """
+
+def _fit_marker_pose(records: Sequence[MarkerObservationRecord], size: float,
+                     T_init: np.ndarray) -> Tuple[np.ndarray, float]:
+    """The marker pose that best reprojects ``records``: robust (soft-L1 at 2 px) least squares over
+    its 6 DOF from ``T_init`` and from the views' IPPE poses (the lowest cost wins). (T, RMS px)."""
     from scipy.optimize import least_squares
 
     from .pnp import solve_marker_ippe
@@ -471,8 +498,12 @@ def estimate_marker_pose(records: Sequence[MarkerObservationRecord], size: float
     T_cm = [geo.inverse(r.T_map_cam) for r in records]
     px = np.stack([r.corners for r in records])
 
+    def local(T0: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """``T0`` moved by ``x`` (rotation vector, translation) in the marker's own frame."""
+        return T0 @ geo.se3_perturb(np.eye(4), x)
+
     def residuals(x: np.ndarray, T0: np.ndarray) -> np.ndarray:
-        T = geo.se3_perturb(T0, x)
+        T = local(T0, x)
         Xm = geo.transform_points(T, obj)
         out = []
         for rec, Tc, p in zip(records, T_cm, px):
@@ -485,15 +516,24 @@ def estimate_marker_pose(records: Sequence[MarkerObservationRecord], size: float
         for rec in records:
             cand = solve_marker_ippe(rec.corners, size, rec.model)
             views.append(rec.T_map_cam @ cand.poses[0])
-        starts.append(geo.average_transforms(views))
+        # A bump mostly translates: the mapped orientation at the views' mean position, and each
+        # camera's first view as it is (the mean of rotations of ambiguous views can be anything).
+        T = starts[0].copy()
+        T[:3, 3] = np.median([V[:3, 3] for V in views], axis=0)
+        starts.append(T)
+        seen = set()
+        for rec, V in zip(records, views):
+            if rec.camera not in seen:
+                seen.add(rec.camera)
+                starts.append(V)
     except (MeasurementError, ValueError, np.linalg.LinAlgError):
         pass
     best = None
     for T0 in starts:
-        sol = least_squares(residuals, np.zeros(6), args=(T0,), loss="soft_l1", f_scale=2.0, max_nfev=50)
+        sol = least_squares(residuals, np.zeros(6), args=(T0,), loss="soft_l1", f_scale=2.0, max_nfev=100)
         cost = float(np.mean(sol.fun ** 2))
         if best is None or cost < best[1]:
-            best = (geo.se3_perturb(T0, sol.x), cost)
+            best = (local(T0, sol.x), cost)
     T, mse = best
     return T, float(np.sqrt(mse * 2.0))  # per-corner RMS (x and y)
 

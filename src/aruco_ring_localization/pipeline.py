@@ -553,6 +553,11 @@ class LocalizationPipeline(_RingPipeline):
             out.append((int(mid), moved, ""))
         return out
 
+    def save_map(self, path: str) -> None:
+        """Write the map in memory (with markers re-mapped by :meth:`remap_markers`) to ``path``
+        atomically, keeping ``marker_check.backups`` previous versions (the ``~save_map`` service)."""
+        self.marker_map.save(path, backups=self.config.marker_check.backups)
+
     def markers_in_view(self, now: float, window: float) -> set:
         """Ids of the mapped markers used within ``window`` s before ``now``."""
         return {m for m, t in self._in_view.items() if 0.0 <= now - t < window}

@@ -12,7 +12,11 @@ Subscribes: ``<ns>/fiducial_vertices`` + ``<ns>/camera_info`` per camera (throug
 Publishes: ``~pose`` (PoseWithCovarianceStamped, REP-103 covariance order, robot_localization
 ready), ``~odometry`` (nav_msgs/Odometry with the filter's twist), ``~camera_estimates``
 (PoseArray, one per camera), ``~markers`` (MarkerArray, markers in view highlighted),
-``/diagnostics``, tf ``map -> odom`` or ``map -> base_link``. Service: ``~reset`` (std_srvs/Trigger).
+``/diagnostics`` (per camera, the filter, and the moved-marker check: which markers moved and how
+far), tf ``map -> odom`` or ``map -> base_link``. Services (std_srvs/Trigger): ``~reset``;
+``~remap_marker`` (re-map the markers of ``~remap_marker_ids``, default every marker declared
+moved, from their recent observations with the others fixed, in memory); ``~save_map`` (write the
+map in memory to ``~map_file`` atomically with backups).
 
 Another node publishing the tf child frame we publish (a second localizer, gmapping's
 ``map -> odom``) is warned about, throttled, at its first such message (docs/security.md).
@@ -37,6 +41,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from .. import geometry as geo
 from ..errors import ArucoRingError, ConfigError
+from ..marker_check import parse_marker_ids
 from ..marker_map import MarkerMap
 from ..pipeline import LocalizationPipeline, PoseOutput
 from ..ring import CameraRing
@@ -78,6 +83,8 @@ class LocalizerNode:
         rospy.Subscriber("odom", Odometry, self.on_odom, queue_size=5)
         rospy.Subscriber("initialpose", PoseWithCovarianceStamped, self.on_initialpose, queue_size=1)
         rospy.Service("~reset", Trigger, self.on_reset)
+        rospy.Service("~remap_marker", Trigger, self.on_remap_marker)
+        rospy.Service("~save_map", Trigger, self.on_save_map)
         rospy.Timer(rospy.Duration(out.diagnostics_period), self.publish_diagnostics, reset=True)
         rospy.Timer(rospy.Duration(out.markers_period), self.publish_markers, reset=True)
         self._tf_child: Optional[str] = None   # the child frame we last put on tf
@@ -122,6 +129,42 @@ class LocalizerNode:
         self.ring_input.call(self.pipeline.reset)
         rospy.loginfo("localizer: reset by service; the next measurement initialises the track")
         return TriggerResponse(success=True, message="track reset")
+
+    def on_remap_marker(self, _req) -> TriggerResponse:
+        """Re-map the markers named by ``~remap_marker_ids`` (read at each call: ``"17 18"`` or a
+        list; empty: every marker declared moved) from their recent observations, the others fixed,
+        in the map in memory; written only with marker_check/save_on_remap (else ``~save_map``)."""
+        try:
+            ids = parse_marker_ids(rospy.get_param("~remap_marker_ids", []) or [])
+        except ValueError as exc:
+            return TriggerResponse(success=False, message=f"~remap_marker_ids: {exc}")
+        with self.ring_input.lock:
+            if self.pipeline.marker_check is None:
+                return TriggerResponse(success=False, message="marker_check/enabled is false")
+            ids = ids or sorted(self.pipeline.marker_check.moved)
+            if not ids:
+                return TriggerResponse(success=False, message="no marker declared moved and ~remap_marker_ids empty")
+            results = self.pipeline.remap_markers(ids)
+        done = [f"{mid} (moved {100 * moved:.1f} cm)" for mid, moved, why in results if not why]
+        failed = [why for _, _, why in results if why]
+        message = ("re-mapped " + ", ".join(done) if done else "nothing re-mapped") + \
+            ("; " + "; ".join(failed) if failed else "")
+        if done and self.config.marker_check.save_on_remap:
+            message += "; " + self.on_save_map(None).message
+        (rospy.loginfo if not failed else rospy.logwarn)("localizer: ~remap_marker: %s", message)
+        return TriggerResponse(success=bool(done) and not failed, message=message)
+
+    def on_save_map(self, _req) -> TriggerResponse:
+        """Write the map in memory to ~map_file atomically, keeping marker_check/backups generations."""
+        path = self.config.map_file
+        try:
+            with self.ring_input.lock:
+                self.pipeline.save_map(path)
+        except (ArucoRingError, OSError) as exc:
+            rospy.logerr("localizer: ~save_map: %s", exc)
+            return TriggerResponse(success=False, message=f"could not write {path}: {exc}")
+        rospy.loginfo("localizer: map written to %s", path)
+        return TriggerResponse(success=True, message=f"saved {len(self.marker_map)} markers to {path}")
 
     # --- outputs ----------------------------------------------------------------------------
 

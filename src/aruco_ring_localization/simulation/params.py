@@ -269,9 +269,10 @@ class SimulatorConfig:
     laser: LaserParams = section(LaserParams)
     clock: ClockParams = section(ClockParams)
     lockstep: LockstepParams = section(LockstepParams)
-    events: tuple = param([], "scene changes at a simulated time: [{t: 20, marker: 17, move: [0.05, 0, 0]}] moves "
-                              "marker 17 by 5 cm along the world's x at t = 20 s (optional rotate_deg: [rx, ry, rz], "
-                              "a rotation vector about its centre); the map does not know (a bumped marker)")
+    events: tuple = param([], "scene changes at a simulated time: [{t: 20, marker: 17, move: [0, 0.05, 0]}] moves "
+                              "marker 17 by 5 cm along the world's y (along its wall) at t = 20 s (optional "
+                              "rotate_deg: [rx, ry, rz], a rotation vector about its centre); the map does not know "
+                              "(a bumped marker)")
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
