@@ -84,7 +84,10 @@ class RingFrameAssembler:
         slop: frames whose stamps differ by at most this (s) belong to one ring frame.
         timeout: a group that is still incomplete this long (s, caller's clock) after its first
             member arrived goes out without the missing cameras.
-        max_pending: at most this many incomplete groups are kept; older ones are flushed.
+        max_pending: at most this many incomplete groups are kept; older ones are flushed. None
+            (the default): enough for ``timeout`` seconds of a 50 Hz ring, at least 8. A fixed 8
+            flushed frames whenever one camera's callback lagged the others by 8 frames (0.8 s
+            at 10 Hz, seen on a loaded machine) although the timeout allowed it to catch up.
         silence: a camera that has sent nothing for this long (s) is not waited for: a group
             is complete once every camera heard from within ``silence`` has reported. So a
             dead camera costs one ``timeout`` per frame only until it is found silent, not for ever.
@@ -99,7 +102,7 @@ class RingFrameAssembler:
     the ring frames that are ready, oldest first.
     """
 
-    def __init__(self, cameras: Sequence[str], slop: float = 0.03, timeout: float = 0.25, max_pending: int = 8,
+    def __init__(self, cameras: Sequence[str], slop: float = 0.03, timeout: float = 0.25, max_pending: Optional[int] = None,
                  silence: Optional[float] = 1.0, late_by_clock: bool = False):
         if not cameras:
             raise ValueError("RingFrameAssembler needs at least one camera name")
@@ -108,7 +111,7 @@ class RingFrameAssembler:
         self.cameras = list(cameras)
         self.slop = float(slop)
         self.timeout = float(timeout)
-        self.max_pending = int(max_pending)
+        self.max_pending = max(8, int(np.ceil(50.0 * self.timeout))) if max_pending is None else int(max_pending)
         self.silence = silence
         self.late_by_clock = bool(late_by_clock)
         self._first_seen: Optional[float] = None
@@ -117,6 +120,10 @@ class RingFrameAssembler:
         self.last_seen: Dict[str, float] = {}   # camera -> caller's clock at its last frame
         self.dropped_late = 0
         self.time_jumps = 0
+        #: Ring frames that went out without every camera, by reason: ``timeout`` (waited
+        #: ``timeout`` s), ``silent`` (the missing cameras were silent for ``silence`` s),
+        #: ``overtaken`` (a newer frame completed before it, or more than ``max_pending`` waited).
+        self.incomplete: Dict[str, int] = {"timeout": 0, "silent": 0, "overtaken": 0}
 
     def reset(self) -> None:
         self._pending.clear()
@@ -167,8 +174,16 @@ class RingFrameAssembler:
         overflow = len(self._pending) - self.max_pending
         ready_upto = max(ready_upto, overflow - 1)
         out = []
-        for _, g in self._pending[: ready_upto + 1]:
+        for arrived, g in self._pending[: ready_upto + 1]:
             g.missing = [c for c in self.cameras if c not in g.cameras]
+            if g.missing:
+                # Why it went out incomplete (counted for the nodes' summaries and diagnostics).
+                if now - arrived >= self.timeout:
+                    self.incomplete["timeout"] += 1
+                elif awaited.issubset(g.cameras):
+                    self.incomplete["silent"] += 1
+                else:
+                    self.incomplete["overtaken"] += 1
             out.append(g)
             self._last_emitted = max(self._last_emitted, g.stamp)
         del self._pending[: ready_upto + 1]

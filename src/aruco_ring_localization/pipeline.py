@@ -247,6 +247,13 @@ class RingInput:
         self.ring_frames_out += len(out)
         return out
 
+    def incomplete_reasons(self) -> str:
+        """Why ring frames went out without every camera, e.g. "3 after input/timeout, 1 overtaken"."""
+        names = {"timeout": "after input/timeout", "silent": "cameras silent for input/silent_after",
+                 "overtaken": "overtaken by a newer frame"}
+        parts = [f"{n} {names[k]}" for k, n in self.assembler.incomplete.items() if n]
+        return ", ".join(parts) or "flushed at the end"
+
     def poll(self, now: float, flush: bool = False) -> List[RingFrame]:
         """Ring frames whose timeout has expired at ``now``; with ``flush`` every pending one."""
         out = self.assembler.poll(np.inf if flush else now)
@@ -876,7 +883,7 @@ class MappingPipeline(_RingPipeline):
             return "no ring frame yet"
         text = self.builder.format_summary()
         if self.frames_missing:
-            text += f"; {self.frames_missing} ring frames without every camera (input/timeout)"
+            text += f"; {self.frames_missing} ring frames without every camera ({self.input.incomplete_reasons()})"
         return text
 
     def silent_cameras(self, now: float) -> List[str]:
@@ -894,7 +901,7 @@ class MappingPipeline(_RingPipeline):
         text = (f"saved {len(m)} markers ({m.method}) to {path}; {frame}; {s['frames']} frames, "
                 f"{s['linked_stations']}/{s['stations']} stations; observations per marker {{{obs}}}")
         if self.frames_missing:
-            text += f"; {self.frames_missing} ring frames without every camera (input/timeout)"
+            text += f"; {self.frames_missing} ring frames without every camera ({self.input.incomplete_reasons()})"
         ba = self.last_ba if m.method == "refined" else None
         if ba is not None:
             text += f"; bundle adjustment RMS {ba.rms_px_before:.2f} -> {ba.rms_px_after:.2f} px in {ba.seconds:.1f} s"

@@ -143,7 +143,7 @@ class IdentityTest(unittest.TestCase):
 
     def _start_relay(self):
         """(publishers, subscribers) of the relay, closed until ``self.relaying``."""
-        pubs = {t: rospy.Publisher(t, typ, queue_size=20, latch=typ is CameraInfo) for t, typ in self._relayed().items()}
+        pubs = {t: rospy.Publisher(t, typ, queue_size=100, latch=typ is CameraInfo) for t, typ in self._relayed().items()}
 
         def relay(msg, topic):
             if isinstance(msg, FiducialArray):
@@ -159,7 +159,10 @@ class IdentityTest(unittest.TestCase):
                     pubs[topic].publish(msg)
             elif self.relaying:
                 pubs[topic].publish(msg)
-        subs = [rospy.Subscriber(RAW + t, typ, relay, callback_args=t, queue_size=20)
+        # Deep queues: one read of rospy's takes every waiting message of a topic and keeps the newest
+        # queue_size, so on a loaded machine a stalled relay thread with 20 lost a camera's message
+        # and the node got that ring frame without it ("overtaken by a newer frame").
+        subs = [rospy.Subscriber(RAW + t, typ, relay, callback_args=t, queue_size=1000)
                 for t, typ in self._relayed().items()]
         return pubs, subs
 

@@ -49,7 +49,7 @@ from ..schemas import MapperConfig
 from . import log_bridge
 from .conversions import make_transform_stamped, pose_to_msg
 from .params import read_config
-from .ring_input import RingSubscriber
+from .ring_input import MAPPER_QUEUE_SIZE, RingSubscriber
 from .ring_tf import default_ring_file
 from .tf_output import MapTransform
 
@@ -124,7 +124,7 @@ class MapperNode:
         self.tf_buffer = tf2_ros.Buffer()
         self.tf_listener = tf2_ros.TransformListener(self.tf_buffer)
         self.ring_input = RingSubscriber(self.pipeline, lambda _added: None, "mapper", use_tf=config.input.use_tf,
-                                         tf_buffer=self.tf_buffer)
+                                         tf_buffer=self.tf_buffer, queue_size=MAPPER_QUEUE_SIZE)
         out = config.output
         self.map_tf = MapTransform(self.tf_buffer, config.map.map_frame, out.base_frame or ring.base_frame,
                                    out.odom_frame, out.tf_mode, "mapper")

@@ -47,6 +47,11 @@ WARN_PERIOD = 5.0  # s between repeats of one throttled warning
 #: keeping them (rospy's default, 64 kB, is smaller than such a message).
 BUFF_SIZE = 1 << 24
 
+#: Detection messages the mapper keeps per camera while its callback is busy: 10 s of a 10 Hz
+#: ring. With 5, a callback stalled for a second on a loaded machine (load 19 on 2 cores) lost a
+#: camera's message and the mapper added ring frames without every camera.
+MAPPER_QUEUE_SIZE = 100
+
 
 class _Now:
     """Placeholder in :meth:`RingSubscriber.call`'s arguments for the node's clock at arrival."""
@@ -78,10 +83,13 @@ class RingSubscriber:
         poll_period: period (s) of the timer calling ``pipeline.poll``.
         tf_buffer: an existing tf2 Buffer to share (one with a listener is created otherwise).
         queue_size: detection messages kept per camera when the callback falls behind (the
-            localizer keeps 1: an older frame would only be overtaken).
+            localizer keeps 1: an older frame would only be overtaken; the mapper keeps
+            :data:`MAPPER_QUEUE_SIZE`: a map wants every ring frame whole).
         buff_size: rospy's read buffer per subscription, bytes: the localizer's :data:`BUFF_SIZE`
-            (never a backlog); rospy's default 64 kB for the mapper, which would rather fall
-            behind than lose a camera's message (a map wants every ring frame whole).
+            (never a backlog); rospy's default 64 kB for the mapper. That buffer does not keep
+            a backlog in the socket for small messages: one read takes dozens of detection
+            messages (about 1 kB each) and rospy keeps only the newest ``queue_size`` of them,
+            so the mapper's queue is what must be deep.
     """
 
     def __init__(self, pipeline: Any, deliver: Callable[[Any], None], name: str, use_tf: bool = True,
