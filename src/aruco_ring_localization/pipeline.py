@@ -606,9 +606,9 @@ class LocalizationPipeline(_RingPipeline):
                   ("reinitializations", str(self.gate.reinitializations)),
                   ("latency_ms_median", f"{np.median(lat):.2f}")]
         values += [(f"rejected_{k.replace(' ', '_')}", str(v)) for k, v in sorted(self.rejected_counts.items())]
-        out.append(StatusReport("aruco_ring localizer: filter", "localizer", ok, message, values))
         if self.marker_check is not None:
             out.append(self._marker_report())
+        out.append(StatusReport("aruco_ring localizer: filter", "localizer", ok, message, values))   # last, as before
         return out
 
     def _marker_report(self) -> StatusReport:
