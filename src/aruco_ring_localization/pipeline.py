@@ -52,6 +52,7 @@ from .localization import se2_covariance
 from .tracker6 import Tracker6
 from .localization import LocalizationResult, RingLocalizer
 from .mapping import MapBuilder
+from .marker_check import MarkerCheck
 from .marker_map import MarkerMap
 from .odometry import OdometryHistory, constant_velocity_displacement, propagate_se2, se2_between
 from .ring import CameraRing, apply_refined_extrinsics
@@ -403,6 +404,9 @@ class LocalizationPipeline(_RingPipeline):
         self.filter = PoseFilter(config.filter)
         #: ``filter/model: 6dof``: the 6-DOF tracker replaces the gate and the planar filter.
         self.tracker6 = Tracker6(config.tracker6) if config.filter.model == "6dof" else None
+        #: moved-marker detection (marker_check.py), None when marker_check.enabled is false.
+        self.marker_check = MarkerCheck(marker_map, config.marker_check, self.warn) \
+            if config.marker_check.enabled else None
         self._motion: Dict[str, _Motion] = {}
         #: Odometry poses (and IMU yaw) by stamp, with ``motion.odometry`` (issue 12).
         self.odometry = OdometryHistory(config.motion)
@@ -687,6 +691,28 @@ class LocalizationPipeline(_RingPipeline):
         x, y, yaw = self._predicted_se2(stamp)[0] if self._odometry_on else self.filter.predicted(stamp)
         return geo.transform_from_se2(x, y, yaw, self._z)
 
+    def remap_markers(self, marker_ids: Sequence[int]) -> List[Tuple[int, float, str]]:
+        """Re-estimate each marker from its recent observations with the others fixed, in the map in
+        memory (the ``~remap_marker`` service); returns (id, moved m, "") or (id, nan, why not) each."""
+        if self.marker_check is None:
+            raise ConfigError("marker_check is disabled: no observations kept to re-map from",
+                              key="marker_check.enabled")
+        out = []
+        for mid in marker_ids:
+            try:
+                _, moved = self.marker_check.remap(int(mid))
+            except MeasurementError as exc:
+                out.append((int(mid), float("nan"), str(exc)))
+                continue
+            self.localizer._axes_cache.pop(int(mid), None)
+            out.append((int(mid), moved, ""))
+        return out
+
+    def save_map(self, path: str) -> None:
+        """Write the map in memory (with markers re-mapped by :meth:`remap_markers`) to ``path``
+        atomically, keeping ``marker_check.backups`` previous versions (the ``~save_map`` service)."""
+        self.marker_map.save(path, backups=self.config.marker_check.backups)
+
     def markers_in_view(self, now: float, window: float) -> set:
         """Ids of the mapped markers used within ``window`` s before ``now``."""
         return {m for m, t in self._in_view.items() if 0.0 <= now - t < window}
@@ -728,8 +754,23 @@ class LocalizationPipeline(_RingPipeline):
                   ("reinitializations", str(self.gate.reinitializations)),
                   ("latency_ms_median", f"{np.median(lat):.2f}")]
         values += [(f"rejected_{k.replace(' ', '_')}", str(v)) for k, v in sorted(self.rejected_counts.items())]
-        out.append(StatusReport("aruco_ring localizer: filter", "localizer", ok, message, values))
+        if self.marker_check is not None:
+            out.append(self._marker_report())
+        out.append(StatusReport("aruco_ring localizer: filter", "localizer", ok, message, values))   # last, as before
         return out
+
+    def _marker_report(self) -> StatusReport:
+        """The moved-marker check's status: WARN naming each moved marker and how far it moved."""
+        mc = self.marker_check
+        moved = sorted(mc.moved.values(), key=lambda m: m.marker_id)
+        message = ("moved (dropped from the pose): " + ", ".join(f"{m.marker_id} by {100 * m.distance:.1f} cm"
+                                                                  for m in moved)) if moved else "no moved marker"
+        values = [("moved_markers", " ".join(str(m.marker_id) for m in moved)),
+                  ("frames_checked", str(mc.frames_checked)), ("declared", str(mc.declarations))]
+        values += [(f"marker_{m.marker_id}_moved_cm", f"{100 * m.distance:.1f}") for m in moved]
+        values += [(f"marker_{m.marker_id}_displacement_m", " ".join(f"{v:.3f}" for v in m.displacement))
+                   for m in moved]
+        return StatusReport("aruco_ring localizer: markers", "localizer", not moved, message, values)
 
     # --- the pipeline -------------------------------------------------------------------------
 
@@ -826,6 +867,8 @@ class LocalizationPipeline(_RingPipeline):
         return (max((m.speed for m in fresh), default=0.0), max((m.yaw_rate for m in fresh), default=0.0))
 
     def _reset(self, pose, stamp: Optional[float]) -> None:
+        if self.marker_check is not None:
+            self.marker_check.reset()
         self.gate.reset()
         self.filter.reset(pose, stamp)
         if self.tracker6 is not None:
@@ -852,7 +895,15 @@ class LocalizationPipeline(_RingPipeline):
             return self._track6(ring_frame, stamp, time_jump)
         pred = self.prediction(stamp)
         motion = self._motion_model if self.config.motion.compensate_stamps else None
-        loc = self.localizer.process(ring_frame, pred, motion)
+        check = self.marker_check
+        loc = self.localizer.process(ring_frame if check is None else check.strip(ring_frame), pred, motion)
+        if check is not None and loc.ok and not loc.ambiguous and pred is not None and \
+                geo.pose_distance(loc.T_map_base, pred)[0] <= self.config.gate.base_distance:
+            # Moved-marker check (marker_check.py) on a measurement near the prediction, before the
+            # filter: a marker declared moved now is dropped from this very frame's pose.
+            if check.update(ring_frame, loc.T_map_base, self.localizer.ring, stamp):
+                loc = self.localizer.process(check.strip(ring_frame), pred, motion)
+            check.warn_moved(stamp if self._clock is None else self._clock)
         for k, v in loc.rejected.items():
             self.rejected_counts[k] = self.rejected_counts.get(k, 0) + v
         out = TrackResult(stamp=stamp, localization=loc, time_jump=time_jump)

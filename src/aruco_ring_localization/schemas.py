@@ -37,6 +37,7 @@ from .kalman import FilterParams
 from .localization import LocalizationParams
 from .odometry import MotionParams
 from .mapping import METHODS, MappingOptions
+from .marker_check import MarkerCheckParams
 from .markers import MarkerSizes, parse_id_list
 from .tracker6 import Tracker6Params
 
@@ -162,6 +163,8 @@ class LocalizerConfig:
     motion: MotionParams = section(MotionParams, "free-running cameras and odometry in the filter (issue 12; "
                                                  "docs/localization.md)")
     output: LocalizerOutputParams = section(LocalizerOutputParams, "frames and publishing")
+    marker_check: MarkerCheckParams = section(MarkerCheckParams, "moved-marker detection: each marker against "
+                                                                 "the pose from the others, over a window")
 
 
 # --- mapper --------------------------------------------------------------------------------------

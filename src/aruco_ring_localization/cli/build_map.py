@@ -7,6 +7,13 @@ is read by ``ros/bag_source.py`` (each camera's ``fiducial_vertices``, or images
 detector; ``camera_info``; extrinsics from ``/tf_static``, else the ring file's). The map is
 written through :meth:`MapBuilder.save_map` (atomically, sanity-checked, previous file kept as
 ``.bak``).
+
+``--update MAP --markers ID ...`` re-maps those markers (moved ones) from the bag with every other
+marker of MAP fixed: the localizer's pipeline (``config/localization.yaml``, or ``--config``: then
+the localizer's file) runs on the bag with those markers kept out of the pose, their observations
+are collected with the robot poses from the others, and each is re-estimated in 6 DOF
+(:func:`marker_check.estimate_marker_pose`). MAP (or ``--out``) is written atomically, keeping
+``marker_check.backups`` generations (``.bak``, ``.bak.2``, ...), as the map savers do.
 """
 from __future__ import annotations
 
@@ -29,7 +36,11 @@ HELP = ("build a marker map from a bag of fiducial_vertices (or AprilTag detecti
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("bag", help="rosbag with <ns>/fiducial_vertices (or AprilTag detections, or images) and "
                                     "<ns>/camera_info")
-    parser.add_argument("--out", required=True, help="map YAML to write (atomically; old one kept as .bak)")
+    parser.add_argument("--out", help="map YAML to write (atomically; old one kept as .bak); required unless "
+                                      "--update (default there: the updated map itself)")
+    parser.add_argument("--update", metavar="MAP", help="re-map --markers in MAP from the bag, the other markers "
+                                                        "fixed (moved markers); --config is then the localizer's")
+    parser.add_argument("--markers", nargs="+", metavar="ID", help="with --update: the marker ids to re-map")
     parser.add_argument("--ring", help="ring YAML file (default: the config's ring_file, else config/ring.yaml)")
     parser.add_argument("--config", help="the mapper's parameter file (default: config/mapping.yaml)")
     parser.add_argument("--method", choices=("paper", "refined"), help="map/method (default: the config's)")
@@ -66,6 +77,12 @@ def run(args: argparse.Namespace) -> int:
     except ImportError as exc:
         sys.stderr.write(f"build-map: needs the ROS Python packages (rosbag; source .ws/env.sh): {exc}\n")
         return 2
+    if args.update:
+        return run_update(args)
+    if not args.out:
+        raise ConfigError("--out is required (unless --update MAP)")
+    if args.markers:
+        raise ConfigError("--markers goes with --update MAP")
     config = load_config(args)
     ring = CameraRing.load(args.ring or config.ring_file or package_file("config", "ring.yaml"))
     pipeline = MappingPipeline(config, ring)
@@ -75,6 +92,53 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("no usable ring frame in the bag (see the lines above)", path=args.bag)
     m = pipeline.save(args.out)
     _print_summary(pipeline, m, args.out)
+    return 0
+
+
+def run_update(args: argparse.Namespace) -> int:
+    """``--update MAP --markers ID ...`` (module docstring)."""
+    from ..config import load_yaml_config as load
+    from ..marker_check import parse_marker_ids
+    from ..marker_map import MarkerMap
+    from ..pipeline import LocalizationPipeline
+    from ..ros.bag_source import BagSource, package_file
+    from ..schemas import LocalizerConfig
+
+    try:
+        ids = parse_marker_ids(args.markers or [])
+    except ValueError as exc:
+        raise ConfigError(str(exc), key="--markers") from None
+    if not ids:
+        raise ConfigError("--update needs --markers ID ... (the markers to re-map)", key="--markers")
+    marker_map = MarkerMap.load(args.update)
+    missing = [i for i in ids if i not in marker_map]
+    if missing:
+        raise ConfigError(f"markers {missing} are not in the map (it has {marker_map.ids})", path=args.update,
+                          key="--markers")
+    if len(marker_map) - len(set(ids)) < 2:
+        raise ConfigError("fewer than 2 markers would stay fixed: build a new map instead", path=args.update)
+    config = load(LocalizerConfig, args.config or package_file("config", "localization.yaml"), {
+        "map_file": args.update, "marker_check.enabled": True, "marker_check.remap_window": 1e9,
+        "input.ignore_fiducials": args.ignore_fiducials, "input.slop": args.slop})
+    ring = CameraRing.load(args.ring or config.ring_file or package_file("config", "ring.yaml"))
+    pipeline = LocalizationPipeline(config, ring, marker_map)
+    pipeline.marker_check.excluded = set(ids)
+    with BagSource(args.bag, ring, progress=args.progress or None) as source:
+        source.run(pipeline, command="build-map --update")
+    old = {i: marker_map[i].T_map_marker[:3, 3].copy() for i in ids}
+    results = pipeline.remap_markers(ids)
+    failed = [why for _, _, why in results if why]
+    if failed:
+        raise ConfigError("; ".join(failed), path=args.bag)
+    out = args.out or args.update
+    pipeline.save_map(out)
+    sys.stdout.write(f"map: {out} (markers {ids} re-mapped from {args.bag}, {len(marker_map) - len(ids)} others "
+                     f"fixed; previous version kept as {out}.bak)\n")
+    for mid, moved, _ in results:
+        t = marker_map[mid].T_map_marker[:3, 3]
+        sys.stdout.write(f"{mid:>6} moved {100 * moved:6.1f} cm: ({old[mid][0]:.3f}, {old[mid][1]:.3f}, "
+                         f"{old[mid][2]:.3f}) -> ({t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}) m, "
+                         f"{marker_map[mid].observations // 4} views, RMS {marker_map[mid].rms_px:.2f} px\n")
     return 0
 
 

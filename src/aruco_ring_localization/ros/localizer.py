@@ -13,9 +13,13 @@ gives a pose out), ``imu`` (sensor_msgs/Imu, with ``motion/imu`` only: its yaw r
 Publishes: ``~pose`` (PoseWithCovarianceStamped, REP-103 covariance order, robot_localization
 ready), ``~odometry`` (nav_msgs/Odometry with the filter's twist), ``~camera_estimates``
 (PoseArray, one per camera), ``~markers`` (MarkerArray, markers in view highlighted),
-``/diagnostics`` (diagnostic_updater), ``~marker_grid`` (nav_msgs/OccupancyGrid, latched: the marker
-map for map_server-style tools), tf ``map -> odom`` or ``map -> base_link``. Services: ``~reset``
-(std_srvs/Trigger), ``~static_map`` (nav_msgs/GetMap, map_server's service type: that grid).
+``/diagnostics`` (diagnostic_updater: per camera, the filter, and the moved-marker check: which
+markers moved and how far), ``~marker_grid`` (nav_msgs/OccupancyGrid, latched: the marker map for
+map_server-style tools), tf ``map -> odom`` or ``map -> base_link``. Services: ``~reset``
+(std_srvs/Trigger), ``~static_map`` (nav_msgs/GetMap, map_server's service type: that grid);
+``~remap_marker`` (std_srvs/Trigger: re-map the markers of ``~remap_marker_ids``, default every
+marker declared moved, from their recent observations with the others fixed, in memory);
+``~save_map`` (std_srvs/Trigger: write the map in memory to ``~map_file`` atomically with backups).
 
 Another node publishing the tf child frame we publish (a second localizer, gmapping's
 ``map -> odom``) is warned about, throttled, at its first such message (docs/security.md).
@@ -44,6 +48,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from .. import geometry as geo
 from ..errors import ArucoRingError, ConfigError
 from ..marker_grid import marker_grid
+from ..marker_check import parse_marker_ids
 from ..marker_map import MarkerMap
 from ..pipeline import LocalizationPipeline, PoseOutput, StatusReport
 from ..ring import CameraRing
@@ -93,6 +98,8 @@ class LocalizerNode:
         rospy.Publisher("~marker_grid", OccupancyGrid, queue_size=1, latch=True).publish(self.grid_msg)
         rospy.Service("~static_map", GetMap, lambda _req: GetMapResponse(map=self.grid_msg))
         self._markers_seen: Optional[set] = None  # markers in view in the last ~markers array
+        rospy.Service("~remap_marker", Trigger, self.on_remap_marker)
+        rospy.Service("~save_map", Trigger, self.on_save_map)
         rospy.Timer(rospy.Duration(out.diagnostics_period), self.publish_diagnostics, reset=True)
         rospy.Timer(rospy.Duration(out.markers_period), self.publish_markers, reset=True)
         self._tf_child: Optional[str] = None   # the child frame we last put on tf
@@ -140,6 +147,42 @@ class LocalizerNode:
         self.ring_input.call(self.pipeline.reset)
         rospy.loginfo("localizer: reset by service; the next measurement initialises the track")
         return TriggerResponse(success=True, message="track reset")
+
+    def on_remap_marker(self, _req) -> TriggerResponse:
+        """Re-map the markers named by ``~remap_marker_ids`` (read at each call: ``"17 18"`` or a
+        list; empty: every marker declared moved) from their recent observations, the others fixed,
+        in the map in memory; written only with marker_check/save_on_remap (else ``~save_map``)."""
+        try:
+            ids = parse_marker_ids(rospy.get_param("~remap_marker_ids", []) or [])
+        except ValueError as exc:
+            return TriggerResponse(success=False, message=f"~remap_marker_ids: {exc}")
+        with self.ring_input.lock:
+            if self.pipeline.marker_check is None:
+                return TriggerResponse(success=False, message="marker_check/enabled is false")
+            ids = ids or sorted(self.pipeline.marker_check.moved)
+            if not ids:
+                return TriggerResponse(success=False, message="no marker declared moved and ~remap_marker_ids empty")
+            results = self.pipeline.remap_markers(ids)
+        done = [f"{mid} (moved {100 * moved:.1f} cm)" for mid, moved, why in results if not why]
+        failed = [why for _, _, why in results if why]
+        message = ("re-mapped " + ", ".join(done) if done else "nothing re-mapped") + \
+            ("; " + "; ".join(failed) if failed else "")
+        if done and self.config.marker_check.save_on_remap:
+            message += "; " + self.on_save_map(None).message
+        (rospy.loginfo if not failed else rospy.logwarn)("localizer: ~remap_marker: %s", message)
+        return TriggerResponse(success=bool(done) and not failed, message=message)
+
+    def on_save_map(self, _req) -> TriggerResponse:
+        """Write the map in memory to ~map_file atomically, keeping marker_check/backups generations."""
+        path = self.config.map_file
+        try:
+            with self.ring_input.lock:
+                self.pipeline.save_map(path)
+        except (ArucoRingError, OSError) as exc:
+            rospy.logerr("localizer: ~save_map: %s", exc)
+            return TriggerResponse(success=False, message=f"could not write {path}: {exc}")
+        rospy.loginfo("localizer: map written to %s", path)
+        return TriggerResponse(success=True, message=f"saved {len(self.marker_map)} markers to {path}")
 
     # --- outputs ----------------------------------------------------------------------------
 

@@ -20,6 +20,7 @@ Units: SI; angles in radians unless the key ends in ``_deg``.
 """
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 from typing import Any, Iterator, Mapping, Optional, Sequence, Tuple
@@ -297,6 +298,23 @@ class LockstepParams:
         _non_negative("startup_timeout", self.startup_timeout)
 
 
+def scene_event(e, key: str = "events") -> Tuple[float, int, Tuple[float, ...], Tuple[float, ...]]:
+    """``(t, marker, move, rotate_deg)`` of one ``events`` entry; ConfigError naming the key."""
+    if not isinstance(e, Mapping) or not {"t", "marker"} <= set(e) or not set(e) <= {"t", "marker", "move",
+                                                                                     "rotate_deg"}:
+        raise ConfigError(f"expected {{t: s, marker: id, move: [dx, dy, dz], rotate_deg: [rx, ry, rz]}}, got {e!r}",
+                          key=key)
+    try:
+        t, marker = float(e["t"]), int(e["marker"])
+        move = tuple(float(v) for v in e.get("move", (0.0, 0.0, 0.0)))
+        rot = tuple(float(v) for v in e.get("rotate_deg", (0.0, 0.0, 0.0)))
+    except (TypeError, ValueError):
+        raise ConfigError(f"t, marker and the vectors must be numbers, got {e!r}", key=key) from None
+    if len(move) != 3 or len(rot) != 3 or not all(math.isfinite(v) for v in (t,) + move + rot):
+        raise ConfigError(f"move and rotate_deg are 3 finite numbers, t finite, got {e!r}", key=key)
+    return t, marker, move, rot
+
+
 @dataclass(frozen=True)
 class SimulatorConfig:
     """Private parameters of the ``simulator`` node (config/simulator.yaml, docs/simulation.md)."""
@@ -317,11 +335,17 @@ class SimulatorConfig:
     laser: LaserParams = section(LaserParams)
     clock: ClockParams = section(ClockParams)
     lockstep: LockstepParams = section(LockstepParams)
+    events: tuple = param([], "scene changes at a simulated time: [{t: 20, marker: 17, move: [0, 0.05, 0]}] moves "
+                              "marker 17 by 5 cm along the world's y (along its wall) at t = 20 s (optional "
+                              "rotate_deg: [rx, ry, rz], a rotation vector about its centre); the map does not know "
+                              "(a bumped marker)")
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ConfigError(f"expected corners or images, got {self.mode!r}", key="mode")
         _positive("rate", self.rate)
+        for k, e in enumerate(self.events):
+            scene_event(e, f"events[{k}]")
 
 
 # --- the labs: kind (the schema's defaults) and harsh (config/lab_harsh.yaml) ---------------------

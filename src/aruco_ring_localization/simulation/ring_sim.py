@@ -21,7 +21,7 @@ estimators are given is the calibrated one, so no result relies on a perfect cal
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Dict, List, Optional, Sequence, Tuple, Union
 
 import cv2
@@ -29,6 +29,7 @@ import numpy as np
 
 from .. import geometry as geo
 from ..detections import CameraFrame, MarkerObservation, RingFrame
+from ..errors import ConfigError
 from ..markers import marker_corners
 from ..ring import CameraRing, RingCamera
 from .params import CameraParams, RenderParams, RingParams
@@ -134,6 +135,27 @@ class RingSimulator:
         g = np.array([-0.5, 0.0, 0.5])
         probe = np.array([[u, v, 0.0] for u in g for v in g])
         self._probe_w = np.stack([geo.transform_points(m.T_world_marker, probe * m.size) for m in scene.markers])
+
+    def move_marker(self, marker_id: int, translation, rotation_deg=(0.0, 0.0, 0.0)) -> None:
+        """Move a marker in the world (a bump in the hall: the map does not know): by ``translation``
+        (3, m, world axes) and ``rotation_deg`` (3, deg, rotation vector about its centre)."""
+        ids = [m.marker_id for m in self.scene.markers]
+        if int(marker_id) not in ids:
+            raise ConfigError(f"marker {marker_id} is not in the scene (ids {sorted(ids)})", key="events")
+        k = ids.index(int(marker_id))
+        m = self.scene.markers[k]
+        T = m.T_world_marker.copy()
+        T[:3, :3] = geo.rotation_from_rvec(np.radians(np.asarray(rotation_deg, dtype=float))) @ T[:3, :3]
+        T[:3, 3] = T[:3, 3] + np.asarray(translation, dtype=float).reshape(3)
+        moved = replace(m, T_world_marker=T)
+        self.scene.markers[k] = moved
+        self._corners_w[k] = moved.corners_world()
+        modules = _dictionary_modules(self.scene.dictionary)
+        sheet_scale = (modules + 2.0 * self.scene.quiet_zone_modules) / modules
+        self._sheet_w[k] = geo.transform_points(T, marker_corners(moved.size * sheet_scale))
+        self._centres_w[k] = T[:3, 3]
+        self._normals_w[k] = moved.normal
+        self._renderer = None   # image mode draws the scene's markers: rebuild
 
     # --- geometry --------------------------------------------------------------------------------
 

@@ -31,7 +31,7 @@ from ..errors import ConfigError
 from ..ring import CameraRing
 from .laser import LaserScanner, occupancy_grid
 from .motion import RobotState, SimRobot
-from .params import SimulatorConfig
+from .params import SimulatorConfig, scene_event
 from .conditions import Floor, Photometry, RingVibration
 from .ring_sim import RingSimulator, perturb_ring
 from .scene import Scene
@@ -133,6 +133,12 @@ class SimulatorCore:
                                   range_max=config.laser.range_max, seed=config.seed)
         self.state = RobotState(self.robot.base.pose.copy(), np.zeros(3), np.zeros(3), np.zeros(3), -1)
         self._teleport: Optional[Tuple[float, float, float]] = None
+        #: scene events not applied yet (config ``events``), by time.
+        self.pending_events = sorted((scene_event(e, f"events[{k}]") for k, e in enumerate(config.events)),
+                                     key=lambda e: e[0])
+        for _, marker, _, _ in self.pending_events:
+            if marker not in scene.marker_ids:
+                raise ConfigError(f"marker {marker} is not in the scene", key="events")
         self._lock = threading.Lock()
         cams = config.cameras
         self.camera_clock = CameraClock(self.cameras, cams.trigger, config.rate, cams.phase_spread, cams.jitter_std,
@@ -160,6 +166,11 @@ class SimulatorCore:
             self._record(t - 1e-9, np.array(pending, dtype=float))   # no interpolation across a kidnap
         elif not self._times:
             self._record(t - dt, self.robot.base.pose.copy())       # at rest before the first frame
+        while self.pending_events and self.pending_events[0][0] <= t:
+            _, marker, move, rot = self.pending_events.pop(0)
+            self.sim.move_marker(marker, move, rot)
+            logger.info("simulator: t=%.2f s: marker %d moved by %s m, rotated %s deg (scene event)", t, marker,
+                        list(move), list(rot))
         self.state = self.robot.step(t, dt)
         self._record(t, self.state.pose)
         self.stamps = {c: t - off for c, off in self.camera_clock.offsets().items()}
