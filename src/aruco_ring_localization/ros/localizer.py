@@ -88,7 +88,7 @@ class LocalizerNode:
         self.ring_input = RingSubscriber(self.pipeline, self.publish, "localizer", use_tf=config.input.use_tf,
                                          tf_buffer=self.tf_buffer, queue_size=1, buff_size=BUFF_SIZE)
         rospy.Subscriber("cmd_vel", Twist, self.on_cmd_vel, queue_size=5)
-        rospy.Subscriber("odom", Odometry, self.on_odom, queue_size=5)
+        rospy.Subscriber("odom", Odometry, self.on_odom, queue_size=50)  # 1 s at 50 Hz: each one is a pose (motion/odometry)
         if config.motion.imu:
             rospy.Subscriber("imu", Imu, self.on_imu, queue_size=20)
         rospy.Subscriber("initialpose", PoseWithCovarianceStamped, self.on_initialpose, queue_size=1)

@@ -119,6 +119,7 @@ class MapperNode:
         self.map_file = os.path.expanduser(config.map_file) or default_map_file()
         self.pipeline = MappingPipeline(config, ring)
         self._published_version = -1
+        self._saved_map: Optional[MarkerMap] = None   # the last map ~save_map wrote, kept on display
         self.pub_markers = rospy.Publisher("~markers", MarkerArray, queue_size=1, latch=True)
         self.pub_fiducial_map = rospy.Publisher("fiducial_map", FiducialMapEntryArray, queue_size=1, latch=True)
         self.static_tf = tf2_ros.StaticTransformBroadcaster()
@@ -187,6 +188,12 @@ class MapperNode:
                 rospy.logwarn_throttle(WARN_PERIOD, f"mapper: no map yet: {exc}")
                 return
             self._published_version = version
+        saved = self._saved_map
+        if saved is not None and set(m.ids) <= set(saved.ids):
+            # After ~save_map the saved (refined) map stays on tf and ~markers while the preview shows
+            # no new marker: the preview's frame follows the paper's chaining rule, the saved map's
+            # may be another marker's, and the markers would jump between the two in rviz.
+            return
         self.publish(m)
 
     def on_progress_timer(self, _event) -> None:
@@ -211,6 +218,7 @@ class MapperNode:
             text = self.pipeline.format_saved(m, self.map_file)
             complete = not self.pipeline.builder.unmapped(m)
             self._published_version = self.pipeline.version
+        self._saved_map = m
         self.publish(m)
         (rospy.loginfo if complete else rospy.logwarn)(f"mapper: {text}")
         return text
@@ -227,6 +235,7 @@ class MapperNode:
         with self.ring_input.lock:
             self.pipeline.clear()
             self._published_version = -1
+            self._saved_map = None
         self.pub_markers.publish(map_to_marker_array(MarkerMap(frame_id=self.config.map.map_frame), rospy.Time.now()))
         self.pub_fiducial_map.publish(FiducialMapEntryArray())
         rospy.loginfo("mapper: cleared")
