@@ -258,3 +258,37 @@ def test_after_a_blackout_the_first_frame_waits_for_every_camera():
     a.poll(now=10.0)
     _, frames = _run_10hz(a, CAMS, 20.0, 3)  # all cameras back after 19 s of silence
     assert frames and all(sorted(f.cameras) == CAMS for f in frames), [sorted(f.cameras) for f in frames]
+
+
+def test_why_a_frame_went_out_incomplete_is_counted():
+    # timeout: six cameras, then the timeout
+    a = _assembler(silence=None)
+    for cam in CAMS[:6]:
+        a.add(_frame(cam, 2.0), now=2.0)
+    a.poll(now=2.3)
+    assert a.incomplete == {"timeout": 1, "silent": 0, "overtaken": 0}
+    # overtaken: cam7 lost the frame at 3.0; the frame at 3.1 completes first and pushes it out
+    for cam in CAMS[:7]:
+        a.add(_frame(cam, 3.0), now=3.0)
+    out = []
+    for cam in CAMS:
+        out += a.add(_frame(cam, 3.1), now=3.05)
+    assert [rf.missing for rf in out] == [["cam7"], []]
+    assert a.incomplete == {"timeout": 1, "silent": 0, "overtaken": 1}
+
+
+def test_a_lagging_camera_catches_up_within_the_timeout():
+    # One camera's callback 1.5 s (15 frames at 10 Hz) behind the others, within a 5 s timeout:
+    # with a fixed 8 pending frames the oldest went out without it; now every frame is whole.
+    a = _assembler(timeout=5.0, silence=None)
+    stamps = [10.0 + 0.1 * k for k in range(30)]
+    out = []
+    for k, t in enumerate(stamps):
+        for cam in CAMS[:7]:
+            out += a.add(_frame(cam, t), now=t)
+        if k >= 15:
+            out += a.add(_frame("cam7", stamps[k - 15]), now=t)
+    for t in stamps[15:]:
+        out += a.add(_frame("cam7", t), now=stamps[-1] + 0.01)
+    assert len(out) == 30 and all(rf.missing == [] for rf in out), [rf.missing for rf in out if rf.missing][:3]
+    assert a.max_pending >= 50 * 5.0
