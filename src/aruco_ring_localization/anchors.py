@@ -120,16 +120,7 @@ class AnchorSet:
 
     def to_dict(self) -> Dict[str, Any]:
         """The file's content (what :func:`anchors_from_dict` reads back)."""
-        out = []
-        for a in self.anchors:
-            d: Dict[str, Any] = {"marker": a.marker_id, "position": [float(v) for v in a.position],
-                                 "std": [float(v) for v in a.position_std]}
-            if a.rotation is not None:
-                d["rotation"] = [float(v) for v in Rotation.from_matrix(a.rotation).as_quat()]
-                d["rotation_std_deg"] = float(np.degrees(a.rotation_std))
-            if a.instrument:
-                d["instrument"] = a.instrument
-            out.append(d)
+        out = [_survey_dict(a, "position") for a in self.anchors]
         return {"frame_id": self.frame_id, "anchors": out} if self.frame_id else {"anchors": out}
 
 
@@ -321,18 +312,24 @@ def fit_frame(anchors: AnchorSet, T_W_markers: Mapping[int, np.ndarray]) -> Anch
     return out
 
 
+def _survey_dict(a: Any, position_key: str) -> Dict[str, Any]:
+    """One anchor's survey as YAML-ready values: its position under ``position_key``, std, rotation."""
+    d: Dict[str, Any] = {"marker": a.marker_id, position_key: [float(v) for v in a.position],
+                         "std": [float(v) for v in a.position_std]}
+    if a.rotation is not None:
+        d["rotation"] = [float(v) for v in Rotation.from_matrix(a.rotation).as_quat()]
+        d["rotation_std_deg"] = float(np.degrees(a.rotation_std))
+    if a.instrument:
+        d["instrument"] = a.instrument
+    return d
+
+
 def anchor_report(anchors: AnchorSet, T_map_markers: Mapping[int, np.ndarray], kind: str) -> Dict[str, Any]:
     """The map file's ``anchors`` section: the survey and each anchor's residual (mapped minus surveyed,
     in the map frame, m; and in units of the survey's std)."""
     points = []
     for a in anchors.anchors:
-        d: Dict[str, Any] = {"marker": a.marker_id, "surveyed": [float(v) for v in a.position],
-                             "std": [float(v) for v in a.position_std]}
-        if a.rotation is not None:
-            d["rotation"] = [float(v) for v in Rotation.from_matrix(a.rotation).as_quat()]
-            d["rotation_std_deg"] = float(np.degrees(a.rotation_std))
-        if a.instrument:
-            d["instrument"] = a.instrument
+        d = _survey_dict(a, "surveyed")
         T = T_map_markers.get(a.marker_id)
         if T is None:
             d["mapped"] = False
