@@ -34,7 +34,8 @@ def _setup(seed: int, rig=(0.002, 0.2), **overrides):
     scene = Scene.default()
     ring = CameraRing.load(RING)
     sim = RingSimulator(scene, perturb_ring(ring, rig[0], rig[1], seed=seed), pixel_noise=0.3, seed=seed + 40)
-    pipe = LocalizationPipeline(with_overrides(LocalizerConfig(), {**OFFLINE, **overrides}), ring, scene.truth_map())
+    pipe = LocalizationPipeline(with_overrides(LocalizerConfig(), {**OFFLINE, "marker_check.enabled": True, **overrides}), ring,
+                                scene.truth_map())
     return scene, sim, pipe
 
 
