@@ -2,7 +2,7 @@
 """rostest node of moved_marker.test: the localizer drops a moved marker, names it, re-maps it.
 
 Marker 17 moves 5 cm at simulated t = 20 s (a simulator scene event). The localizer's
-``/diagnostics`` status ``aruco_ring localizer: markers`` must turn WARN naming 17 and how far it
+``/diagnostics`` status ``localizer: markers`` must turn WARN naming 17 and how far it
 moved (3-8 cm), rosout must carry the warning naming it, and ``~remap_marker`` (std_srvs/Trigger,
 every marker declared moved) must re-map it (moved 3-8 cm) and bring the status back to OK.
 Waits are on events (messages), with generous wall-clock timeouts for a loaded machine.
@@ -25,7 +25,7 @@ from std_srvs.srv import Trigger
 PKG = "aruco_ring_localization"
 MARKER = 17
 EVENT_T = 20.0
-STATUS = "aruco_ring localizer: markers"
+STATUS = "localizer: markers"
 
 
 class MovedMarkerTest(unittest.TestCase):

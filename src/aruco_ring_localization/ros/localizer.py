@@ -83,7 +83,7 @@ class LocalizerNode:
         self.pub_odom = rospy.Publisher("~odometry", Odometry, queue_size=10)
         self.pub_cams = rospy.Publisher("~camera_estimates", PoseArray, queue_size=5)
         self.pub_markers = rospy.Publisher("~markers", MarkerArray, queue_size=1, latch=True)
-        self.diagnostics = Diagnostics(self.pipeline.input.camera_names)
+        self.diagnostics = Diagnostics(self.pipeline.input.camera_names, marker_check=config.marker_check.enabled)
         # One detection message kept per camera when we fall behind: an older one would be overtaken.
         self.ring_input = RingSubscriber(self.pipeline, self.publish, "localizer", use_tf=config.input.use_tf,
                                          tf_buffer=self.tf_buffer, queue_size=1, buff_size=BUFF_SIZE)
@@ -305,20 +305,21 @@ class LocalizerNode:
 
 class Diagnostics:
     """``/diagnostics`` through diagnostic_updater: one task per camera (``<node>: camera NAME``,
-    hardware_id the camera's name) and one for the filter (``<node>: filter``, hardware_id
-    ``localizer``), published together every ``output/diagnostics_period`` (1 s).
+    hardware_id the camera's name), one for the filter (``<node>: filter``, hardware_id
+    ``localizer``) and, with the moved-marker check on, ``<node>: markers``; published together every ``output/diagnostics_period`` (1 s).
 
     Levels: OK; WARN for a silent camera or a filter that is not tracking; ERROR for the filter
     when every camera is silent (nothing can be localized). config/diagnostics_aggregator.yaml
     groups them for rqt_robot_monitor.
     """
 
-    def __init__(self, camera_names: Sequence[str]):
+    def __init__(self, camera_names: Sequence[str], marker_check: bool = False):
         self.updater = diagnostic_updater.Updater()
         self.updater.setHardwareID("aruco_ring")
         self._reports: Dict[str, StatusReport] = {}
         self._all_silent = False
-        for task in [f"camera {n}" for n in camera_names] + ["filter"]:
+        # With marker_check/enabled, a third kind: ``<node>: markers`` (which markers moved, how far).
+        for task in [f"camera {n}" for n in camera_names] + ["filter"] + (["markers"] if marker_check else []):
             self.updater.add(task, lambda stat, task=task: self._fill(task, stat))
 
     def publish(self, reports: Sequence[StatusReport]) -> None:
