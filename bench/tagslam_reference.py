@@ -219,13 +219,15 @@ def write_camera_poses(ref: Reference, path: str, header: str = "") -> str:
     return path
 
 
-def export_test_data(test: str, out_dir: str, every: int = 1, max_frames: int = 0) -> List[str]:
+def export_test_data(test: str, out_dir: str, every: int = 1, max_frames: int = 0,
+                     start: Optional[float] = None, stop: Optional[float] = None) -> List[str]:
     """Copy what a unit test needs of ``test`` into ``out_dir`` (small, self-contained).
 
     Files: ``cameras.yaml`` and ``tagslam.yaml`` (as published), ``camera_poses.yaml`` (TagSLAM's
     optimized camera poses, in TagSLAM's format), ``tags.yaml`` (TagSLAM's tag poses as a marker
     map), ``rig_poses.tum`` (its rig poses) and ``tag_detections.bag`` (every ``every``-th frame,
-    at most ``max_frames``, bz2-compressed chunks: rosbag reads it directly).
+    at most ``max_frames``, bz2-compressed chunks: rosbag reads it directly); ``start`` / ``stop``
+    (s, the detections' stamps): only the frames in that window.
     """
     import rosbag
     import yaml
@@ -251,6 +253,7 @@ def export_test_data(test: str, out_dir: str, every: int = 1, max_frames: int = 
     with rosbag.Bag(cached_bag(test, "tag_detections")) as bag, \
             rosbag.Bag(os.path.join(out_dir, "tag_detections.bag"), "w", compression="bz2") as out:
         stamps = sorted({msg.header.stamp.to_nsec() for _, msg, _ in bag.read_messages(topics=topics)})
+        stamps = [x for x in stamps if (start is None or x >= start * 1e9) and (stop is None or x <= stop * 1e9)]
         keep = stamps[::every][: max_frames or None]
         kept_stamps = set(keep)
         for topic, msg, t in bag.read_messages(topics=topics):

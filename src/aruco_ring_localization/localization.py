@@ -114,8 +114,10 @@ class LocalizationParams:
                                        "(a likelihood ratio below e^4.5 ~ 90): a marker's two IPPE poses, and, when "
                                        "every camera sees a single marker, the joint solutions from every IPPE pose; "
                                        "an ambiguous pose never enters the filter")
-    min_markers_joint: int = param(2, "with fewer markers in the whole ring the joint estimator falls back to the "
-                                      "per-camera fusion (a single marker's pose is ambiguous)")
+    min_markers_joint: int = param(2, "with fewer marker views in the whole ring (a marker seen by two cameras "
+                                      "counts twice: their two viewpoints resolve its ambiguity) the joint "
+                                      "estimator falls back to the per-camera fusion (a single view of a single "
+                                      "marker is ambiguous)")
     joint_outlier_threshold: float = param(10.0, "a marker whose RMS residual in the joint solution exceeds this "
                                                  "is dropped (moved or mis-mapped marker) and the pose re-solved; a "
                                                  "final RMS above it rejects the joint solution. Larger than "
@@ -1015,7 +1017,7 @@ class RingLocalizer:
         result.marker_ids = sorted({i for v in views.values() for i in v.ids})
         if not views:
             return result
-        if p.fusion != "paper" and len(result.marker_ids) >= p.min_markers_joint:
+        if p.fusion != "paper" and sum(len(v.ids) for v in views.values()) >= p.min_markers_joint:
             # Every camera with a single marker: each has two IPPE poses and the joint problem may
             # have several minima, so it is solved from all of them (never from the prediction alone).
             prone = all(len(v.ids) == 1 for v in views.values())
@@ -1110,7 +1112,12 @@ class RingLocalizer:
         sols.sort(key=lambda s: (s.outliers, s.fit.chi2))
         best = sols[0]
         rivals = [s for s in sols[1:] if s.outliers == best.outliers and s.fit.chi2 - best.fit.chi2 < p.ambiguity_chi2]
-        if rivals:
+        # One marker seen by several cameras: their viewpoints resolve its two poses only when the
+        # joint problem found the other one too and it lost by ambiguity_chi2 or more; a lone
+        # minimum of a far marker seen along nearly one direction proves nothing (every start
+        # ends there, decimetres off).
+        beaten = [s for s in sols[1:] if s.outliers == best.outliers and s.fit.chi2 - best.fit.chi2 >= p.ambiguity_chi2]
+        if rivals or (len(result.marker_ids) < 2 and not beaten):
             result.ambiguous = True
             if prediction is not None:
                 best = min([best] + rivals, key=lambda s: _pose_gap(geo.inverse(s.T_base_map), prediction))

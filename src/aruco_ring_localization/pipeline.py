@@ -980,7 +980,7 @@ class LocalizationPipeline(_RingPipeline):
                 self.rejected_counts[key] = self.rejected_counts.get(key, 0) + 1
         else:
             tracker.predict(stamp)
-        if tracker.initialized:
+        if tracker.initialized and tracker.publishable(stamp):
             T = tracker.pose
             out.T_map_base = T
             out.pose = geo.se2_from_transform(T)

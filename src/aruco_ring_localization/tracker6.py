@@ -33,6 +33,12 @@ planar filter's output is then wrong by degrees. This tracker is the same idea o
 * **Recovery, no lock-out**: ``recovery_count`` consecutive rejected measurements that agree
   with each other (within ``recovery_distance`` / ``recovery_angle_deg`` plus the motion allowed
   in between) re-initialise the track.
+* **Coasting, bounded**: between accepted measurements the output is the prediction, published
+  only up to ``max_coast`` s after the last accepted one and only while ``sigma_factor`` times its
+  position / rotation std stays below ``coast_max_distance`` / ``coast_max_angle_deg`` (the flip
+  thresholds, 0.5 m and 10 deg), and never for a stamp where a measurement from several markers
+  contradicted it (:meth:`Tracker6.publishable`): a rig turning while no camera gives a usable
+  pose is extrapolated by degrees within half a second. Nothing is published instead.
 * **Lost track**: after ``lost_after`` s without an accepted measurement the track is dropped
   (no output: nothing is extrapolated that far). A measurement from several markers starts it
   again; single-marker ones need ``init_count`` consecutive, mutually consistent ones (one lone
@@ -100,19 +106,28 @@ class Tracker6Params:
                                "track (one from several markers starts it alone)")
     min_markers_uncapped: int = param(2, "a measurement from at least this many markers is held to the motion "
                                          "bound only, not to max_angle_deg (it has no mirrored solution)")
+    max_coast: float = param(0.25, "the prediction is published at most this long after the last accepted "
+                                   "measurement (coasting on a turning rig drifts by degrees within half a second); "
+                                   "the track itself is kept until lost_after", unit="s")
+    coast_max_distance: float = param(0.5, "and only while sigma_factor times its position std stays below this "
+                                           "(the flip threshold: 0.5 m)", unit="m")
+    coast_max_angle_deg: float = param(10.0, "the same for its rotation std (the flip threshold: 10 deg)",
+                                       unit="deg")
 
     base_angle = in_radians("base_angle_deg")
     max_angle = in_radians("max_angle_deg")
     recovery_angle = in_radians("recovery_angle_deg")
     measurement_std_rot = in_radians("measurement_std_rot_deg")
     min_measurement_std_rot = in_radians("min_measurement_std_rot_deg")
+    coast_max_angle = in_radians("coast_max_angle_deg")
 
     def __post_init__(self) -> None:
         require_positive(self, "accel_noise", "angular_accel_noise", "velocity_time_constant", "measurement_std_pos",
                          "measurement_std_rot_deg", "initial_std_velocity", "base_distance", "base_angle_deg",
-                         "max_angle_deg", "recovery_distance", "recovery_angle_deg", "lost_after")
+                         "max_angle_deg", "recovery_distance", "recovery_angle_deg", "lost_after",
+                         "coast_max_distance", "coast_max_angle_deg")
         for key in ("min_measurement_std_pos", "min_measurement_std_rot_deg", "max_acceleration",
-                    "max_angular_acceleration", "sigma_factor"):
+                    "max_angular_acceleration", "sigma_factor", "max_coast"):
             if not getattr(self, key) >= 0:
                 raise ConfigError(f"must be >= 0, got {getattr(self, key)!r}", key=key)
         for key in ("recovery_count", "init_count", "min_markers_uncapped"):
@@ -132,6 +147,7 @@ class Tracker6:
         self.params = params or Tracker6Params()
         self.reinitializations = 0
         self.rejected_total = 0
+        self.withheld_total = 0
         self.reset()
 
     # --- state --------------------------------------------------------------------------------
@@ -148,6 +164,7 @@ class Tracker6:
         self.last_accepted_stamp: Optional[float] = None
         self._rejected: List[Tuple[float, np.ndarray]] = []
         self._pending: List[Tuple[float, np.ndarray]] = []
+        self._contradicted_at: Optional[float] = None
         if T_map_base is not None:
             self._start(np.asarray(T_map_base, dtype=np.float64), float(stamp), covariance)
 
@@ -323,6 +340,10 @@ class Tracker6:
             self._rejected.clear()
             return GateDecision(True, ACCEPTED, dist, ang, allowed_d, allowed_a)
         self.rejected_total += 1
+        if not capped:
+            # Several markers (no mirrored solution) disagree with the prediction beyond the motion
+            # bound: one of the two is wrong and nothing here says which; neither is published.
+            self._contradicted_at = stamp
         if not self._consistent(self._rejected, stamp, T, capped):
             self._rejected.clear()
         self._rejected.append((stamp, T))
@@ -333,6 +354,30 @@ class Tracker6:
             self._start(T, stamp, covariance)
             return GateDecision(True, REINITIALIZED, dist, ang, allowed_d, allowed_a)
         return GateDecision(False, REJECTED_JUMP, dist, ang, allowed_d, allowed_a)
+
+    def publishable(self, stamp: float) -> bool:
+        """Whether the track's pose at ``stamp`` (the filter advanced there) may be published.
+
+        Right after an accepted measurement, always. Otherwise it is a prediction (coasting): only
+        up to ``max_coast`` s after the last accepted measurement, only while ``sigma_factor``
+        (at least 1) times its position and rotation std stay below ``coast_max_distance`` and
+        ``coast_max_angle_deg`` (a prediction that uncertain may be a flip's size off), and not
+        when a measurement from several markers contradicted it at that stamp."""
+        if self.stamp is None or self.last_accepted_stamp is None:
+            return False
+        stamp = float(stamp)
+        if stamp <= self.last_accepted_stamp:
+            return True
+        p = self.params
+        ok = stamp - self.last_accepted_stamp <= p.max_coast and self._contradicted_at != stamp
+        if ok:
+            k = max(p.sigma_factor, 1.0)
+            s_pos = float(np.sqrt(max(np.linalg.eigvalsh(self.P[:3, :3])[-1], 0.0)))
+            s_rot = float(np.sqrt(max(np.linalg.eigvalsh(self.P[3:6, 3:6])[-1], 0.0)))
+            ok = k * s_pos <= p.coast_max_distance and k * s_rot <= p.coast_max_angle
+        if not ok:
+            self.withheld_total += 1
+        return ok
 
     def body_twist(self) -> np.ndarray:
         """(v_forward, v_left, yaw rate) in the body frame (the planar filter's twist layout)."""

@@ -186,3 +186,79 @@ def test_after_a_gap_the_cap_still_keeps_a_single_marker_flip_out():
     # The same turn seen with several markers is a real one: it enters.
     d = tracker.update(noisy(handheld(t), rng), t, COV, markers=3)
     assert d.accepted
+
+
+# --- coasting: the prediction is published for a bounded time only ------------------------------
+
+def _tracked(rng, t_end: float = 3.0, **params) -> Tracker6:
+    tracker = Tracker6(Tracker6Params(**params))
+    run_track(tracker, t_end, rng)
+    return tracker
+
+
+def _published(tracker: Tracker6, gaps) -> list:
+    t_last = tracker.last_accepted_stamp
+    out = []
+    for dt in gaps:
+        tracker.predict(t_last + dt)
+        out.append(tracker.publishable(t_last + dt))
+    return out
+
+
+GAPS = (0.05, 0.1, 0.15, 0.24, 0.26, 0.4, 0.8)
+
+
+def test_a_coasting_prediction_is_published_up_to_max_coast_only():
+    # The uncertainty bounds out of the way: the time bound alone decides.
+    loose = dict(coast_max_angle_deg=90.0, coast_max_distance=10.0)
+    tracker = _tracked(np.random.default_rng(11), **loose)
+    assert tracker.publishable(tracker.last_accepted_stamp)
+    assert _published(tracker, GAPS) == [True, True, True, True, False, False, False]
+    assert tracker.initialized   # the track itself is kept until lost_after (1 s)
+    assert tracker.withheld_total == 3
+    # A longer bound publishes for longer: the bound, nothing else, withheld them.
+    longer = _tracked(np.random.default_rng(11), max_coast=0.9, **loose)
+    assert _published(longer, GAPS) == [True] * len(GAPS)
+
+
+def test_with_the_defaults_a_turning_rig_coasts_less_than_max_coast():
+    # The handheld model (angular_accel_noise 2 rad^2/s^3): after about 0.17 s its rotation is
+    # uncertain by more than the flip threshold over sigma_factor (10 / 3 deg).
+    tracker = _tracked(np.random.default_rng(11))
+    published = _published(tracker, GAPS)
+    assert published[:2] == [True, True] and not any(published[3:])
+    assert 3.0 * np.degrees(np.sqrt(np.linalg.eigvalsh(tracker.covariance[3:, 3:])[-1])) > 10.0
+
+
+def test_an_uncertain_prediction_is_withheld_before_max_coast():
+    # A track just started (velocity std 0.5 rad/s): within 0.2 s its rotation is uncertain by more
+    # than the flip threshold over sigma_factor (10 / 3 deg).
+    tracker = Tracker6()
+    T = handheld(0.0)
+    assert tracker.update(T, 0.0, COV, markers=3).reason == INITIALIZED
+    tracker.predict(0.2)
+    s_rot = np.degrees(np.sqrt(np.linalg.eigvalsh(tracker.covariance[3:, 3:])[-1]))
+    assert 3.0 * s_rot > 10.0
+    assert not tracker.publishable(0.2)
+    relaxed = Tracker6(Tracker6Params(coast_max_angle_deg=90.0))
+    relaxed.update(T, 0.0, COV, markers=3)
+    relaxed.predict(0.2)
+    assert relaxed.publishable(0.2)
+
+
+def test_a_contradicting_multi_marker_measurement_withholds_the_prediction():
+    rng = np.random.default_rng(12)
+    tracker = _tracked(rng)
+    t = tracker.last_accepted_stamp + 1.0 / RATE
+    far = geo.make_transform(handheld(t)[:3, :3], handheld(t)[:3, 3] + np.array([0.8, 0.0, 0.0]))
+    d = tracker.update(far, t, COV, markers=4)
+    assert not d.accepted
+    assert not tracker.publishable(t)        # several markers say otherwise: neither is published
+    t2 = t + 1.0 / RATE
+    tracker.predict(t2)
+    assert tracker.publishable(t2)           # only at that stamp
+    # A single-marker measurement that far is a flip: the prediction stays published.
+    t3 = t2 + 1.0 / RATE
+    d = tracker.update(flipped(handheld(t3), 40.0), t3, COV, markers=1)
+    assert not d.accepted
+    assert tracker.publishable(t3)
