@@ -118,6 +118,24 @@ class LocalizationParams:
                                       "counts twice: their two viewpoints resolve its ambiguity) the joint "
                                       "estimator falls back to the per-camera fusion (a single view of a single "
                                       "marker is ambiguous)")
+    extrinsic_jitter_deg: float = param(0.05, "joint: each camera's extrinsics also jitter from frame to frame by this "
+                                              "much (1 sigma per axis of its optical frame; the ring shakes while the "
+                                              "robot drives), independently per camera and frame, on top of the "
+                                              "calibration's uncertainty; 0 with extrinsic_jitter_m = 0: a rigid ring",
+                                        unit="deg")
+    extrinsic_jitter_m: float = param(0.0001, "joint: the same jitter's translation, 1 sigma per axis", unit="m")
+    map_uncertainty: bool = param(True, "joint: each marker's pose in the map is uncertain by the map's own "
+                                        "position_std and rotation_std (the mapping's), marginalised in the noise model "
+                                        "like the extrinsics: a poorly mapped marker weighs less and the covariance "
+                                        "carries the map's error; false: the map taken as exact (as before)")
+    estimate_pixel_noise: bool = param(True, "joint: the pixel noise is measured from each frame's residuals (the "
+                                             "whitened chi^2 equal to its degrees of freedom, at least min_pixel_noise); "
+                                             "when it differs from pixel_noise by more than 25 % the pose is solved again "
+                                             "with it, and the covariance uses it; pixel_noise is the first guess; "
+                                             "false: pixel_noise, the covariance scaled up when the residuals are "
+                                             "larger (as before)")
+    min_pixel_noise: float = param(0.05, "joint, estimate_pixel_noise: the least pixel noise the residuals may say",
+                                   unit="px")
     joint_outlier_threshold: float = param(10.0, "a marker whose RMS residual in the joint solution exceeds this "
                                                  "is dropped (moved or mis-mapped marker) and the pose re-solved; a "
                                                  "final RMS above it rejects the joint solution. Larger than "
@@ -128,9 +146,12 @@ class LocalizationParams:
         if self.fusion not in FUSION_METHODS:
             raise ConfigError(f"expected one of {FUSION_METHODS}, got {self.fusion!r}", key="fusion")
         require_positive(self, "max_reprojection_error", "th_distance", "th_orientation_deg", "pixel_noise",
-                         "robust_scale")
+                         "robust_scale", "min_pixel_noise")
         if self.fusion_gap < 0:
             raise ConfigError(f"must be >= 0, got {self.fusion_gap!r}", key="fusion_gap")
+        for key in ("extrinsic_jitter_deg", "extrinsic_jitter_m"):
+            if not getattr(self, key) >= 0:
+                raise ConfigError(f"must be >= 0, got {getattr(self, key)!r}", key=key)
 
     th_orientation = in_radians("th_orientation_deg")
 
@@ -329,6 +350,8 @@ class CameraView:
         extrinsics_cov: (6, 6) covariance of the extrinsics' error as a left perturbation (w, v)
             of ``T_base_cam`` in the base frame, or None (exact: the estimator as before);
             extrinsics_factor: ``L`` with ``L L^T = extrinsics_cov`` (computed when not given).
+        map_factor: (4k, 3, 6) per corner ``F`` with ``F F^T`` the covariance of its map position
+            from its marker's pose uncertainty (:func:`marker_map_factor`), or None (exact map).
         xy: (4k, 2) undistorted normalised observations.
         pixel_jacobian: (4k, 2, 2) d pixels / d xy at the observations for a fisheye lens, else None.
     """
@@ -342,6 +365,7 @@ class CameraView:
     T_base_cam: Optional[np.ndarray] = None
     extrinsics_cov: Optional[np.ndarray] = None
     extrinsics_factor: Optional[np.ndarray] = None
+    map_factor: Optional[np.ndarray] = None
     xy: np.ndarray = field(init=False)
     pixel_jacobian: Optional[np.ndarray] = field(init=False, default=None)
 
@@ -357,6 +381,7 @@ class CameraView:
         v = object.__new__(CameraView)
         v.name, v.T_cam_base, v.model, v.T_base_cam = self.name, self.T_cam_base, self.model, self.T_base_cam
         v.extrinsics_cov, v.extrinsics_factor = self.extrinsics_cov, self.extrinsics_factor
+        v.map_factor = None if self.map_factor is None else self.map_factor[sel]
         v.ids = [self.ids[j] for j in keep]
         v.px, v.X, v.xy = self.px[sel], self.X[sel], self.xy[sel]
         v.pixel_jacobian = None if self.pixel_jacobian is None else self.pixel_jacobian[sel]
@@ -480,6 +505,12 @@ class JointProblem:
                 v.extrinsics_factor if v.extrinsics_factor is not None else _psd_factor(c)
                 for v, c in zip(self.views, self.extrinsics_cov)])
         self.cross_covariance = cross_covariance
+        # The map's uncertainty (per corner 3x6 factors), only with a calibration model.
+        self.map_factor: Optional[np.ndarray] = None
+        if self.extrinsics_cov is not None and any(v.map_factor is not None for v in self.views):
+            self.map_factor = np.concatenate([np.zeros((v.X.shape[0], 3, 6)) if v.map_factor is None
+                                              else v.map_factor for v in self.views])
+        self.marker_ids = np.array([i for v in self.views for i in v.ids], dtype=np.int64)
 
     def residuals(self, T_base_map: np.ndarray, jacobian: bool = True):
         """Pixel residuals (N, 2) and, if asked, their Jacobian (N, 2, 6) w.r.t. ``delta``.
@@ -558,6 +589,85 @@ class JointProblem:
             chi2 = np.inf
         return JointFit(r, J, w, H_cam.sum(axis=0), g.sum(axis=0), chi2, chi2, H_cam, G, b)
 
+    def pixel_noise_estimate(self, fit: JointFit, lo: float, hi: float) -> float:
+        """The pixel noise (px) that makes the whitened residuals of ``fit`` (a fit of this problem,
+        with a calibration model) as large as they should be: ``chi2(sigma) = 2N - 6``, within
+        ``[lo, hi]`` (``lo`` when they are smaller even there).
+
+        ``chi2(sigma) = sum_c (q_c - b_c^T L_c (sigma^2 I + L_c^T G_c L_c)^-1 L_c^T b_c) / sigma^2``
+        falls monotonically with sigma; with the eigen-decomposition ``L_c^T G_c L_c = U Λ U^T`` it
+        is a scalar function of sigma^2 (no solve per trial), found by bisection on log sigma."""
+        if fit.G_cam is None or self.extrinsics_factor is None:
+            raise ValueError("pixel_noise_estimate needs a calibration model")
+        rr = np.where(np.isfinite(fit.r), fit.r, 0.0)
+        q = float(np.sum(fit.w * np.sum(rr * rr, axis=1)))
+        L = self.extrinsics_factor
+        lam, U = np.linalg.eigh(np.transpose(L, (0, 2, 1)) @ fit.G_cam @ L)
+        beta = np.einsum("cak,cba,cb->ck", U, L, fit.b_cam)   # U^T L^T b per camera
+        b2 = (beta ** 2).ravel()
+        lam = np.clip(lam.ravel(), 0.0, None)
+        dof = max(2 * self.n - 6, 1)
+
+        def chi2(sig: float) -> float:
+            s2 = sig * sig
+            return (q - float(np.sum(b2 / (s2 + lam)))) / s2
+
+        if chi2(lo) <= dof:
+            return float(lo)
+        if chi2(hi) >= dof:
+            return float(hi)
+        a, b = np.log(lo), np.log(hi)
+        for _ in range(40):
+            m = 0.5 * (a + b)
+            if chi2(float(np.exp(m))) > dof:
+                a = m
+            else:
+                b = m
+        return float(np.exp(0.5 * (a + b)))
+
+    def with_sigma(self, sigma: float) -> "JointProblem":
+        """The same problem with another pixel noise (shares the arrays)."""
+        out = object.__new__(JointProblem)
+        out.__dict__.update(self.__dict__)
+        out.sigma = float(sigma)
+        return out
+
+    def map_covariance(self, fit: JointFit, T_base_map: np.ndarray) -> Optional[np.ndarray]:
+        """(6, 6) covariance of the estimate's left perturbation due to the map's error, or None
+        without a map model.
+
+        The estimate does not weigh the map's error (its weights are the pixels' and the
+        extrinsics'); it responds to it linearly: a residual change ``dr_c`` moves it by
+        ``-H^-1 sum_c (I - G_c L_c M_c^-1 L_c^T) J_c^T D_c dr_c / sigma^2`` (the Woodbury form of
+        ``J_c^T W_c``, ``M_c = sigma^2 I + L_c^T G_c L_c``), and marker m's pose error ``eps_m``
+        (std: the map's position_std, rotation_std) changes its residuals by ``K_m eps_m`` with
+        ``K_m = (d r / d X) F_m``. Markers' errors are taken as independent of each other (the
+        map's stds say nothing of their correlation); a marker seen by several cameras moves all
+        their residuals: the covariance is ``H^-1 (sum_m B_m B_m^T) H^-1`` with
+        ``B_m = sum_c R_c J_cm^T D_cm K_cm / sigma^2`` over the cameras c that see marker m.
+        """
+        if self.map_factor is None or fit.G_cam is None:
+            return None
+        s2 = self.sigma ** 2
+        J = fit.J
+        Kq = np.matmul(np.matmul(J[:, :, 3:], T_base_map[:3, :3]), self.map_factor)      # (N, 2, 6)
+        JtK = np.einsum("nia,nib->nab", J * fit.w[:, None, None], Kq)                    # (N, 6, 6)
+        B = np.add.reduceat(JtK, np.arange(0, self.n, 4), axis=0)                        # per marker
+        L = self.extrinsics_factor
+        GL = fit.G_cam @ L
+        M = s2 * np.eye(6) + np.transpose(L, (0, 2, 1)) @ GL
+        Rc = np.eye(6) - GL @ _solve_spd_batch(M, np.transpose(L, (0, 2, 1)))           # (C, 6, 6)
+        cam_of_marker = self.cam_index[::4]
+        RB = np.matmul(Rc[cam_of_marker], B) / s2
+        # A marker seen by several cameras moves all their residuals at once: its terms add first.
+        _, which = np.unique(self.marker_ids, return_inverse=True)
+        per_id = np.zeros((int(which.max()) + 1, 6, 6))
+        np.add.at(per_id, which, RB)
+        S = np.einsum("mab,mcb->ac", per_id, per_id)
+        C = _spd_inverse(0.5 * (fit.H + fit.H.T))
+        out = C @ S @ C
+        return 0.5 * (out + out.T)
+
     def cost(self, T_base_map: np.ndarray, scale: float) -> float:
         """What the solver minimises at ``T_base_map``: the whitened chi^2 with a calibration
         model, else the Huber loss (threshold ``scale`` px) of the per-corner residual norms."""
@@ -621,6 +731,32 @@ class JointProblem:
             K = C @ np.concatenate(list(fit.H_cam), axis=1)  # (6, 6C)
             C = C + K @ self.cross_covariance @ K.T
         return 0.5 * (C + C.T)
+
+
+def marker_map_factor(T_map_marker: np.ndarray, corners: np.ndarray, position_std: np.ndarray,
+                      rotation_std: np.ndarray) -> np.ndarray:
+    """(4, 3, 6) per corner ``F`` with ``F F^T`` the covariance of its map position when the
+    marker's pose is off by ``position_std`` (m, along the map axes) and ``rotation_std`` (rad,
+    about the marker's own axes), the map file's convention: ``dX = dp + (R_map_marker dθ) x
+    (X - centre)``, so ``F = [I, -[X - centre]x R_map_marker] diag(std)``."""
+    R = T_map_marker[:3, :3]
+    c = T_map_marker[:3, 3]
+    std = np.concatenate([np.asarray(position_std, dtype=np.float64), np.asarray(rotation_std, dtype=np.float64)])
+    out = np.zeros((corners.shape[0], 3, 6))
+    for i, X in enumerate(corners):
+        out[i, :, :3] = np.eye(3)
+        out[i, :, 3:] = -geo.skew(X - c) @ R
+    return out * std[None, None, :]
+
+
+def jitter_covariance(T_base_cam: np.ndarray, rot_std: float, trans_std: float) -> np.ndarray:
+    """(6, 6) covariance, as a left perturbation (w, v) of ``T_base_cam`` in the base frame, of a
+    camera whose extrinsics jitter by ``rot_std`` (rad) and ``trans_std`` (m) per axis of its own
+    optical frame (``T_base_cam_true = T_base_cam · D``, the simulator's ring vibration): the same
+    convention as the ring file's ``extrinsics_std`` (:attr:`RingCamera.extrinsics_covariance`).
+    Independent from frame to frame, it adds to the calibration's covariance, which is fixed."""
+    A = geo.se3_adjoint(np.asarray(T_base_cam, dtype=np.float64))
+    return A @ np.diag([rot_std ** 2] * 3 + [trans_std ** 2] * 3) @ A.T
 
 
 def _solve_spd_batch(M: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -749,6 +885,7 @@ class RingLocalizer:
         self.params = params or LocalizationParams()
         self.marker_map = marker_map
         self._axes_cache: Dict[int, np.ndarray] = {}
+        self._map_factor_cache: Dict[int, np.ndarray] = {}
         self.set_ring(ring)
 
     def set_ring(self, ring: CameraRing) -> None:
@@ -774,6 +911,10 @@ class RingLocalizer:
             self._ext_cov[c.name] = c.extrinsics_covariance
             self.extrinsics_source[c.name] = "ring file"
         self._use_map_covariance(ring)
+        p = self.params
+        for c in ring.cameras:   # the ring's vibration: independent per camera and frame (no cross terms)
+            self._ext_cov[c.name] = self._ext_cov[c.name] + jitter_covariance(
+                self._T_base_cam[c.name], np.radians(p.extrinsic_jitter_deg), p.extrinsic_jitter_m)
         self._ext_factor = {n: None if C is None else _psd_factor(C) for n, C in self._ext_cov.items()}
 
     def _use_map_covariance(self, ring: CameraRing) -> None:
@@ -848,13 +989,31 @@ class RingLocalizer:
             if moved is not None:
                 T_cam_base, T_base_cam, ext_cov = self._moved_extrinsics(T_base_cam, ext_cov, *moved)
                 ext_factor = None
+            map_factor = self._map_factor(ids)
             views[name] = CameraView(name=name, T_cam_base=T_cam_base,
                                      model=cf.model if cf.model is not None else self.ring[name].model, ids=ids,
                                      px=np.concatenate([np.asarray(o.corners, dtype=np.float64) for o in obs]),
                                      X=np.concatenate([mm.corners(i) for i in ids]),
                                      T_base_cam=T_base_cam, extrinsics_cov=ext_cov,
-                                     extrinsics_factor=ext_factor)
+                                     extrinsics_factor=ext_factor, map_factor=map_factor)
         return views
+
+    def _map_factor(self, ids: Sequence[int]) -> Optional[np.ndarray]:
+        """(4k, 3, 6) the markers' map-uncertainty factors (:func:`marker_map_factor`, cached by id),
+        or None when the model is off or these markers' poses are exact (a surveyed or true map)."""
+        if self.params.fusion != "joint" or not self.params.map_uncertainty:
+            return None
+        cache = self._map_factor_cache
+        rows = []
+        for i in ids:
+            F = cache.get(i)
+            if F is None:
+                e = self.marker_map[i]
+                F = cache[i] = marker_map_factor(e.T_map_marker, self.marker_map.corners(i), e.position_std,
+                                                 e.rotation_std)
+            rows.append(F)
+        out = np.concatenate(rows)
+        return out if np.any(out != 0.0) else None
 
     @staticmethod
     def _moved_extrinsics(T_base_cam: np.ndarray, ext_cov: Optional[np.ndarray], d: np.ndarray,
@@ -1166,11 +1325,45 @@ class RingLocalizer:
         if rms > p.joint_outlier_threshold:
             return None
         try:
-            # Variance factor: the whitened residuals' own when they say the noise is larger.
-            cov = problem.covariance(fit) * max(1.0, fit.chi2 / max(2 * problem.n - 6, 1))
-        except np.linalg.LinAlgError:
+            if p.estimate_pixel_noise and problem.extrinsics_factor is not None:
+                T_bm, fit, iters, rms, cov, cov_map = self._at_measured_noise(problem, T_bm, fit, iters, rms)
+            else:
+                # Variance factor: the whitened residuals' own when they say the noise is larger.
+                cov = problem.covariance(fit) * max(1.0, fit.chi2 / max(2 * problem.n - 6, 1))
+                cov_map = problem.map_covariance(fit, T_bm)   # the map's error, carried to the pose
+            if cov_map is not None:
+                cov = cov + cov_map
+        except (np.linalg.LinAlgError, MeasurementError):
+            return None
+        if not np.isfinite(rms) or rms > p.joint_outlier_threshold:
             return None
         return _JointSolution(problem, T_bm, fit, iters, rms, cov, outliers)
+
+    def _at_measured_noise(self, problem: JointProblem, T_bm: np.ndarray, fit: JointFit, iters: int, rms: float):
+        """The joint solution at the pixel noise its residuals say (``estimate_pixel_noise``).
+
+        ``pixel_noise`` weighs the pixels against the extrinsics' (and the vibration's) uncertainty;
+        the residuals tell the noise the images really have (:meth:`JointProblem.pixel_noise_estimate`,
+        at least ``min_pixel_noise``). When that differs from ``pixel_noise`` by more than 25 % the
+        cameras weigh differently, so the pose is solved again with it (from the solution: one or two
+        iterations); the covariance is that solution's, with that noise (its inverse information,
+        the cameras' common extrinsic error and the map's error carried to the pose), so estimate
+        and covariance agree. The returned fit is at ``pixel_noise`` (what the ambiguity tests
+        compare between candidate poses, in the units of ``ambiguity_chi2``).
+
+        Returns (T_base_map, fit, iterations, rms, covariance, map covariance or None)."""
+        p = self.params
+        sigma = problem.pixel_noise_estimate(fit, p.min_pixel_noise, 100.0 * p.pixel_noise)
+        at = problem.with_sigma(sigma)
+        if abs(np.log(sigma / problem.sigma)) > np.log(1.25):
+            T_bm, fit_s, it3 = at.solve(T_bm, p.robust_scale, p.max_iterations)
+            iters += it3
+            fit = problem.fit(T_bm, p.robust_scale)
+            r = fit.r
+            rms = float(np.sqrt(np.mean(np.sum(r * r, axis=1)))) if np.isfinite(r).all() else float("inf")
+        else:
+            fit_s = at.fit(T_bm, p.robust_scale)   # the same Huber weights (the scale is in px)
+        return T_bm, fit, iters, rms, at.covariance(fit_s), at.map_covariance(fit_s, T_bm)
 
     def _finish_joint(self, result: LocalizationResult, sol: _JointSolution, per_camera: bool) -> None:
         problem = sol.problem
@@ -1186,6 +1379,11 @@ class RingLocalizer:
             result.rejected[REJECT_OUTLIER] = result.rejected.get(REJECT_OUTLIER, 0) + sol.outliers
         if per_camera:
             self._per_camera_from_joint(result, sol)
+
+    def forget_marker(self, marker_id: int) -> None:
+        """Drop what is cached of a marker (its pose in the map changed: re-mapped)."""
+        self._axes_cache.pop(int(marker_id), None)
+        self._map_factor_cache.pop(int(marker_id), None)
 
     def _marker_axes(self, ids: Sequence[int]) -> Tuple[np.ndarray, np.ndarray]:
         """(k, 3) centres and (k, 3) z axes of mapped markers, in the map frame (cached by id)."""

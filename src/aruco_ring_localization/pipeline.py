@@ -704,7 +704,7 @@ class LocalizationPipeline(_RingPipeline):
             except MeasurementError as exc:
                 out.append((int(mid), float("nan"), str(exc)))
                 continue
-            self.localizer._axes_cache.pop(int(mid), None)
+            self.localizer.forget_marker(int(mid))
             out.append((int(mid), moved, ""))
         return out
 
