@@ -3,9 +3,10 @@
 * :class:`MarkerObservation` — one detected marker: id and its 4 raw-pixel corners (aruco_detect order).
 * :class:`CameraFrame` — one camera's detections at one stamp (an empty list means "alive, saw nothing").
 * :class:`RingFrame` — the ring's cameras grouped by stamp; cameras that did not report are listed.
-* :class:`RingFrameAssembler` — groups :class:`CameraFrame` s by stamp within a slop. A camera that
-  stops publishing never stalls the others: a group goes out when every camera has reported or
-  when it has waited ``timeout`` seconds (of the caller's clock), whichever comes first.
+* :class:`RingFrameAssembler` — groups :class:`CameraFrame` s by stamp: one frame period measured
+  from the stamps (``slop: auto``, synchronized or free-running cameras) or within a fixed slop. A
+  camera that stops publishing never stalls the others: a group goes out when every camera has
+  reported or when it has waited ``timeout`` seconds (of the caller's clock), whichever comes first.
 * :func:`sanitize_observations` — drops what must never reach the estimators (NaN corners,
   degenerate quads, duplicate ids in one image, ignored ids) and says why. The pipelines
   (:mod:`pipeline`) call it once, where detections enter; the estimators rely on it.
@@ -15,9 +16,10 @@ These types are shared by the simulator, the detector, the mapper and the locali
 from __future__ import annotations
 
 import logging
+import math
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Collection, Dict, List, Optional, Sequence, Tuple
+from typing import Collection, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -76,14 +78,79 @@ class RingFrame:
         return sum(len(f.observations) for f in self.cameras.values())
 
 
+#: ``slop`` value that derives the ring frame's window from the cameras' stamps (the default).
+AUTO_SLOP = "auto"
+
+
+def parse_slop(value: Union[float, str], key: str = "slop") -> Optional[float]:
+    """``input/slop`` as the assembler takes it: None for ``auto``, else a number of seconds >= 0.
+
+    Raises ValueError naming ``key`` on anything else (a negative or non-finite number, another word).
+    """
+    if isinstance(value, str):
+        text = value.strip().lower()
+        if text == AUTO_SLOP:
+            return None
+        try:
+            value = float(text)
+        except ValueError:
+            raise ValueError(f"{key}: expected 'auto' or a number of seconds >= 0, got {value!r}") from None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+        raise ValueError(f"{key}: expected 'auto' or a number of seconds >= 0, got {value!r}")
+    return float(value)
+
+
+@dataclass
+class _Group:
+    """A ring frame being assembled, with what the assembler needs to know about it."""
+
+    frame: RingFrame
+    arrived: float        # caller's clock at its first member
+    deadline: float       # caller's clock when it goes out incomplete
+    lo: float             # stamps in [lo, hi) belong to it (auto), or lo..hi is its members' extent
+    hi: float
+
+    def accepts(self, camera: str, stamp: float, slop: Optional[float]) -> bool:
+        if camera in self.frame.cameras:
+            return False
+        if slop is None:
+            return self.lo <= stamp < self.hi
+        return max(self.hi, stamp) - min(self.lo, stamp) <= slop
+
+
 class RingFrameAssembler:
     """Group per-camera frames into ring frames by stamp.
 
+    A ring frame holds each camera at most once. Two ways of grouping (``slop``):
+
+    * ``"auto"`` (the default): for synchronized and free-running cameras alike, without tuning.
+      The cameras' frame period ``P`` is measured from their stamps (per camera the median of
+      its last 3 stamp differences, then the median over the cameras: a camera that drops frames
+      or a dead one does not move it; a rate change is followed within about 3 frames). The
+      cameras' phases (their latest stamps modulo ``P``) leave gaps on the circle of one period;
+      the ring frames' boundary is put in the middle of the largest gap (kept while its gap stays
+      at least 3/4 of the largest: no flapping between two similar gaps), and a ring frame is the
+      stamps in one period ``[b + kP, b + (k+1)P)``. So synchronized cameras get a window centred
+      on their common stamp, half a period of margin each side, and free-running cameras with
+      any phases get one frame each, with half the largest phase gap of margin for their
+      jitter. Until a period has been measured (each camera's first frame) the window is
+      ``AUTO_START_SLOP``. The timeout of a frame counts from its first member's arrival plus
+      the time the cameras' phases still spread after that member (free-running cameras report
+      over up to a period; synchronized ones at once: their timeout is unchanged).
+    * a number ``s`` (seconds): a ring frame holds frames whose stamps differ by at most ``s``
+      (its members' extent, max - min, is <= ``s``). For synchronized cameras, or a known spread.
+
+    In both, a frame that belongs to a ring frame that already went out (its camera is missing
+    there and its stamp is within that frame's window), or stamped before the last ring frame, is
+    late and dropped (``dropped_late``); a camera's *next* frame is never late: it opens a new ring
+    frame.
+
     Args:
         cameras: the names of the cameras expected in each frame.
-        slop: frames whose stamps differ by at most this (s) belong to one ring frame.
+        slop: ``"auto"``, or the largest stamp difference (s) within one ring frame.
         timeout: a group that is still incomplete this long (s, caller's clock) after its first
-            member arrived goes out without the missing cameras.
+            member arrived goes out without the missing cameras (auto: plus the phase spread still
+            to come, see above).
         max_pending: at most this many incomplete groups are kept; older ones are flushed. None
             (the default): enough for ``timeout`` seconds of a 50 Hz ring, at least 8. A fixed 8
             flushed frames whenever one camera's callback lagged the others by 8 frames (0.8 s
@@ -102,23 +169,38 @@ class RingFrameAssembler:
     the ring frames that are ready, oldest first.
     """
 
-    def __init__(self, cameras: Sequence[str], slop: float = 0.03, timeout: float = 0.25, max_pending: Optional[int] = None,
-                 silence: Optional[float] = 1.0, late_by_clock: bool = False):
+    #: auto: the window (s) before the cameras' period is known (their first frames).
+    AUTO_START_SLOP = 0.03
+    #: auto: stamp differences longer than this (s) are gaps (a pause, a jump), not a period.
+    AUTO_MAX_PERIOD = 2.0
+    #: auto: the stamps per camera that measure its period and phase.
+    HISTORY = 5
+
+    def __init__(self, cameras: Sequence[str], slop: Union[float, str] = AUTO_SLOP, timeout: float = 0.25,
+                 max_pending: Optional[int] = None, silence: Optional[float] = 1.0, late_by_clock: bool = False):
         if not cameras:
             raise ValueError("RingFrameAssembler needs at least one camera name")
-        if slop < 0 or timeout <= 0:
-            raise ValueError(f"slop must be >= 0 and timeout > 0, got slop={slop}, timeout={timeout}")
+        fixed = parse_slop(slop)
+        if not timeout > 0:
+            raise ValueError(f"timeout must be > 0, got {timeout!r}")
         self.cameras = list(cameras)
-        self.slop = float(slop)
+        #: the fixed slop (s), or None for auto.
+        self.slop: Optional[float] = fixed
         self.timeout = float(timeout)
         self.max_pending = max(8, int(np.ceil(50.0 * self.timeout))) if max_pending is None else int(max_pending)
         self.silence = silence
         self.late_by_clock = bool(late_by_clock)
         self._first_seen: Optional[float] = None
-        self._pending: List[Tuple[float, RingFrame]] = []  # (arrival time, frame), stamp order
+        self._pending: List[_Group] = []  # stamp order
+        self._last: Optional[_Group] = None  # the newest ring frame that went out
         self._last_emitted = -np.inf
+        self._stamps: Dict[str, List[float]] = {}    # camera -> its last HISTORY stamps, oldest first
+        self._diffs: Dict[str, List[float]] = {}     # camera -> its last HISTORY stamp differences
+        self._boundary: Optional[float] = None       # auto: a stamp on a ring frame boundary
         self.last_seen: Dict[str, float] = {}   # camera -> caller's clock at its last frame
         self.dropped_late = 0
+        #: frames with a NaN or infinite stamp (dropped).
+        self.dropped_bad_stamp = 0
         self.time_jumps = 0
         #: Ring frames that went out without every camera, by reason: ``timeout`` (waited
         #: ``timeout`` s), ``silent`` (the missing cameras were silent for ``silence`` s),
@@ -126,66 +208,181 @@ class RingFrameAssembler:
         self.incomplete: Dict[str, int] = {"timeout": 0, "silent": 0, "overtaken": 0}
 
     def reset(self) -> None:
+        """Forget the pending groups and the stamp history (a time jump)."""
         self._pending.clear()
+        self._last = None
         self._last_emitted = -np.inf
+        self._stamps.clear()
+        self._diffs.clear()
+        self._boundary = None
+
+    # --- the cameras' timing (auto) ---------------------------------------------------------
+
+    def _record_stamp(self, camera: str, stamp: float) -> None:
+        stamps = self._stamps.setdefault(camera, [])
+        if stamps and stamp <= stamps[-1]:
+            return  # a repeated or older stamp says nothing about the period
+        if stamps and stamp - stamps[-1] <= self.AUTO_MAX_PERIOD:
+            diffs = self._diffs.setdefault(camera, [])
+            diffs.append(stamp - stamps[-1])
+            del diffs[:-self.HISTORY]
+        elif stamps:
+            stamps.clear()  # a gap: the older stamps say nothing about the phase
+        stamps.append(stamp)
+        del stamps[:-self.HISTORY]
+
+    def timing(self) -> Optional[Tuple[float, float]]:
+        """The cameras' frame period and stamp jitter (s, 1 sigma) measured from their stamps (auto), or
+        None before a period is known: the median of every camera's last stamp differences, and
+        their spread (1.4826 MAD / sqrt 2)."""
+        pooled = sorted(x for d in self._diffs.values() for x in d)
+        if not pooled:
+            return None
+        n = len(pooled)
+        period = 0.5 * (pooled[(n - 1) // 2] + pooled[n // 2])
+        dev = sorted(abs(x - period) for x in pooled)
+        return period, 1.4826 * 0.5 * (dev[(n - 1) // 2] + dev[n // 2]) / math.sqrt(2.0)
+
+    def _phases(self, stamp: float, period: float) -> List[float]:
+        """The cameras' phases in [0, period) relative to ``stamp``, sorted.
+
+        A camera's phase is the circular mean of its last stamps' (one stamp's jitter would move
+        the gaps frame by frame); a camera whose newest stamp is more than 2 periods from
+        ``stamp`` (dead, lagging) has none.
+        """
+        phases = []
+        for stamps in self._stamps.values():
+            if abs(stamps[-1] - stamp) > 2.0 * period:
+                continue
+            c = sn = 0.0
+            for t in stamps:
+                if stamps[-1] - t <= (self.HISTORY + 0.5) * period:
+                    angle = 2.0 * math.pi * (t - stamp) / period
+                    c += math.cos(angle)
+                    sn += math.sin(angle)
+            phases.append((math.atan2(sn, c) / (2.0 * math.pi) * period) % period)
+        return sorted(phases) or [0.0]
+
+    def _window(self, stamp: float, period: float, jitter: float) -> Tuple[float, float, float]:
+        """The auto window ``[lo, hi)`` of one period that holds ``stamp``, and the cameras' phase spread (s).
+
+        The boundary between ring frames goes in the middle of the largest gap between the
+        cameras' phases. Once placed it stays in its gap (following the gap's middle) while that
+        gap is at least 0.8 of the largest, or at least half of it with a margin of 2 jitters each
+        side: two similar gaps do not take turns, and each change of gap costs a split frame.
+        """
+        phases = self._phases(stamp, period)
+        n = len(phases)
+        gaps = [(phases[(i + 1) % n] - p) % period for i, p in enumerate(phases)] if n > 1 else [period]
+        best = max(range(n), key=gaps.__getitem__)
+        boundary = stamp + phases[best] + 0.5 * gaps[best]
+        spread = period - gaps[best]
+        if self._boundary is not None:
+            held = (self._boundary - stamp) % period
+            for i, p in enumerate(phases):
+                if (held - p) % period < gaps[i]:  # the held boundary lies in gap i
+                    if gaps[i] >= 0.8 * gaps[best] or (gaps[i] >= 0.5 * gaps[best] and gaps[i] >= 4.0 * jitter):
+                        # Keep it, moved half the way to the gap's middle (the phases move a
+                        # little with the jitter; a slow drift of the cameras' rates is followed).
+                        middle = p + 0.5 * gaps[i]
+                        boundary = stamp + held + 0.5 * ((middle - held + 0.5 * period) % period - 0.5 * period)
+                        spread = period - gaps[i]
+                    break
+        self._boundary = boundary
+        lo = boundary + math.floor((stamp - boundary) / period) * period
+        return lo, lo + period, spread
+
+    # --- assembly ---------------------------------------------------------------------------
 
     def add(self, frame: CameraFrame, now: float) -> List[RingFrame]:
         """Take one camera's frame (``now`` is the caller's clock, s); return finished ring frames."""
         if frame.camera not in self.cameras:
             logger.debug("ignoring frame from unknown camera %s", frame.camera)
             return []
+        if not math.isfinite(frame.stamp):
+            self.dropped_bad_stamp += 1
+            return self.poll(now)
         if self.silence is not None and (not self.last_seen or max(self.last_seen.values()) < now - self.silence):
             # Start-up, or every camera was silent: wait for all of them again while they come back.
             self._first_seen = now
         self.last_seen[frame.camera] = now
-        if frame.stamp < self._last_emitted - 1.0 and not (self.late_by_clock and now - frame.stamp > 1.0):
+        stamp = frame.stamp
+        if stamp < self._last_emitted - 1.0 and not (self.late_by_clock and now - stamp > 1.0):
             # Time went backwards by more than a second (a bag loop, a clock reset): start over.
             # With late_by_clock, a stamp that is old by the caller's clock too is a late message,
             # not a jump (dropped below): one lagging camera must not reset everybody's frames.
             self.time_jumps += 1
             logger.warning("time jumped back from %.3f to %.3f s; resetting frame assembly",
-                           self._last_emitted, frame.stamp)
+                           self._last_emitted, stamp)
             self.reset()
-        group = None
-        for _, g in self._pending:
-            if abs(g.stamp - frame.stamp) <= self.slop and frame.camera not in g.cameras:
-                group = g
-                break
+        if self._is_late(frame.camera, stamp):
+            self.dropped_late += 1
+            return self.poll(now)
+        self._record_stamp(frame.camera, stamp)
+        group = next((g for g in self._pending if g.accepts(frame.camera, stamp, self.slop)), None)
         if group is None:
-            if frame.stamp <= self._last_emitted + self.slop:
-                # It belongs to a ring frame that already went out (or is older still): a frame
-                # of its own would repeat that stamp with one camera, so drop it.
+            group = self._open(frame.camera, stamp, now)
+            if group is None:
                 self.dropped_late += 1
                 return self.poll(now)
-            group = RingFrame(stamp=frame.stamp)
-            self._pending.append((now, group))
-            self._pending.sort(key=lambda item: item[1].stamp)
-        group.cameras[frame.camera] = frame
-        group.stamp = min(group.stamp, frame.stamp)
+        group.frame.cameras[frame.camera] = frame
+        group.frame.stamp = min(group.frame.stamp, stamp)
+        if self.slop is not None:
+            group.lo, group.hi = min(group.lo, stamp), max(group.hi, stamp)
+        self._pending.sort(key=lambda g: g.frame.stamp)
         return self.poll(now)
+
+    def _is_late(self, camera: str, stamp: float) -> bool:
+        """Stamped at or before the newest ring frame that went out (it would come out of order)."""
+        return self._last is not None and stamp <= self._last.frame.stamp
+
+    def _open(self, camera: str, stamp: float, now: float) -> Optional[_Group]:
+        """A new group for this frame, or None when it belongs to the ring frame that already went out."""
+        last = self._last
+        if last is not None and last.accepts(camera, stamp, self.slop):
+            # Its camera is missing from that frame and its stamp is in that frame's window: a
+            # frame of its own would repeat that frame with one camera. (A camera's next frame is
+            # not accepted there: its camera is in it.)
+            return None
+        timing = self.timing() if self.slop is None else None
+        if timing is None:
+            width = self.slop if self.slop is not None else self.AUTO_START_SLOP
+            lo, hi, spread = stamp, stamp, 0.0
+            if self.slop is None:  # auto, before the period is known: a window ahead of the frame
+                lo, hi = stamp - 0.5 * width, stamp + 0.5 * width
+        else:
+            lo, hi, spread = self._window(stamp, *timing)
+        # Free-running cameras report over their phase spread: the timeout starts after it.
+        extra = max(0.0, min(spread, hi - stamp)) if self.slop is None else 0.0
+        group = _Group(RingFrame(stamp=stamp), arrived=now, deadline=now + self.timeout + extra, lo=lo, hi=hi)
+        self._pending.append(group)
+        return group
 
     def poll(self, now: float) -> List[RingFrame]:
         """Return the groups that are complete or timed out, and every older group before them."""
         ready_upto = -1
         awaited = self._awaited(now)
-        for i, (arrived, g) in enumerate(self._pending):
-            if awaited.issubset(g.cameras) or now - arrived >= self.timeout:
+        for i, g in enumerate(self._pending):
+            if awaited.issubset(g.frame.cameras) or now >= g.deadline:
                 ready_upto = i
         overflow = len(self._pending) - self.max_pending
         ready_upto = max(ready_upto, overflow - 1)
         out = []
-        for arrived, g in self._pending[: ready_upto + 1]:
-            g.missing = [c for c in self.cameras if c not in g.cameras]
-            if g.missing:
+        for g in self._pending[: ready_upto + 1]:
+            rf = g.frame
+            rf.missing = [c for c in self.cameras if c not in rf.cameras]
+            if rf.missing:
                 # Why it went out incomplete (counted for the nodes' summaries and diagnostics).
-                if now - arrived >= self.timeout:
+                if now >= g.deadline:
                     self.incomplete["timeout"] += 1
-                elif awaited.issubset(g.cameras):
+                elif awaited.issubset(rf.cameras):
                     self.incomplete["silent"] += 1
                 else:
                     self.incomplete["overtaken"] += 1
-            out.append(g)
-            self._last_emitted = max(self._last_emitted, g.stamp)
+            out.append(rf)
+            if rf.stamp >= self._last_emitted:
+                self._last_emitted = rf.stamp
+                self._last = g
         del self._pending[: ready_upto + 1]
         return out
 

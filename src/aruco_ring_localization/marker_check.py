@@ -200,7 +200,7 @@ class MarkerCheck:
         self._warn = warn
         self._evidence: Dict[int, _Evidence] = {}
         self._records: Dict[int, Deque[MarkerObservationRecord]] = {}
-        self._baselines: Dict[Tuple[int, str], _Baseline] = {}
+        self._baselines: Dict[Tuple[int, str, frozenset], _Baseline] = {}
         #: id -> the marker declared moved (dropped from the pose until re-mapped or re-admitted).
         self.moved: Dict[int, MovedMarker] = {}
         #: ids forced out of the pose from outside (``build-map --update``: the markers being re-mapped).
@@ -306,24 +306,48 @@ class MarkerCheck:
                 delta = np.linalg.solve(H + 1e-12 * np.eye(6), g)   # the pose from the others, one GN step
             except np.linalg.LinAlgError:
                 continue
+            # The cameras that give the pose from the others: each camera's extrinsic error moves
+            # that pose its own way, so the offset a (marker, camera) pair shows holds for one set.
+            # A camera dropping out changes the set: the pair's residual jumps although nothing
+            # moved; it is judged against the baseline of the new set once that is learnt.
+            basis = frozenset(v.camera for m in others for _, _, _, _, v, _ in per_marker[m])
             A = np.zeros((3, 3))
             b = np.zeros(3)
+            H_joint = H.copy()          # the pose's information from the others and these rows
+            cross = np.zeros((3, 6))    # sum w Jm^T Jp
+            proj = np.zeros(6)          # sum w Jp^T e
             n = 0
             for r, Jp, Jm, w, v, k in rows:
-                res = r.reshape(-1) - Jp.reshape(-1, 6) @ delta
+                Jpf = Jp.reshape(-1, 6)
+                res = r.reshape(-1) - Jpf @ delta
                 self._record(mid, stamp, v, k, T_map_base, delta)
-                base = self._baseline_of(mid, v.camera, stamp, res, -v.R_cam_map.T @ v.t_cam_map)
+                base = self._baseline_of(mid, v.camera, basis, stamp, res, -v.R_cam_map.T @ v.t_cam_map)
                 if base is None:
                     continue   # a pair not seen long enough to know its own offset yet
                 Jmf = Jm.reshape(-1, 3)
+                e = res - base
                 A += w * Jmf.T @ Jmf
-                b += w * Jmf.T @ (res - base)
+                b += w * Jmf.T @ e
+                cross += w * Jmf.T @ Jpf
+                proj += w * Jpf.T @ e
+                H_joint += w * Jpf.T @ Jpf
                 n += 1
             if n:
-                self._evidence.setdefault(mid, _Evidence()).add(stamp, A, b, p.window)
+                # The pose from the others is uncertain too (few markers, one camera): the residual's
+                # covariance is W^-1 + Jp H^-1 Jp^T. Its inverse (Woodbury) W - W Jp H_joint^-1 Jp^T W
+                # turns the sums into the displacement's information with the pose marginalised (the
+                # Schur complement): a displacement that the pose from a few markers can absorb is
+                # weak evidence, so a frame with few cameras or markers does not declare a move.
+                try:
+                    K = np.linalg.solve(H_joint + 1e-12 * np.eye(6), cross.T)   # (6, 3)
+                except np.linalg.LinAlgError:
+                    continue
+                A = A - cross @ K
+                b = b - K.T @ proj
+                self._evidence.setdefault(mid, _Evidence()).add(stamp, 0.5 * (A + A.T), b, p.window)
         return self._judge(stamp, now)
 
-    def _baseline_of(self, mid: int, camera: str, stamp: float, res: np.ndarray,
+    def _baseline_of(self, mid: int, camera: str, basis: frozenset, stamp: float, res: np.ndarray,
                      position: np.ndarray) -> Optional[np.ndarray]:
         """The pair's offset learnt from its residuals older than the window (None: none yet); queue ``res``.
 
@@ -334,7 +358,7 @@ class MarkerCheck:
         learnt at, and starts over beyond. The baseline of a marker declared moved is frozen.
         """
         p = self.params
-        key = (mid, camera)
+        key = (mid, camera, basis)
         bl = self._baselines.get(key)
         if bl is None:
             bl = self._baselines[key] = _Baseline()
@@ -401,7 +425,7 @@ class MarkerCheck:
         q = self._records.get(mid)
         while q and q[0].stamp < stamp:
             q.popleft()   # where it was: re-mapping uses what it shows from the declaration on
-        for (m, _), bl in self._baselines.items():
+        for (m, _, _), bl in self._baselines.items():
             if m != mid:
                 bl.pending.clear()   # residuals taken with the moved marker in the pose: never a baseline
         logger.warning("marker check: marker %d moved by %.1f cm (%s m in the map frame; statistic %.0f > "

@@ -31,6 +31,7 @@ import numpy as np
 from .evaluation import comparison as _comparison
 from .config import default, param, require_positive, section
 from .detection import DetectorParams
+from .detections import parse_slop
 from .errors import ConfigError
 from .gating import GateParams
 from .kalman import FilterParams
@@ -57,7 +58,10 @@ class RingInputParams:
                                "the ring file's (for the localizer: those refined with the map when it has them)")
     camera_info_fallback: bool = param(False, "use the ring file's intrinsics while a camera has sent no "
                                               "camera_info (false: its detections are skipped, as aruco_detect)")
-    slop: float = param(0.03, "detections whose stamps differ by at most this form one ring frame", unit="s")
+    slop: str = param("auto", "auto: a ring frame is one frame period of the cameras' stamps, the period and "
+                              "the boundary between frames measured from the stamps (synchronized and "
+                              "free-running cameras alike, docs/localization.md); or a number: detections whose "
+                              "stamps differ by at most this form one ring frame", unit="s")
     timeout: float = param(0.25, "an incomplete ring frame goes out this long after its first camera (node's clock: "
                                  "ROS time); a silent camera never stalls the others", unit="s")
     silent_after: float = param(1.0, "a camera with no usable detections for this long is silent: ring frames stop "
@@ -73,8 +77,10 @@ class RingInputParams:
                                      "per ring frame stays bounded")
 
     def __post_init__(self) -> None:
-        if self.slop < 0:
-            raise ConfigError(f"must be >= 0, got {self.slop!r}", key="slop")
+        try:
+            parse_slop(self.slop)
+        except ValueError:
+            raise ConfigError(f"expected auto or a number of seconds >= 0, got {self.slop!r}", key="slop") from None
         require_positive(self, "timeout", "silent_after", "max_stamp_ahead", "max_detections")
         parse_id_list(self.ignore_fiducials, key="ignore_fiducials")
 

@@ -177,7 +177,7 @@ def test_synchronized_cameras_are_left_alone(lab):
 
 def _pipe(lab, **overrides) -> LocalizationPipeline:
     scene, ring, _ = lab
-    cfg = with_overrides(LocalizerConfig(), {**OFFLINE, "input.slop": 0.095, **overrides})
+    cfg = with_overrides(LocalizerConfig(), {**OFFLINE, **overrides})  # the stock input.slop (auto)
     return LocalizationPipeline(cfg, ring, scene.truth_map())
 
 

@@ -50,7 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fiducial-len", type=float, help="markers/fiducial_len: marker side, m")
     parser.add_argument("--fiducial-len-override", help='markers/fiducial_len_override: "1-10: 0.05, 12: 0.06"')
     parser.add_argument("--ignore-fiducials", help='input/ignore_fiducials: ids to ignore "1,4,9-12"')
-    parser.add_argument("--slop", type=float, help="input/slop: stamp grouping tolerance, s")
+    parser.add_argument("--slop", help="input/slop: auto (the default: one frame period of the cameras' stamps) or a stamp grouping tolerance, s")
     parser.add_argument("--map-frame", help="map/map_frame")
     parser.add_argument("--frame", choices=("floor", "marker"),
                         help="mapping/frame: floor = on the floor below the reference marker, z up (ground "

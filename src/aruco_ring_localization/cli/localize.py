@@ -49,7 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ring", help="ring YAML file (default: the config's ring_file, else config/ring.yaml)")
     parser.add_argument("--config", help="the localizer's parameter file (default: config/localization.yaml)")
     parser.add_argument("--fusion", choices=["paper", "joint"], help="estimator/fusion (default: the config's)")
-    parser.add_argument("--slop", type=float, help="input/slop: ring frame grouping slop, s (default: the config's)")
+    parser.add_argument("--slop", help="input/slop: auto or a ring frame grouping slop, s (default: the config's)")
     parser.add_argument("--ignore-fiducials", help='input/ignore_fiducials: ids never used, "1,4,9-12"')
     parser.add_argument("--output", choices=["filtered", "measurement"], default="filtered",
                         help="filtered poses (as ~pose) or the estimator's per-frame poses")

@@ -293,11 +293,9 @@ LOCALIZATION_START = 1000.0    # simulated clock of the localization phase, s
 DRIVE_SPEED = 0.5              # m/s between stops
 LOCKSTEP_TIMEOUT = {"images": 10.0, "corners": 3.0}   # wall s for one frame's answers
 # The harsh lab's free-running cameras in the demo: their phases spread over 100 ms (the issue's
-# measured case; half a frame period at the demo's 5 Hz), and the localizer's input/slop set to 3/4
-# of a frame period, so that each frame's 8 cameras form one ring frame (wider than the spread,
-# narrower than the gap to the next frame), as a user of free-running cameras sets it.
+# measured case; half a frame period at the demo's 5 Hz). The localizer runs with its stock
+# input/slop (auto: one frame period measured from the stamps), nothing set for these phases.
 HARSH_PHASE_SPAN = 0.1         # s
-HARSH_SLOP_PERIODS = 0.75
 
 
 def _parse(argv: Optional[Sequence[str]]) -> argparse.Namespace:
@@ -381,10 +379,9 @@ def _localize(ros: RosSession, rec: Recorder, args: argparse.Namespace, config: 
     out = Path(args.out)
     sim_yaml = write_simulator_config(out / "simulator_localization.yaml", config)
     rec.clear()
-    slop = [f"slop:={HARSH_SLOP_PERIODS / config.rate:.4f}"] if config.cameras.trigger == "free" else []
     loc = ros.launch("localization", ["phase:=localization", f"fusion:={args.fusion}",
                                       f"comparison_dir:={out / 'comparison'}", f"sim_config:={sim_yaml}"]
-                     + slop + common)
+                     + common)
     progress(f"localization ({args.fusion} fusion): driving through {sum(s.kind == 'position' for s in stops)} "
              f"positions and {sum(s.kind == 'orientation' for s in stops)} orientations")
     finished = [len(stops), -1]   # sim/at_waypoint: the last stop held (route index 0 is the start), then done

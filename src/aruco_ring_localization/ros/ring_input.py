@@ -126,7 +126,7 @@ class RingSubscriber:
         # reset=True: a bag loop moves ROS time backwards, which would otherwise kill the timer thread.
         self._timer = rospy.Timer(rospy.Duration(poll_period), self._on_timer, reset=True)
         p = pipeline.input.params
-        rospy.loginfo("%s: %d cameras (%s), slop %.3f s, timeout %.3f s, extrinsics from %s, intrinsics from "
+        rospy.loginfo("%s: %d cameras (%s), slop %s, timeout %.3f s, extrinsics from %s, intrinsics from "
                       "camera_info%s", name, len(pipeline.camera_names), ", ".join(pipeline.camera_names), p.slop,
                       p.timeout, "tf" if use_tf else "the ring file",
                       " (ring file as fallback)" if p.camera_info_fallback else "")
