@@ -171,14 +171,15 @@ def filter_model(station_model: str, requested: str = "auto") -> str:
     return "6dof" if station_model == "se3" else "planar"
 
 
-def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool = True) -> Dict[str, float]:
+def _load_case(test: str, max_frames: int = 0):
+    """One recording as both runs use it: (out_dir, source dir, tags, reference, ring with TagSLAM's
+    extrinsics, marker sizes, ignored ids, ring frames, TagSLAM's tags as a map)."""
     out_dir = os.path.join(OUT, test)
     os.makedirs(out_dir, exist_ok=True)
     src, rig_body, tags, ref = load_test(test)
     rig = read_rig(os.path.join(src, "cameras.yaml"), base_frame=rig_body,
                    camera_poses=write_camera_poses(ref, os.path.join(out_dir, "camera_poses_tagslam.yaml")))
     ring = rig.ring()
-    write_ring_files(ring, os.path.join(out_dir, "ring.yaml"))
     sizes = tags.marker_sizes()
     ignore = tags.ignore | tags.moving
     frames = ring_frames(cached_bag(test, "tag_detections"), ring, remap=tags.remap,
@@ -187,6 +188,12 @@ def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool =
         frames = frames[:max_frames]
     truth = MarkerMap([MarkerEntry(i, T, sizes(i)) for i, T in sorted(ref.tags.items()) if i not in ignore],
                       frame_id="map", method="TagSLAM")
+    return out_dir, src, tags, ref, ring, sizes, ignore, frames, truth
+
+
+def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool = True) -> Dict[str, float]:
+    out_dir, src, tags, ref, ring, sizes, ignore, frames, truth = _load_case(test, max_frames)
+    write_ring_files(ring, os.path.join(out_dir, "ring.yaml"))
     truth.save(os.path.join(out_dir, "tagslam_map.yaml"))
     res: Dict[str, float] = {"frames": len(frames), "cameras": len(ring), "tagslam_tags": len(truth)}
     # --- map ---
@@ -283,20 +290,7 @@ def run_loc(test: str, max_frames: int = 0, model: str = "auto") -> Dict[str, fl
     the extrinsics declared exact (``fusion: joint_exact_extrinsics``: how TagSLAM's own answer
     treats them) and the RMS reprojection error of our pose and of TagSLAM's (same map and
     extrinsics). The tracker: the mapping's own data test (:func:`station_model`), as in ``run_one``."""
-    src, rig_body, tags, ref = load_test(test)
-    out_dir = os.path.join(OUT, test)
-    os.makedirs(out_dir, exist_ok=True)
-    rig = read_rig(os.path.join(src, "cameras.yaml"), base_frame=rig_body,
-                   camera_poses=write_camera_poses(ref, os.path.join(out_dir, "camera_poses_tagslam.yaml")))
-    ring = rig.ring()
-    sizes = tags.marker_sizes()
-    ignore = tags.ignore | tags.moving
-    frames = ring_frames(cached_bag(test, "tag_detections"), ring, remap=tags.remap,
-                         ignore=",".join(str(i) for i in sorted(ignore)))
-    if max_frames:
-        frames = frames[:max_frames]
-    truth = MarkerMap([MarkerEntry(i, T, sizes(i)) for i, T in sorted(ref.tags.items()) if i not in ignore],
-                      frame_id="map", method="TagSLAM")
+    _, _, _, ref, ring, sizes, _, frames, truth = _load_case(test, max_frames)
     reference = {int(round(t * 1e6)): T for t, T in zip(ref.stamps, ref.T_map_rig)}
     stations = station_model(ring, sizes, frames)
     model = filter_model(stations, model)
