@@ -14,7 +14,8 @@ from __future__ import annotations
 import os
 import sys
 import time
-from typing import Dict
+from dataclasses import replace
+from typing import Dict, Optional
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -37,7 +38,10 @@ OUT = os.path.join(ROOT, "results", "bench", "real_calibration")
 TESTS = ("test_5", "test_6", "test_8")
 
 
-def run_one(test: str, max_frames: int, seed: int = 5) -> Dict[str, object]:
+def calibrate_test(test: str, max_frames: int, seed: int = 5, options: Optional[CalibrationOptions] = None
+                   ) -> Dict[str, object]:
+    """Calibrate ``test``'s rig from TagSLAM's camera poses made rough (``seed``); the errors of
+    each camera relative to camera 0 against TagSLAM's, and what the comparisons need."""
     out_dir = os.path.join(OUT, test)
     os.makedirs(out_dir, exist_ok=True)
     src, rig_body, tags, ref = load_test(test)
@@ -49,7 +53,8 @@ def run_one(test: str, max_frames: int, seed: int = 5) -> Dict[str, object]:
                          ignore=",".join(str(i) for i in sorted(ignore)))
     rough = rough_ring(ring, seed=seed)
     t0 = time.process_time()
-    cal = calibrate_ring(frames, rough, tags.marker_sizes(), options=CalibrationOptions(max_frames=max_frames))
+    opts = options or CalibrationOptions()
+    cal = calibrate_ring(frames, rough, tags.marker_sizes(), options=replace(opts, max_frames=max_frames))
     cpu = time.process_time() - t0
     cal.ring.save(os.path.join(out_dir, "ring_calibrated.yaml"))
     c0 = ring.names[0]
@@ -63,11 +68,12 @@ def run_one(test: str, max_frames: int, seed: int = 5) -> Dict[str, object]:
         errs[c] = (1000 * d[0], float(np.degrees(d[1])))
         before[c] = (1000 * b[0], float(np.degrees(b[1])))
     return {"errs": errs, "before": before, "cpu": cpu, "frames": len(frames), "used": cal.frames_used,
-            "rms": (cal.rms_px_before, cal.rms_px_after), "warnings": cal.warnings, "camera_frames": cal.camera_frames}
+            "rms": (cal.rms_px_before, cal.rms_px_after), "warnings": cal.warnings, "camera_frames": cal.camera_frames,
+            "cal": cal, "ring": ring, "ref": ref}
 
 
 def run(quick: bool = False) -> dict:
-    rows = {t: run_one(t, max_frames=150 if quick else 400) for t in TESTS}
+    rows = {t: calibrate_test(t, max_frames=150 if quick else 400) for t in TESTS}
     mm = max(v[0] for r in rows.values() for v in r["errs"].values())
     deg = max(v[1] for r in rows.values() for v in r["errs"].values())
     results = {"real_calib_err_mm_max": mm, "real_calib_err_deg_max": deg}

@@ -94,6 +94,7 @@ class RingCalibration:
         turn_deg, travel_m: total turning and driving of the robot in the frames used.
         rms_px_before, rms_px_after: the adjustment's corner RMS.
         ba: the adjustment's result.
+        station_stamps: the stamp of each of the adjustment's robot poses (``ba.T_W_stations``).
     """
 
     ring: CameraRing
@@ -108,6 +109,7 @@ class RingCalibration:
     rms_px_after: float
     ba: Optional[BAResult] = None
     extra: Dict[str, float] = field(default_factory=dict)
+    station_stamps: List[float] = field(default_factory=list)
 
 
 @dataclass
@@ -487,7 +489,8 @@ def calibrate_ring(frames: Sequence[RingFrame], rough: CameraRing, sizes: Marker
             for c in rough]
     return RingCalibration(ring=CameraRing(cams, rough.base_frame), std=std, warnings=warnings, handeye=handeye,
                            frames_used=len(stations), camera_frames=camera_frames, turn_deg=turn_deg,
-                           travel_m=travel, rms_px_before=res.rms_px_before, rms_px_after=res.rms_px_after, ba=res)
+                           travel_m=travel, rms_px_before=res.rms_px_before, rms_px_after=res.rms_px_after, ba=res,
+                           station_stamps=[float(used[keep[i]].stamp) for i in stations])
 
 
 def _initial_world(dets: Sequence[_Det], X: Dict[str, np.ndarray], n_frames: int, odo: Dict[int, np.ndarray]
