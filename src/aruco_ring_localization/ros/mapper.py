@@ -330,6 +330,7 @@ class MapperNode:
             self.pipeline.clear()
             self._published_version = -1
             self._saved_map = None
+            self._odometry = []
         self.pub_markers.publish(map_to_marker_array(MarkerMap(frame_id=self.config.map.map_frame), rospy.Time.now()))
         self.pub_fiducial_map.publish(FiducialMapEntryArray())
         rospy.loginfo("mapper: cleared")
