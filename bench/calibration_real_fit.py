@@ -9,7 +9,7 @@ observations (those the calibration's adjustment kept):
   poses, nothing re-fitted) reprojected on the frames its rig poses cover, and ours on the same
   observations.
 
-Used by bench_calibration_real.py; run alone: ``python bench/calibration_real_fit.py test_6 [frames]``.
+Used by bench_calibration_real.py; run alone: ``python bench/calibration_real_fit.py test_6 [frames] [loss]``.
 """
 from __future__ import annotations
 
@@ -77,6 +77,20 @@ def reference_reprojection(cal, ref, names: Sequence[str], max_dt: float = 0.002
             "our_rms_px": float(np.sqrt(np.mean(e_our ** 2))), "our_median_px": float(np.median(e_our))}
 
 
+def breakdown(cal, names: Sequence[str]) -> Dict[str, object]:
+    """Our solution's corner errors per camera, and how they are spread over frames (a few bad
+    frames -- motion blur, rolling shutter -- or all of them a little)."""
+    res, prob = cal.ba, cal.ba.problem
+    e = corner_errors_px(_subproblem(prob, res.T_W_markers, res.T_W_stations, res.T_base_cams))
+    per_cam = {c: float(np.sqrt(np.mean(e[prob.obs_camera == k] ** 2))) for k, c in enumerate(names)}
+    per_frame = np.array([np.sqrt(np.mean(e[prob.obs_station == s] ** 2)) for s in np.unique(prob.obs_station)])
+    worst = np.sort(e)[::-1]
+    return {"per_camera_rms_px": per_cam, "frames_rms_px_p50_p90_p99": [float(np.percentile(per_frame, q))
+                                                                        for q in (50, 90, 99)],
+            "share_of_squared_error_in_worst_5pct_obs": float(np.sum(worst[: len(e) // 20] ** 2) / np.sum(e ** 2)),
+            "obs_over_3px": int(np.sum(e > 3.0)), "n_obs": int(len(e))}
+
+
 if __name__ == "__main__":
     import json
     import time
@@ -86,11 +100,15 @@ if __name__ == "__main__":
 
     test = sys.argv[1] if len(sys.argv) > 1 else "test_6"
     n = int(sys.argv[2]) if len(sys.argv) > 2 else 400
+    loss = sys.argv[3] if len(sys.argv) > 3 else "huber"
+    from aruco_ring_localization.ring_calibration import CalibrationOptions
+
     c0 = time.process_time()
-    r = calibrate_test(test, max_frames=n)
+    r = calibrate_test(test, max_frames=n, options=CalibrationOptions(loss=loss))
     cal, ring, ref = r["cal"], r["ring"], r["ref"]
     names = ring.names
-    out = {"test": test, "max_frames": n, "errs": r["errs"], "rms": r["rms"], "used": r["used"],
+    out = {"test": test, "max_frames": n, "loss": loss, "errs": r["errs"], "rms": r["rms"], "used": r["used"],
+           "breakdown": breakdown(cal, names),
            "fit_ours": fixed_camera_fit(cal, [cal.ba.T_base_cams[k] for k in range(len(names))]),
            "fit_tagslam": fixed_camera_fit(cal, [ring[c].T_base_cam for c in names]),
            "reference_as_is": reference_reprojection(cal, ref, names),
