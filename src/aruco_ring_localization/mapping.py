@@ -291,6 +291,18 @@ class MapBuilder:
         as the bundle adjustment's priors."""
         self.ring = ring
 
+    def recalibrate(self, ring: CameraRing) -> None:
+        """A new calibration of the ring (the mapper's calibration from rough values): the extrinsics
+        of every observation kept so far are replaced by ``ring``'s, as if they had been in force
+        when it was added, and the frames added from now on use them too."""
+        self.ring = ring
+        for o in self._obs:
+            if o.camera in ring.names:
+                o.T_base_cam = np.array(ring[o.camera].T_base_cam)
+        self._init_cache = None
+        self._last_groups = []
+        self._version += 1
+
     # --- input ------------------------------------------------------------------------------
 
     def clear(self) -> None:

@@ -34,9 +34,10 @@ these records to rosout. Nothing here is thread-safe: a node calls a pipeline un
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Deque, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -56,6 +57,7 @@ from .marker_check import MarkerCheck
 from .marker_map import MarkerMap
 from .odometry import OdometryHistory, constant_velocity_displacement, propagate_se2, se2_between
 from .ring import CameraRing, apply_refined_extrinsics
+from .ring_calibration import CalibrationOptions, RingCalibration, calibrate_ring
 from .schemas import LocalizerConfig, MapperConfig, RingInputParams
 from .throttle import WARN_PERIOD, ThrottledWarnings
 
@@ -1033,7 +1035,18 @@ class MappingPipeline(_RingPipeline):
     def __init__(self, config: MapperConfig, ring: CameraRing):
         self.config = config
         self.warn = ThrottledWarnings(logger.warning, WARN_PERIOD)
-        self.input = RingInput(ring, config.input, self.warn, label="mapper")
+        rough = config.calibration.rough
+        # Calibrating from rough values: the ring file's extrinsics are the start, never tf's (the
+        # mapper publishes the ring's tf itself in that mode).
+        self.input = RingInput(ring, replace(config.input, use_tf=False) if rough else config.input, self.warn,
+                               label="mapper")
+        #: the rough ring (calibration/extrinsics rough), the start of every calibration; None otherwise.
+        self.rough_ring: Optional[CameraRing] = ring if rough else None
+        #: the last calibration from rough values (:meth:`calibrate`), None before.
+        self.calibration: Optional[RingCalibration] = None
+        self._calib_frames: List[RingFrame] = []
+        self._calib_seen = 0      # frames with markers offered for the calibration
+        self._calib_stride = 1    # one in this many of them is kept (doubles at calibration.keep_frames)
         # A surveyed frame: read once here, so a bad anchors file stops the node (or build-map) at
         # start, naming the file and the key.
         anchors = load_anchors(config.map.anchors_file) if config.map.anchors_file else None
@@ -1062,8 +1075,49 @@ class MappingPipeline(_RingPipeline):
         return self._add(self.input.poll(now, flush=True))
 
     def clear(self) -> None:
-        """Forget every observation (the ``~clear`` service)."""
+        """Forget every observation (the ``~clear`` service), and the frames kept for the calibration."""
         self.builder.clear()
+        self._calib_frames, self._calib_seen, self._calib_stride = [], 0, 1
+
+    # --- calibration from rough values (calibration/extrinsics rough) ------------------------------------
+
+    def _keep_for_calibration(self, frame: RingFrame) -> None:
+        if self.rough_ring is None or frame.observation_count() == 0:
+            return
+        self._calib_seen += 1
+        if (self._calib_seen - 1) % self._calib_stride:
+            return
+        self._calib_frames.append(frame)
+        if len(self._calib_frames) >= self.config.calibration.keep_frames:
+            # Bounded memory, still spread evenly over the whole run.
+            self._calib_frames = self._calib_frames[::2]
+            self._calib_stride *= 2
+
+    @property
+    def calibration_stamps(self) -> List[float]:
+        """Stamps of the frames kept for the calibration (where the node looks up the odometry)."""
+        return [f.stamp for f in self._calib_frames]
+
+    def calibrate(self, odometry: Optional[Sequence[Tuple[float, np.ndarray]]] = None) -> RingCalibration:
+        """Calibrate the ring from the rough values and the frames kept so far
+        (:func:`ring_calibration.calibrate_ring`; ``odometry`` [(stamp, T_odom_base)] gives base_link's
+        heading); from now on the map is built with the calibrated extrinsics (those of the frames
+        already added included).
+
+        Raises:
+            ConfigError: calibration/extrinsics is not rough. MeasurementError: too few usable frames.
+        """
+        if self.rough_ring is None:
+            raise ConfigError("the mapper calibrates the ring only from rough values (calibration/extrinsics: rough)",
+                              key="calibration.extrinsics")
+        cp = self.config.calibration
+        cal = calibrate_ring(self._calib_frames, self.rough_ring, self.config.markers.sizes(),
+                             odometry=odometry or None, options=CalibrationOptions(max_frames=cp.max_frames))
+        for name in self.input.camera_names:
+            self.input.set_extrinsics(name, cal.ring[name].T_base_cam)
+        self.builder.recalibrate(self.input.ring)
+        self.calibration = cal
+        return cal
 
     # --- the map ------------------------------------------------------------------------------
 
@@ -1101,7 +1155,12 @@ class MappingPipeline(_RingPipeline):
     def format_summary(self) -> str:
         if not self.builder.frames:
             return "no ring frame yet"
-        text = self.builder.format_summary()
+        if self.rough_ring is not None and self.calibration is None:
+            # Not the map's summary: through rough extrinsics it is wrong and costs an initialisation.
+            text = (f"calibrating the ring from rough values: {self.builder.frames} ring frames, "
+                    f"{len(self._calib_frames)} kept for the calibration; the map after ~save_map or ~calibrate_ring")
+        else:
+            text = self.builder.format_summary()
         if self.frames_missing:
             text += f"; {self.frames_missing} ring frames without every camera ({self.input.incomplete_reasons()})"
         return text
@@ -1149,9 +1208,17 @@ class MappingPipeline(_RingPipeline):
     def _add(self, frames: List[RingFrame]) -> int:
         for f in frames:
             self.frames_missing += bool(f.missing)
+            self._keep_for_calibration(f)
             if self.builder.add_frame(f) >= 0:
                 self._last_stamp = f.stamp
         return len(frames)
+
+
+def ring_file_beside(map_file: str) -> str:
+    """Where the mapper writes the ring it calibrated from rough values by default: beside the map,
+    ``<map file without .yaml>_ring.yaml``."""
+    root, ext = os.path.splitext(map_file)
+    return f"{root if ext in ('.yaml', '.yml') else map_file}_ring.yaml"
 
 
 # --- helpers for in-process drivers (benchmarks, tests, the demo's report) ---------------------------

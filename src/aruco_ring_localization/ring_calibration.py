@@ -33,7 +33,9 @@ Steps:
 Per-camera std: the adjustment's covariance of each camera with the ring's common motion (the
 gauge) projected out, in the camera's optical frame (the ring file's ``extrinsics_std``
 convention): how well each camera is known relative to the others (the ring's common
-motion, i.e. base_link's definition, is what the warnings are about).
+motion, i.e. base_link's definition, is what the warnings are about). Scaled by the measured
+corner noise and inflated for the correlation of a marker's residuals from one frame to the next
+(:func:`residual_lag1_correlation`): a detector errs alike on near-identical views.
 """
 from __future__ import annotations
 
@@ -78,6 +80,7 @@ class CalibrationOptions:
     handeye_rounds: int = 3          # without odometry: robot motion / cameras re-estimated in turn
     handeye_max_trans: float = 0.10  # m; a hand-eye answer farther from the rough value is not kept
     handeye_max_rot_deg: float = 15.0  # deg; idem
+    loss: str = "huber"              # the adjustment's robust loss (BAOptions.loss), scale 3 x pixel_noise
 
 
 @dataclass
@@ -94,6 +97,7 @@ class RingCalibration:
         turn_deg, travel_m: total turning and driving of the robot in the frames used.
         rms_px_before, rms_px_after: the adjustment's corner RMS.
         ba: the adjustment's result.
+        station_stamps: the stamp of each of the adjustment's robot poses (``ba.T_W_stations``).
     """
 
     ring: CameraRing
@@ -108,6 +112,7 @@ class RingCalibration:
     rms_px_after: float
     ba: Optional[BAResult] = None
     extra: Dict[str, float] = field(default_factory=dict)
+    station_stamps: List[float] = field(default_factory=list)
 
 
 @dataclass
@@ -487,7 +492,10 @@ def calibrate_ring(frames: Sequence[RingFrame], rough: CameraRing, sizes: Marker
             for c in rough]
     return RingCalibration(ring=CameraRing(cams, rough.base_frame), std=std, warnings=warnings, handeye=handeye,
                            frames_used=len(stations), camera_frames=camera_frames, turn_deg=turn_deg,
-                           travel_m=travel, rms_px_before=res.rms_px_before, rms_px_after=res.rms_px_after, ba=res)
+                           travel_m=travel, rms_px_before=res.rms_px_before, rms_px_after=res.rms_px_after, ba=res,
+                           station_stamps=[float(used[keep[i]].stamp) for i in stations],
+                           extra={k: float(res.extra[k]) for k in ("residual_lag1_correlation", "std_inflation")
+                                  if k in res.extra})
 
 
 def _initial_world(dets: Sequence[_Det], X: Dict[str, np.ndarray], n_frames: int, odo: Dict[int, np.ndarray]
@@ -551,7 +559,7 @@ def _adjust(dets, X, X_prior, T_W_s, T_W_m, sizes, names, opts: CalibrationOptio
             ) -> Tuple[BAResult, Dict[int, int]]:
     """The adjustment from the extrinsics ``X``, priors centred on ``X_prior``; returns it and
     {station index: frame index}."""
-    ba = BAOptions(pixel_noise=opts.pixel_noise, refine_extrinsics=True, extrinsics_trans_sigma=opts.prior_trans,
+    ba = BAOptions(pixel_noise=opts.pixel_noise, loss=opts.loss, refine_extrinsics=True, extrinsics_trans_sigma=opts.prior_trans,
                    extrinsics_rot_sigma_deg=opts.prior_rot_deg, max_nfev=100, covariance=False)
     prob, frames, use = _problem(dets, X, T_W_s, T_W_m, sizes, names)
     prob.T_base_cams_start = prob.T_base_cams
@@ -601,6 +609,20 @@ def _shift_to_floor(G, T_W_st, res, known) -> np.ndarray:
     return out
 
 
+def residual_lag1_correlation(r: np.ndarray, camera: np.ndarray, marker: np.ndarray, station: np.ndarray,
+                              max_rho: float = 0.95) -> float:
+    """Correlation of each observation's residual vector (N, 8) with the next observation of the
+    same marker by the same camera (in station order): ``sum r_k . r_k+1 / sum |r_k|^2`` over all
+    such pairs, clipped to [0, ``max_rho``]; 0 without pairs."""
+    order = np.lexsort((station, marker, camera))
+    same = (camera[order][1:] == camera[order][:-1]) & (marker[order][1:] == marker[order][:-1])
+    a, b = r[order][:-1][same], r[order][1:][same]
+    den = float(np.sum(a * a) + np.sum(b * b)) / 2.0
+    if len(a) == 0 or den <= 0.0:
+        return 0.0
+    return float(np.clip(np.sum(a * b) / den, 0.0, max_rho))
+
+
 def _camera_std(res: BAResult, prob: BAProblem, names: List[str], calibrated: List[str], rough: CameraRing
                 ) -> Dict[str, np.ndarray]:
     """Per-camera std (optical frame, rotation rad then translation m) with the gauge fixed.
@@ -638,8 +660,16 @@ def _camera_std(res: BAResult, prob: BAProblem, names: List[str], calibrated: Li
     n = model.n_obs_res
     r = model.residuals(np.zeros(model.n_params))[:n]
     s2 = float(r @ r) / max(n - model.n_params, 1)
+    # The covariance above assumes every frame's corner errors independent. A detector's are not:
+    # the same marker seen again from nearly the same place errs nearly the same way (the rendered
+    # lab: lag-1 correlation ~0.8, and the std was 2-3x too small). Inflate by the variance factor
+    # of an AR(1) series, (1 + rho) / (1 - rho), rho measured from the residuals.
+    rho = residual_lag1_correlation(r.reshape(-1, 8), prob.obs_camera, prob.obs_marker, prob.obs_station)
+    inflation = (1.0 + rho) / (1.0 - rho)
+    res.extra["residual_lag1_correlation"] = rho
+    res.extra["std_inflation"] = float(np.sqrt(inflation))
     cols = np.concatenate([model.col_c[k] + np.arange(6) for k in range(C)])
-    cov = camera_cov_in_optical_frames(s2 * cov_all[np.ix_(cols, cols)], res.T_base_cams)
+    cov = camera_cov_in_optical_frames(inflation * s2 * cov_all[np.ix_(cols, cols)], res.T_base_cams)
     for k, c in enumerate(names):
         if c in calibrated:
             out[c] = np.sqrt(np.clip(np.diag(cov[6 * k:6 * k + 6, 6 * k:6 * k + 6]), 0.0, None))

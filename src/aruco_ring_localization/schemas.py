@@ -219,6 +219,45 @@ class MapParams:
         return self.reference_marker if self.reference_marker >= 0 else None
 
 
+EXTRINSICS_KINDS = ("calibrated", "rough")
+
+
+@dataclass(frozen=True)
+class MapperCalibrationParams:
+    """The mapper calibrating the ring from rough values while mapping (``aruco_ring calibrate-ring``'s
+    method, docs/mapping.md)."""
+
+    extrinsics: str = param("calibrated", "calibrated: the ring file's extrinsics are a calibration (the bundle "
+                                          "adjustment refines them with priors of a few mm); rough: they are a "
+                                          "drawing's values (off by up to ~5 cm and 10 deg per camera): ~save_map "
+                                          "first calibrates every camera from the frames seen so far (the robot "
+                                          "turning on the spot and driving among markers), writes the ring file "
+                                          "(ring_file_out), publishes it on tf, then builds the map with it. "
+                                          "mapping.launch's extrinsics:=rough sets this and leaves ring_tf out: the "
+                                          "mapper then publishes base_link -> camK_optical_frame itself")
+    ring_file_out: str = param("", "where the calibrated ring is written (atomic, previous kept as .bak); empty: "
+                                   "beside the map file, <map file without .yaml>_ring.yaml")
+    max_frames: int = param(400, "frames with markers used by the calibration, evenly spread over those kept")
+    keep_frames: int = param(4000, "frames with markers kept for the calibration while mapping; at this many, "
+                                   "every other one is dropped (memory stays bounded on a long run)")
+    odometry: bool = param(True, "take the robot's odometry from tf (output/odom_frame -> the base frame) at "
+                                 "each frame's stamp when it exists: it gives base_link's heading, which the "
+                                 "images alone do not")
+
+    def __post_init__(self) -> None:
+        if self.extrinsics not in EXTRINSICS_KINDS:
+            raise ConfigError(f"expected one of {EXTRINSICS_KINDS}, got {self.extrinsics!r}", key="extrinsics")
+        if self.max_frames < 3:
+            raise ConfigError(f"must be >= 3, got {self.max_frames!r}", key="max_frames")
+        if self.keep_frames < self.max_frames:
+            raise ConfigError(f"must be >= max_frames ({self.max_frames}), got {self.keep_frames!r}",
+                              key="keep_frames")
+
+    @property
+    def rough(self) -> bool:
+        return self.extrinsics == "rough"
+
+
 @dataclass(frozen=True)
 class MapperOutputParams:
     """Publishing and progress of the mapper."""
@@ -256,6 +295,8 @@ class MapperConfig:
     markers: MarkerParams = section(MarkerParams, "marker sizes")
     map: MapParams = section(MapParams, "the map built")
     mapping: MappingOptions = section(MappingOptions, "the map builder (paper section II-D and beyond)")
+    calibration: MapperCalibrationParams = section(MapperCalibrationParams, "ring calibration from rough values "
+                                                                        "while mapping")
     output: MapperOutputParams = section(MapperOutputParams, "publishing and progress")
 
 

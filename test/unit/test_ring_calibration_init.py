@@ -161,3 +161,23 @@ def test_calibrate_ring_turning_on_the_spot_gets_the_cameras_relative_to_each_ot
     assert any(w.startswith("no odometry") for w in cal.warnings)
     # The tilt of base_link comes from the turning: its z is the true z.
     assert np.degrees(np.arccos(np.clip(G[2, 2], -1, 1))) < 0.05
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.5, 0.8])
+def test_residual_lag1_correlation_recovers_an_ar1_series(rho):
+    """Residuals of 6 (camera, marker) series over 400 stations, AR(1) with coefficient rho (what a
+    detector erring alike on near-identical views gives), shuffled: the measured rho."""
+    rng = np.random.default_rng(11)
+    rows, cams, marks, stations = [], [], [], []
+    for g in range(6):
+        x = rng.normal(0.0, 1.0, 8)
+        for s in range(400):
+            x = rho * x + np.sqrt(1.0 - rho ** 2) * rng.normal(0.0, 1.0, 8)
+            rows.append(x.copy())
+            cams.append(g % 3)
+            marks.append(g // 3)
+            stations.append(s)
+    perm = rng.permutation(len(rows))
+    got = rc.residual_lag1_correlation(np.array(rows)[perm], np.array(cams)[perm], np.array(marks)[perm],
+                                       np.array(stations)[perm])
+    assert got == pytest.approx(rho, abs=0.03)

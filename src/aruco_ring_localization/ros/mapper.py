@@ -21,6 +21,16 @@ Services:
         adjustment), writes ``map_file`` atomically (previous file kept as ``.bak``), answers with
         the path and a summary.
     ``~clear`` (std_srvs/Trigger): forgets every observation.
+    ``~calibrate_ring`` (std_srvs/Trigger, ``calibration/extrinsics: rough`` only): calibrates the ring
+        from the rough values and the frames seen so far, writes the ring file, updates tf.
+
+Calibration from rough values (``calibration/extrinsics: rough``, mapping.launch ``extrinsics:=rough``):
+the ring file holds a drawing's extrinsics; the node publishes them on tf itself (static
+``base_link -> camK_optical_frame``; ring_tf is not started), keeps the frames it maps (and the
+odometry at their stamps from tf ``odom -> base_link``), and ``~save_map`` first calibrates every
+camera from them (:func:`aruco_ring_localization.ring_calibration.calibrate_ring`), writes the
+ring file ``calibration/ring_file_out`` (default beside the map, ``<map>_ring.yaml``) atomically,
+publishes the calibrated extrinsics on tf, then builds and saves the map with them.
 
 Progress (markers mapped, observations per marker, markers seen but not linked, silent cameras)
 goes to the log every ``output/progress_period`` seconds. With ``map/save_on_shutdown`` the map is
@@ -43,7 +53,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from .. import geometry as geo
 from ..errors import ArucoRingError, ConfigError
 from ..marker_map import MarkerMap
-from ..pipeline import MappingPipeline
+from ..pipeline import MappingPipeline, ring_file_beside
 from ..ring import CameraRing
 from ..threads import limit_threads
 from ..schemas import MapperConfig
@@ -51,7 +61,7 @@ from . import log_bridge
 from .conversions import make_transform_stamped, pose_to_msg
 from .params import read_config
 from .ring_input import MAPPER_QUEUE_SIZE, RingSubscriber
-from .ring_tf import default_ring_file
+from .ring_tf import default_ring_file, ring_transforms
 from .tf_output import MapTransform
 
 WARN_PERIOD = 5.0
@@ -125,8 +135,21 @@ class MapperNode:
         self.static_tf = tf2_ros.StaticTransformBroadcaster()
         self.tf_buffer = tf2_ros.Buffer()
         self.tf_listener = tf2_ros.TransformListener(self.tf_buffer)
-        self.ring_input = RingSubscriber(self.pipeline, lambda _added: None, "mapper", use_tf=config.input.use_tf,
+        rough = config.calibration.rough
+        self.ring_input = RingSubscriber(self.pipeline, lambda _added: None, "mapper",
+                                         use_tf=config.input.use_tf and not rough,
                                          tf_buffer=self.tf_buffer, queue_size=MAPPER_QUEUE_SIZE)
+        # Calibration from rough values: this node owns the ring's tf (every static transform of one
+        # publisher goes out in one message, /tf_static being latched: the markers' and the ring's).
+        self.ring_file_out = os.path.expanduser(config.calibration.ring_file_out) or ring_file_beside(self.map_file)
+        self._ring_tf = ring_transforms(ring, rospy.Time.now()) if rough else []
+        self._marker_tf: list = []
+        self._odometry: list = []          # [(stamp, T_odom_base)] at the calibration frames' stamps
+        if rough:
+            self.static_tf.sendTransform(list(self._ring_tf))
+            if config.calibration.odometry:
+                rospy.Timer(rospy.Duration(1.0), self.on_odometry_timer, reset=True)
+            rospy.Service("~calibrate_ring", Trigger, self.on_calibrate_ring)
         out = config.output
         self.map_tf = MapTransform(self.tf_buffer, config.map.map_frame, out.base_frame or ring.base_frame,
                                    out.odom_frame, out.tf_mode, "mapper")
@@ -142,6 +165,10 @@ class MapperNode:
         rospy.on_shutdown(self.on_shutdown)
         rospy.loginfo("mapper: method %s, map file %s, map frame %s", config.map.method, self.map_file,
                       config.map.map_frame)
+        if rough:
+            rospy.loginfo("mapper: calibrating the ring from the rough values of %s (published on tf by this node); "
+                          "~save_map writes the calibrated ring to %s", config.ring_file or default_ring_file(),
+                          self.ring_file_out)
 
     # --- output -----------------------------------------------------------------------------
 
@@ -150,9 +177,10 @@ class MapperNode:
         self.update_robot_tf(m)
         self.pub_markers.publish(map_to_marker_array(m, stamp))
         self.pub_fiducial_map.publish(map_to_fiducial_map(m))
-        transforms = [make_transform_stamped(e.T_map_marker, m.frame_id, f"marker_{e.marker_id}", stamp) for e in m]
-        if transforms:
-            self.static_tf.sendTransform(transforms)
+        self._marker_tf = [make_transform_stamped(e.T_map_marker, m.frame_id, f"marker_{e.marker_id}", stamp)
+                           for e in m]
+        if self._marker_tf:
+            self.static_tf.sendTransform(self._marker_tf + self._ring_tf)
 
     def update_robot_tf(self, m: MarkerMap) -> None:
         """The robot's tf at its latest station in ``m`` (map -> odom, or map -> base_link)."""
@@ -182,6 +210,15 @@ class MapperNode:
             version = self.pipeline.version
             if version == self._published_version:
                 return
+            if self.pipeline.rough_ring is not None and self.pipeline.calibration is None:
+                # Through rough extrinsics the preview is wrong (markers rejected as spread over
+                # decimetres) and slow (stations in SE(3)); holding the input for it made cameras'
+                # messages arrive late and out of order. Shown once calibrated.
+                self._published_version = version
+                rospy.loginfo_throttle(60.0, "mapper: calibrating from rough values: no live map until ~save_map "
+                                             "or ~calibrate_ring (%d frames kept for the calibration, %d odometry "
+                                             "poses)", len(self.pipeline.calibration_stamps), len(self._odometry))
+                return
             try:
                 m = self.pipeline.build("paper")  # cheap live preview; ~save_map refines
             except ArucoRingError as exc:
@@ -210,9 +247,66 @@ class MapperNode:
         self._progress_frames = frames
         rospy.loginfo(text)
 
+    # --- calibration from rough values -------------------------------------------------------------
+
+    def on_odometry_timer(self, _event) -> None:
+        """The odometry (tf odom_frame -> base frame) at the stamps of the frames kept for the
+        calibration, looked up while tf's buffer still holds them."""
+        with self.ring_input.lock:
+            stamps = self.pipeline.calibration_stamps
+        last = self._odometry[-1][0] if self._odometry else -np.inf
+        base = self.pipeline.ring.base_frame
+        for t in stamps:
+            if t <= last:
+                continue
+            try:
+                ts = self.tf_buffer.lookup_transform(self.config.output.odom_frame, base, rospy.Time.from_sec(t))
+            except tf2_ros.ExtrapolationException:
+                if rospy.Time.now().to_sec() - t < 5.0:
+                    break       # not in tf yet: the next tick
+                continue        # no longer in tf's buffer
+            except (tf2_ros.LookupException, tf2_ros.ConnectivityException):
+                return          # no odometry (yet)
+            q, p = ts.transform.rotation, ts.transform.translation
+            self._odometry.append((t, geo.transform_from_translation_quaternion([p.x, p.y, p.z], [q.x, q.y, q.z, q.w])))
+
+    def calibrate_ring(self) -> str:
+        """Calibrate from the rough values (:meth:`MappingPipeline.calibrate`), write the ring file,
+        publish its extrinsics on tf; returns the summary."""
+        odometry = list(self._odometry) if len(self._odometry) >= 3 else None
+        with self.ring_input.lock:
+            cal = self.pipeline.calibrate(odometry)
+        cal.ring.save(self.ring_file_out)
+        self._ring_tf = ring_transforms(cal.ring, rospy.Time.now())
+        self.static_tf.sendTransform(self._marker_tf + self._ring_tf)
+        rough = self.pipeline.rough_ring
+        moved = [geo.pose_distance(rough[c.name].T_base_cam, c.T_base_cam) for c in cal.ring]
+        std_mm = max(1000 * float(np.max(v[3:])) for v in cal.std.values())
+        std_deg = max(float(np.degrees(np.max(v[:3]))) for v in cal.std.values())
+        text = (f"ring calibrated from rough values to {self.ring_file_out}: {cal.frames_used} frames, turned "
+                f"{cal.turn_deg:.0f} deg, drove {cal.travel_m:.1f} m, "
+                f"{'with odometry' if odometry else 'without odometry'}; cameras moved up to "
+                f"{1000 * max(m[0] for m in moved):.1f} mm / {np.degrees(max(m[1] for m in moved)):.2f} deg from the "
+                f"rough values; std up to {std_mm:.2f} mm / {std_deg:.3f} deg; bundle adjustment RMS "
+                f"{cal.rms_px_before:.2f} -> {cal.rms_px_after:.3f} px")
+        if cal.warnings:
+            text += "; warnings: " + " | ".join(cal.warnings)
+        (rospy.logwarn if cal.warnings else rospy.loginfo)(f"mapper: {text}")
+        return text
+
+    def on_calibrate_ring(self, _req) -> TriggerResponse:
+        try:
+            text = self.calibrate_ring()
+        except (ArucoRingError, OSError) as exc:
+            rospy.logerr(f"mapper: calibrate_ring failed: {exc}")
+            return TriggerResponse(success=False, message=str(exc))
+        return TriggerResponse(success=True, message=text)
+
     def save(self) -> str:
         """Build with the configured method, write atomically; log and return the summary (a warning
-        first when a detected marker is not in the map)."""
+        first when a detected marker is not in the map). Calibrating from rough values, the ring is
+        calibrated first (:meth:`calibrate_ring`) and the summary starts with it."""
+        calibrated = self.calibrate_ring() + ". " if self.pipeline.rough_ring is not None else ""
         with self.ring_input.lock:
             m = self.pipeline.save(self.map_file)
             text = self.pipeline.format_saved(m, self.map_file)
@@ -221,7 +315,7 @@ class MapperNode:
         self._saved_map = m
         self.publish(m)
         (rospy.loginfo if complete else rospy.logwarn)(f"mapper: {text}")
-        return text
+        return calibrated + text
 
     def on_save_map(self, _req) -> TriggerResponse:
         try:
@@ -236,6 +330,7 @@ class MapperNode:
             self.pipeline.clear()
             self._published_version = -1
             self._saved_map = None
+            self._odometry = []
         self.pub_markers.publish(map_to_marker_array(MarkerMap(frame_id=self.config.map.map_frame), rospy.Time.now()))
         self.pub_fiducial_map.publish(FiducialMapEntryArray())
         rospy.loginfo("mapper: cleared")
