@@ -136,6 +136,15 @@ class LocalizationParams:
                                              "larger (as before)")
     min_pixel_noise: float = param(0.05, "joint, estimate_pixel_noise: the least pixel noise the residuals may say",
                                    unit="px")
+    exact_when_consistent: bool = param(True, "joint: when a frame's cameras agree with each other through the "
+                                              "extrinsics (an F-test: giving each camera its own pose lowers the "
+                                              "exact-extrinsics residuals by no more than the pixel noise within the "
+                                              "cameras explains, at level consistency_alpha), the pose is the "
+                                              "exact-extrinsics solution (the Cramer-Rao optimum of a ring whose "
+                                              "calibration the data do not contradict); otherwise the "
+                                              "calibration-aware one; false: always the calibration-aware one")
+    consistency_alpha: float = param(0.01, "joint, exact_when_consistent: the test's false-alarm rate (the chance "
+                                           "that a consistent frame is taken as inconsistent)")
     joint_outlier_threshold: float = param(10.0, "a marker whose RMS residual in the joint solution exceeds this "
                                                  "is dropped (moved or mis-mapped marker) and the pose re-solved; a "
                                                  "final RMS above it rejects the joint solution. Larger than "
@@ -149,6 +158,8 @@ class LocalizationParams:
                          "robust_scale", "min_pixel_noise")
         if self.fusion_gap < 0:
             raise ConfigError(f"must be >= 0, got {self.fusion_gap!r}", key="fusion_gap")
+        if not 0.0 < self.consistency_alpha < 1.0:
+            raise ConfigError(f"must be in (0, 1), got {self.consistency_alpha!r}", key="consistency_alpha")
         for key in ("extrinsic_jitter_deg", "extrinsic_jitter_m"):
             if not getattr(self, key) >= 0:
                 raise ConfigError(f"must be >= 0, got {getattr(self, key)!r}", key=key)
@@ -215,6 +226,8 @@ class LocalizationResult:
             It was chosen by the prediction, so it cannot confirm, start or re-start a track:
             the gate keeps it out of the filter.
         alternatives: those other poses, (4, 4) ``T_map_base`` each (empty unless ambiguous).
+        extrinsics_consistent: the joint pose took the extrinsics as exact because the cameras
+            agreed with each other through them (``exact_when_consistent``).
     """
 
     stamp: float
@@ -230,6 +243,7 @@ class LocalizationResult:
     iterations: int = 0
     ambiguous: bool = False
     alternatives: List[np.ndarray] = field(default_factory=list)
+    extrinsics_consistent: bool = False
 
     @property
     def ok(self) -> bool:
@@ -374,6 +388,13 @@ class CameraView:
             self.T_base_cam = _inv(self.T_cam_base)
         self.xy = self.model.normalize(self.px)
         self.pixel_jacobian = _pixel_jacobian(self.model, self.xy)
+
+    def exact(self) -> "CameraView":
+        """The same view with its extrinsics (and the map) taken as exact."""
+        v = object.__new__(CameraView)
+        v.__dict__.update(self.__dict__)
+        v.extrinsics_cov = v.extrinsics_factor = v.map_factor = None
+        return v
 
     def subset(self, keep: Sequence[int]) -> "CameraView":
         """The view restricted to markers ``keep`` (indices into ids)."""
@@ -870,6 +891,47 @@ class _JointSolution:
         return self.fit.J
 
 
+def extrinsics_consistency(problem: JointProblem, fit: JointFit) -> Optional[Tuple[float, int, int]]:
+    """Whether a frame's cameras agree through the extrinsics: ``(F, d1, d2)`` at ``fit`` (the
+    optimum of ``problem`` with the extrinsics taken as exact), or None when it cannot be told
+    (one camera, or no residual degrees of freedom within the cameras).
+
+    Per camera c, with its (Huber-weighted) normal equations ``G_c = J_c^T D J_c`` and
+    ``b_c = J_c^T D r_c``, its own pose would lower the squared residuals by ``b_c^T G_c^+ b_c``
+    (Gauss-Newton). ``D = sum_c`` of those (``d1 = 6(C-1)`` degrees of freedom: the joint optimum
+    already balances the cameras' gradients), ``S = sum_c r_c^T D r_c - D`` (``d2 = 2N - 6C``);
+    ``F = (D / d1) / (S / d2)``: F-distributed when the extrinsics are exact, whatever the pixel
+    noise (it cancels)."""
+    C = len(problem.views)
+    d1, d2 = 6 * (C - 1), 2 * problem.n - 6 * C
+    if C < 2 or d2 < 1:
+        return None
+    rr = np.where(np.isfinite(fit.r), fit.r, 0.0)
+    Ja = np.concatenate([fit.J, rr[:, :, None]], axis=2)
+    A7 = np.add.reduceat(np.einsum("nia,nib->nab", Ja * fit.w[:, None, None], Ja), problem.offsets[:-1], axis=0)
+    G, b, q = A7[:, :6, :6], A7[:, :6, 6], A7[:, 6, 6]
+    Gp = np.linalg.pinv(G, hermitian=True)
+    D = float(np.sum(np.einsum("ca,cab,cb->c", b, Gp, b)))
+    S = float(np.sum(q)) - D
+    if not (S > 0.0 and np.isfinite(D)):
+        return None
+    return (D / d1) / (S / d2), d1, d2
+
+
+_F_CACHE: Dict[Tuple[float, int, int], float] = {}
+
+
+def _f_quantile(prob: float, d1: int, d2: int) -> float:
+    """The ``prob`` quantile of the F(d1, d2) distribution (cached: a few (d1, d2) per ring)."""
+    key = (prob, d1, d2)
+    q = _F_CACHE.get(key)
+    if q is None:
+        from scipy.stats import f as f_dist
+
+        q = _F_CACHE[key] = float(f_dist.ppf(prob, d1, d2))
+    return q
+
+
 class RingLocalizer:
     """Robot pose from ring frames against a marker map.
 
@@ -905,6 +967,7 @@ class RingLocalizer:
         self._ext_full: Optional[np.ndarray] = None    # (6n, 6n) base-frame, cameras in _ext_index
         self._ext_index: Dict[str, int] = {}
         self.extrinsics_source: Dict[str, str] = {c.name: "exact" for c in ring.cameras}
+        self._ext_factor_any = False
         if self.params.fusion != "joint":
             return
         for c in ring.cameras:
@@ -916,6 +979,7 @@ class RingLocalizer:
             self._ext_cov[c.name] = self._ext_cov[c.name] + jitter_covariance(
                 self._T_base_cam[c.name], np.radians(p.extrinsic_jitter_deg), p.extrinsic_jitter_m)
         self._ext_factor = {n: None if C is None else _psd_factor(C) for n, C in self._ext_cov.items()}
+        self._ext_factor_any = any(F is not None for F in self._ext_factor.values())
 
     def _use_map_covariance(self, ring: CameraRing) -> None:
         """The map's covariance for the cameras whose extrinsics in force are the map's."""
@@ -1184,7 +1248,7 @@ class RingLocalizer:
                 # Fast path: start from the prediction; per-camera estimates follow from the result.
                 sol = self._try_joint(views, [prediction])
                 if sol is not None:
-                    self._finish_joint(result, sol, per_camera=True)
+                    self._finish_joint(result, self._exact_if_consistent(sol), per_camera=True)
                     return result
             alternatives = self._per_camera(result, views, prediction)
             starts = [] if prediction is None else [prediction]
@@ -1196,7 +1260,7 @@ class RingLocalizer:
             else:
                 sol = self._try_joint(views, starts) if starts else None
             if sol is not None:
-                self._finish_joint(result, sol, per_camera=False)
+                self._finish_joint(result, self._exact_if_consistent(sol), per_camera=False)
                 return result
             logger.debug("joint estimator failed; using the paper's fusion")
         else:
@@ -1365,6 +1429,42 @@ class RingLocalizer:
             fit_s = at.fit(T_bm, p.robust_scale)   # the same Huber weights (the scale is in px)
         return T_bm, fit, iters, rms, at.covariance(fit_s), at.map_covariance(fit_s, T_bm)
 
+    def _exact_if_consistent(self, sol: _JointSolution) -> _JointSolution:
+        """``sol`` (calibration-aware), or the exact-extrinsics solution of the same views when the
+        frame's cameras agree with each other through the extrinsics (``exact_when_consistent``).
+
+        The test (:func:`extrinsics_consistency`): at the exact-extrinsics optimum, letting each
+        camera have its own pose lowers the squared residuals by ``D`` (``6(C-1)`` degrees of
+        freedom); what is left, ``S`` (``2N - 6C``), is the pixel noise within the cameras, which
+        no extrinsic error touches (a camera's extrinsic error moves its points as a robot
+        motion does). With exact extrinsics ``F = (D / 6(C-1)) / (S / (2N - 6C))`` is F-distributed;
+        an extrinsic error the data can see inflates it. Below the ``1 - consistency_alpha``
+        quantile the data do not contradict the calibration, and the extrinsics are taken as
+        exact (the maximum-likelihood pose under pixel noise; what the calibration-aware model
+        gives up there is efficiency: on TagSLAM's rigs, whose extrinsics are its optimum on the
+        same data, it moved the pose by 2-4 mm). The covariance stays the calibration-aware one
+        (it carries the extrinsics' and the map's uncertainty; a larger one is the safe side)."""
+        p = self.params
+        problem = sol.problem
+        if (not p.exact_when_consistent or p.fusion != "joint" or problem.extrinsics_factor is None
+                or len(problem.views) < 2):
+            return sol
+        exact = JointProblem([v.exact() for v in problem.views], sigma=problem.sigma)
+        try:
+            T_bm, fit, iters = exact.solve(sol.T_base_map, p.robust_scale, p.max_iterations)
+        except MeasurementError:
+            return sol
+        r = fit.r
+        if not np.isfinite(r).all():
+            return sol
+        test = extrinsics_consistency(exact, fit)
+        if test is None or test[0] > _f_quantile(1.0 - p.consistency_alpha, test[1], test[2]):
+            return sol
+        rms = float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
+        if not rms <= p.joint_outlier_threshold:
+            return sol
+        return _JointSolution(exact, T_bm, fit, sol.iterations + iters, rms, sol.covariance, sol.outliers)
+
     def _finish_joint(self, result: LocalizationResult, sol: _JointSolution, per_camera: bool) -> None:
         problem = sol.problem
         T_map_base = geo.inverse(sol.T_base_map)
@@ -1375,6 +1475,8 @@ class RingLocalizer:
         result.n_points = problem.n
         result.residual_rms = sol.rms
         result.iterations = sol.iterations
+        result.extrinsics_consistent = sol.problem.extrinsics_factor is None and self.params.fusion == "joint" \
+            and self._ext_factor_any
         if sol.outliers:
             result.rejected[REJECT_OUTLIER] = result.rejected.get(REJECT_OUTLIER, 0) + sol.outliers
         if per_camera:

@@ -974,7 +974,7 @@ class LocalizationPipeline(_RingPipeline):
         out = TrackResult(stamp=stamp, localization=loc, time_jump=time_jump)
         if loc.ok:
             out.decision = tracker.update(loc.T_map_base, stamp, loc.covariance, ambiguous=loc.ambiguous,
-                                          markers=len(loc.marker_ids))
+                                          markers=len(loc.marker_ids), alternatives=loc.alternatives)
             if out.decision.accepted:
                 self._keep_attitude(loc.T_map_base)
             else:

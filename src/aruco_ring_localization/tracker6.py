@@ -36,9 +36,14 @@ planar filter's output is then wrong by degrees. This tracker is the same idea o
 * **Coasting, bounded**: between accepted measurements the output is the prediction, published
   only up to ``max_coast`` s after the last accepted one and only while ``sigma_factor`` times its
   position / rotation std stays below ``coast_max_distance`` / ``coast_max_angle_deg`` (the flip
-  thresholds, 0.5 m and 10 deg), and never for a stamp where a measurement from several markers
-  contradicted it (:meth:`Tracker6.publishable`): a rig turning while no camera gives a usable
-  pose is extrapolated by degrees within half a second. Nothing is published instead.
+  thresholds, 0.5 m and 10 deg), and never for a stamp where a measurement contradicted it
+  (:meth:`Tracker6.publishable`): a rig turning while no camera gives a usable pose is
+  extrapolated by degrees within half a second. Nothing is published instead. *Contradicted*: a
+  measurement rejected as a jump (from several markers, or a single marker's pose the image
+  resolved: a flip, or two mapped markers that disagree with each other -- on TagSLAM's test_9 two
+  surveyed tags put the rig 0.9 m apart, and the prediction from the first was published while the
+  second said otherwise), or an ambiguous one whose every pose lies outside the gate (whichever is
+  true, the prediction is not).
 * **Lost track**: after ``lost_after`` s without an accepted measurement the track is dropped
   (no output: nothing is extrapolated that far). A measurement from several markers starts it
   again; single-marker ones need ``init_count`` consecutive, mutually consistent ones (one lone
@@ -51,7 +56,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import List, Optional, Tuple
+from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -299,19 +304,49 @@ class Tracker6:
         dist, ang = geo.pose_distance(T_prev, T)
         return dist <= p.recovery_distance + d - p.base_distance and ang <= p.recovery_angle + a - p.base_angle
 
+    def _allowed(self, stamp: float, Rm: np.ndarray, capped: bool) -> Tuple[float, float]:
+        """The gate's (distance m, angle rad) at ``stamp`` (the filter advanced there) for a
+        measurement of covariance ``Rm`` (floored)."""
+        p = self.params
+        S = self.P[:6, :6] + Rm
+        dt = stamp - (self.last_accepted_stamp if self.last_accepted_stamp is not None else stamp)
+        allowed_d, allowed_a = self.thresholds(dt, S, capped)
+        if capped and p.sigma_factor > 0:
+            # The cap yields only to the track's own doubt: a prediction over a long gap (a rig
+            # filmed at 2 Hz) is uncertain by more than max_angle, and a flip still has to land
+            # within sigma_factor of its rotation std.
+            sigma_pred = float(np.sqrt(max(np.linalg.eigvalsh(self.P[3:6, 3:6])[-1], 0.0)))
+            allowed_a = max(allowed_a, min(p.sigma_factor * sigma_pred, self.thresholds(dt, S, False)[1]))
+        return allowed_d, allowed_a
+
+    def _jump(self, T: np.ndarray) -> Tuple[float, float]:
+        """(m, rad) from the track's pose to ``T``."""
+        return float(np.linalg.norm(T[:3, 3] - self.p)), float(np.linalg.norm(_rot_diff(T[:3, :3], self.R)))
+
+    def _within_gate(self, T: np.ndarray, stamp: float, covariance: Optional[np.ndarray], capped: bool) -> bool:
+        d, a = self._jump(T)
+        allowed_d, allowed_a = self._allowed(stamp, self._measurement_cov(covariance), capped)
+        return d <= allowed_d and a <= allowed_a
+
     def update(self, T_map_base: np.ndarray, stamp: float, covariance: Optional[np.ndarray] = None,
-               ambiguous: bool = False, markers: int = 1) -> GateDecision:
+               ambiguous: bool = False, markers: int = 1,
+               alternatives: Sequence[np.ndarray] = ()) -> GateDecision:
         """Gate and (if accepted) fuse the measurement ``T_map_base`` (4x4) at ``stamp`` (s) with its
         6x6 covariance over (x, y, z, rx, ry, rz), made from ``markers`` markers; the filter is
-        advanced to ``stamp`` either way."""
+        advanced to ``stamp`` either way. ``alternatives``: the other poses the data admit as well
+        (an ambiguous measurement's, 4x4 each): when neither it nor any of them is within the gate,
+        the prediction is contradicted whichever is true, and it is not published at ``stamp``."""
         T = np.asarray(T_map_base, dtype=np.float64).reshape(4, 4)
         stamp = float(stamp)
         self.predict(stamp)
         p = self.params
+        capped = markers < p.min_markers_uncapped
         if ambiguous:
             self.rejected_total += 1
+            if self.stamp is not None and all(not self._within_gate(A, stamp, covariance, capped)
+                                              for A in [T] + [np.asarray(a, dtype=np.float64) for a in alternatives]):
+                self._contradicted_at = stamp
             return GateDecision(False, REJECTED_AMBIGUOUS)
-        capped = markers < p.min_markers_uncapped
         if self.stamp is None:
             # No track: one measurement from several markers starts it, single-marker ones need
             # init_count consecutive consistent ones.
@@ -323,27 +358,20 @@ class Tracker6:
             self._start(T, stamp, covariance)
             return GateDecision(True, INITIALIZED)
         Rm = self._measurement_cov(covariance)
-        S = self.P[:6, :6] + Rm
-        dt = stamp - (self.last_accepted_stamp if self.last_accepted_stamp is not None else stamp)
-        allowed_d, allowed_a = self.thresholds(dt, S, capped)
-        if capped and p.sigma_factor > 0:
-            # The cap yields only to the track's own doubt: a prediction over a long gap (a rig
-            # filmed at 2 Hz) is uncertain by more than max_angle, and a flip still has to land
-            # within sigma_factor of its rotation std.
-            sigma_pred = float(np.sqrt(max(np.linalg.eigvalsh(self.P[3:6, 3:6])[-1], 0.0)))
-            allowed_a = max(allowed_a, min(p.sigma_factor * sigma_pred, self.thresholds(dt, S, False)[1]))
-        dist = float(np.linalg.norm(T[:3, 3] - self.p))
-        ang = float(np.linalg.norm(_rot_diff(T[:3, :3], self.R)))
+        allowed_d, allowed_a = self._allowed(stamp, Rm, capped)
+        dist, ang = self._jump(T)
         if dist <= allowed_d and ang <= allowed_a:
             self._update(T, Rm)
             self.last_accepted_stamp = stamp
             self._rejected.clear()
             return GateDecision(True, ACCEPTED, dist, ang, allowed_d, allowed_a)
         self.rejected_total += 1
-        if not capped:
-            # Several markers (no mirrored solution) disagree with the prediction beyond the motion
-            # bound: one of the two is wrong and nothing here says which; neither is published.
-            self._contradicted_at = stamp
+        # The measurement disagrees with the prediction beyond the motion bound: one of the two is
+        # wrong and nothing here says which (several markers have no mirrored solution; a single
+        # marker the image resolved may still be a flip, or the map's markers disagree with each
+        # other: a mis-surveyed tag puts the pose metres off, as in TagSLAM's test_9), so neither
+        # is published at this stamp.
+        self._contradicted_at = stamp
         if not self._consistent(self._rejected, stamp, T, capped):
             self._rejected.clear()
         self._rejected.append((stamp, T))
@@ -362,7 +390,8 @@ class Tracker6:
         up to ``max_coast`` s after the last accepted measurement, only while ``sigma_factor``
         (at least 1) times its position and rotation std stay below ``coast_max_distance`` and
         ``coast_max_angle_deg`` (a prediction that uncertain may be a flip's size off), and not
-        when a measurement from several markers contradicted it at that stamp."""
+        when a measurement contradicted it at that stamp (rejected as a jump, or ambiguous with every
+        pose it admits outside the gate: :meth:`update`)."""
         if self.stamp is None or self.last_accepted_stamp is None:
             return False
         stamp = float(stamp)

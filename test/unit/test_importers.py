@@ -186,3 +186,36 @@ def test_tagslam_fixed_tags_become_anchors(tmp_path):
     assert tagslam_anchors(t12, {6}) is None                     # excluded: nothing to anchor
     t24 = read_tagslam_tags(str(DATA / "test_24" / "tagslam.yaml"))
     assert tagslam_anchors(t24) is None                          # boards, no surveyed tag
+
+
+def test_tagslam_pose_uncertainty_comes_from_its_R_and_a_made_up_one_is_said(tmp_path):
+    # test_11's camera_poses.yaml fixes both cameras: R = 1e6 I (1e-6 rad / m per axis).
+    rig = read_rig(str(DATA / "test_11" / "cameras.yaml"))
+    for c in rig.ring().cameras:
+        np.testing.assert_allclose(c.extrinsics_std, [1e-6] * 6, rtol=1e-9)
+    assert not any("no uncertainty" in n for n in rig.notes)
+    back = CameraRing.load(write_ring_files(rig.ring(), str(tmp_path / "a" / "ring.yaml"))[-1])
+    np.testing.assert_allclose(back["cam1"].extrinsics_std, [1e-6] * 6, rtol=1e-6)
+    # A correlated R (upper triangular, GTSAM's order: rotation, translation): std = sqrt(diag((R^T R)^-1)).
+    R = np.triu(np.arange(1.0, 37.0).reshape(6, 6)) + np.diag([900.0, 800.0, 700.0, 600.0, 500.0, 400.0])
+    poses = {"cam0": {"pose": {"position": {"x": 0.0, "y": 0.0, "z": 0.0}, "rotation": {"x": 0.0, "y": 0.0, "z": 0.0},
+                               "R": [float(v) for v in R.ravel()]}},
+             "cam1": {"pose": {"position": {"x": 0.2, "y": 0.0, "z": 0.0}, "rotation": {"x": 0.0, "y": 0.0, "z": 0.0}}}}
+    p = tmp_path / "camera_poses.yaml"
+    p.write_text(yaml.safe_dump(poses))
+    rig = read_rig(str(DATA / "test_11" / "cameras.yaml"), camera_poses=str(p))
+    want = np.sqrt(np.diag(np.linalg.inv(R.T @ R)))
+    np.testing.assert_allclose(rig.ring()["cam0"].extrinsics_std, want, rtol=1e-9)
+    # No R: the ring file's default, and the importer says it is made up.
+    from aruco_ring_localization.ring import DEFAULT_EXTRINSICS_STD_ROTATION_DEG, DEFAULT_EXTRINSICS_STD_TRANSLATION
+
+    np.testing.assert_allclose(rig.ring()["cam1"].extrinsics_std,
+                               [np.radians(DEFAULT_EXTRINSICS_STD_ROTATION_DEG)] * 3
+                               + [DEFAULT_EXTRINSICS_STD_TRANSLATION] * 3)
+    assert any("no uncertainty is given for the pose of cam1" in n for n in rig.notes)
+    # A bad R names the file and the key.
+    poses["cam0"]["pose"]["R"] = [1.0, 2.0]
+    p.write_text(yaml.safe_dump(poses))
+    with pytest.raises(ConfigError) as err:
+        read_rig(str(DATA / "test_11" / "cameras.yaml"), camera_poses=str(p))
+    assert "cam0.pose.R" in str(err.value) and "camera_poses.yaml" in str(err.value)

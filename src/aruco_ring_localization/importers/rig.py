@@ -18,7 +18,14 @@ Camera poses, in this order of preference:
 
 * TagSLAM's ``camera_poses.yaml`` (``camK: {pose: {position: {x, y, z}, rotation: {x, y, z}}}``,
   the rotation a rotation vector): the pose of each camera's optical frame in the rig body,
-  ``T_rig_cam``. The rig frame is TagSLAM's body frame (often camera 0's optical frame).
+  ``T_rig_cam``. The rig frame is TagSLAM's body frame (often camera 0's optical frame). Its
+  optional ``R`` (36 numbers, the upper-triangular square-root information matrix of the pose,
+  GTSAM's order: rotation, then translation, a perturbation in the camera's own frame) gives the
+  pose's uncertainty: the ring file's ``extrinsics_std`` of that camera is the square root of the
+  diagonal of ``(R^T R)^-1`` (the correlations are dropped: the ring file has none). A camera whose
+  pose comes without ``R`` (or from a Kalibr file) gets the ring file's default
+  (:data:`ring.DEFAULT_EXTRINSICS_STD_TRANSLATION` / ``_ROTATION_DEG``): made up, and the
+  importer says so (:attr:`ImportedRig.notes`).
 * Kalibr ``T_cam_imu`` of every camera: the ring's base frame is the IMU's.
 * Kalibr ``T_cn_cnm1`` chained from camera 0: the base frame is camera 0's optical frame.
 * A single camera without any pose: it is the base frame (identity).
@@ -36,14 +43,15 @@ import logging
 import os
 import re
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Mapping, Optional
+from typing import Any, Dict, List, Mapping, Optional, Tuple
 
 import numpy as np
 
 from .. import geometry as geo
 from ..camera import CameraModel, load_yaml_file, save_camera_yaml
 from ..errors import ConfigError, GeometryError
-from ..ring import CameraRing, RingCamera
+from ..ring import (DEFAULT_EXTRINSICS_STD_ROTATION_DEG, DEFAULT_EXTRINSICS_STD_TRANSLATION, CameraRing,
+                    RingCamera)
 
 logger = logging.getLogger(__name__)
 
@@ -72,6 +80,8 @@ class ImportedCamera:
         frame_id: optical frame name (the file's ``frame_id`` or ``<name>_optical_frame``).
         topic: the detections' topic (``tagtopic``) or the image topic (``rostopic``), "" if neither.
         pose_source: where the pose came from (``camera_poses.yaml``, ``T_cam_imu``, ...).
+        extrinsics_std: (6,) 1-sigma of the pose per axis of the camera's frame (rotation rad, then
+            translation m) when the source states it (TagSLAM's ``R``), else None (the default).
     """
 
     name: str
@@ -81,6 +91,7 @@ class ImportedCamera:
     frame_id: str
     topic: str = ""
     pose_source: str = ""
+    extrinsics_std: Optional[Tuple[float, ...]] = None
 
 
 @dataclass
@@ -110,7 +121,10 @@ class ImportedRig:
             raise ConfigError(f"no pose for camera(s) {', '.join(missing)} in the rig (give a TagSLAM "
                               f"camera_poses.yaml with --camera-poses, or a Kalibr camchain with T_cn_cnm1 / "
                               f"T_cam_imu): a camera's extrinsics are never guessed", path=self.source)
-        cams = [RingCamera(c.name, c.frame_id, c.model, np.asarray(c.T_base_cam), c.namespace) for c in self.cameras]
+        cams = [RingCamera(c.name, c.frame_id, c.model, np.asarray(c.T_base_cam), c.namespace)
+                if c.extrinsics_std is None else
+                RingCamera(c.name, c.frame_id, c.model, np.asarray(c.T_base_cam), c.namespace, c.extrinsics_std)
+                for c in self.cameras]
         try:
             return CameraRing(cams, self.base_frame)
         except ConfigError as exc:
@@ -199,8 +213,30 @@ def _matrix(entry: Mapping[str, Any], key: str, name: str, source: str) -> Optio
         raise ConfigError(str(exc), path=source, key=f"{name}.{key}") from None
 
 
-def _tagslam_poses(path: str) -> Dict[str, np.ndarray]:
-    """TagSLAM ``camera_poses.yaml``: camera -> ``T_rig_cam`` (position + rotation vector)."""
+def _tagslam_std(node: Mapping[str, Any], path: str, name: str) -> Optional[Tuple[float, ...]]:
+    """The 1-sigma per axis (rotation rad x3, translation m x3) from a TagSLAM pose's ``R`` (the
+    upper-triangular square-root information matrix, 36 numbers row-major), or None without one."""
+    if "R" not in node:
+        return None
+    key = f"{name}.pose.R"
+    try:
+        R = np.array([float(v) for v in node["R"]], dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ConfigError("expected 36 numbers (the pose's square-root information matrix)", path=path,
+                          key=key) from None
+    if R.size != 36 or not np.all(np.isfinite(R)):
+        raise ConfigError(f"expected 36 finite numbers (a 6x6 square-root information matrix), got {R.size}",
+                          path=path, key=key)
+    R = np.triu(R.reshape(6, 6))   # TagSLAM writes the upper triangle; anything below is not R's
+    if np.min(np.abs(np.diag(R))) <= 0.0:
+        raise ConfigError("singular square-root information matrix (a zero on its diagonal)", path=path, key=key)
+    Rinv = np.linalg.solve(R, np.eye(6))
+    return tuple(float(v) for v in np.sqrt(np.sum(Rinv * Rinv, axis=1)))   # diag((R^T R)^-1)
+
+
+def _tagslam_poses(path: str) -> Dict[str, Tuple[np.ndarray, Optional[Tuple[float, ...]]]]:
+    """TagSLAM ``camera_poses.yaml``: camera -> (``T_rig_cam`` (position + rotation vector), its
+    1-sigma per axis from ``R`` or None)."""
     data = load_yaml_file(path)
     if not isinstance(data, Mapping):
         raise ConfigError("expected a mapping of cameras", path=path)
@@ -218,7 +254,8 @@ def _tagslam_poses(path: str) -> Dict[str, np.ndarray]:
                 raise ConfigError("expected {x, y, z} numbers", path=path, key=f"{name}.pose.{part}") from None
             if not np.all(np.isfinite(vec[part])):
                 raise ConfigError("contains NaN or infinite values", path=path, key=f"{name}.pose.{part}")
-        out[str(name)] = geo.transform_from_rvec_tvec(vec["rotation"], vec["position"])
+        out[str(name)] = (geo.transform_from_rvec_tvec(vec["rotation"], vec["position"]),
+                          _tagslam_std(pose, path, str(name)))
     return out
 
 
@@ -261,7 +298,7 @@ def read_rig(path: str, camera_poses: Optional[str] = None, base_frame: str = "r
         sources.append(camera_poses)
         for c in cams:
             if c.name in poses:
-                c.T_base_cam, c.pose_source = poses[c.name], os.path.basename(camera_poses)
+                (c.T_base_cam, c.extrinsics_std), c.pose_source = poses[c.name], os.path.basename(camera_poses)
         unknown = sorted(set(poses) - set(names))
         if unknown:
             notes.append(f"{camera_poses}: poses of cameras not in {path} ignored: {unknown}")
@@ -284,6 +321,12 @@ def read_rig(path: str, camera_poses: Optional[str] = None, base_frame: str = "r
             definition = f"camera {cams[0].name}'s optical frame (z forward, x right, y down)"
             if len(cams) > 1 and any(imu[c.name] is not None for c in cams):
                 notes.append("T_cam_imu is not given for every camera: the cameras are chained with T_cn_cnm1")
+    invented = [c.name for c in cams if c.T_base_cam is not None and c.extrinsics_std is None]
+    if invented:
+        notes.append(f"no uncertainty is given for the pose of {', '.join(invented)}: the ring file's default "
+                     f"extrinsics_std ({DEFAULT_EXTRINSICS_STD_TRANSLATION * 1000:g} mm / "
+                     f"{DEFAULT_EXTRINSICS_STD_ROTATION_DEG:g} deg per axis) applies, a guess: state your "
+                     f"calibration's in the ring file (0: exact)")
     for n in notes:
         logger.warning("%s", n)
     return ImportedRig(cams, base_frame, definition, " + ".join(sources), notes)
