@@ -31,8 +31,10 @@ from aruco_ring_localization.pipeline import LocalizationPipeline, feed_ring_fra
 from aruco_ring_localization.ring import CameraRing  # noqa: E402
 from aruco_ring_localization.schemas import LocalizerConfig  # noqa: E402
 from aruco_ring_localization.simulation.motion import SimRobot  # noqa: E402
+from aruco_ring_localization.simulation.params import lab_config  # noqa: E402
 from aruco_ring_localization.simulation.ring_sim import RingSimulator, perturb_ring  # noqa: E402
-from aruco_ring_localization.simulation.scene import Scene  # noqa: E402
+from aruco_ring_localization.simulation.scene import Scene, resolve_scene_file  # noqa: E402
+from aruco_ring_localization.simulation.simulator import SimulatorCore  # noqa: E402
 
 RING_FILE = os.path.join(os.path.dirname(HERE), "config", "ring.yaml")
 OFFLINE = {"input.use_tf": False, "input.camera_info_fallback": True}
@@ -95,6 +97,47 @@ def drive(seed: int, move: bool, check: bool = True, duration: float = 120.0, pa
     return {"errs": np.array(errs), "declared": declared, "moved_id": moved_id, "move_t": move_t,
             "detect_t": detect_t, "reported": reported, "frames": pipe.frames, "duration": duration,
             "cpu_s": cpu_check}
+
+
+def harsh_run(seed: int, parked: bool, duration: float, check: bool = True) -> Dict:
+    """No move, on the harsh lab (config/lab_harsh.yaml: pillars, tilted bumpy plate, ring vibration,
+    free-running cameras) in corners mode, the stock localizer config (check on): driving around the
+    test positions in a loop, or parked at one of them (``seed`` picks which). Each camera's
+    detections at its own exposure stamp, 20 ms later. Returns declarations and the pose errors."""
+    base = lab_config("harsh")
+    over = {"seed": seed, "robot.loop": True}
+    scene = Scene.load(resolve_scene_file(base.scene.file))
+    if parked:
+        x, y, yaw = scene.test_positions[seed % len(scene.test_positions)]
+        over.update({"robot.waypoints": "none", "robot.start_pose": [x, y, float(np.degrees(yaw))]})
+    config = with_overrides(base, over)
+    ring = CameraRing.load(RING_FILE)
+    core = SimulatorCore(config, scene, ring)
+    pipe = LocalizationPipeline(with_overrides(LocalizerConfig(), {**OFFLINE, "marker_check.enabled": check}),
+                                ring, scene.truth_map())
+    t, errs, declared = 0.0, [], []
+    while t < duration:
+        t = round(t + 0.1, 6)
+        st = core.step(t, 0.1)
+        dets = core.detections()
+        pipe.on_motion("cmd_vel", None, st.cmd[:2], float(st.cmd[2]), t)
+        out = []
+        for name in sorted(dets, key=core.camera_stamp):
+            stamp = core.camera_stamp(name)
+            out += pipe.on_detections(name, stamp, dets[name], stamp + 0.02)
+        out += pipe.poll(t + 0.02)
+        for o in out:
+            if o.predicted_only or o.from_odometry:
+                continue
+            truth = core.true_pose_at(o.stamp)
+            errs.append(float(np.hypot(*(o.T_map_base[:2, 3] - truth[:2, 3]))))
+        if pipe.marker_check is not None:
+            for mid, m in pipe.marker_check.moved.items():
+                if all(d[0] != mid for d in declared):
+                    declared.append((mid, t, m.distance))
+    mc = pipe.marker_check
+    return {"errs": np.array(errs), "declared": declared, "duration": duration, "frames": pipe.frames,
+            "checked": 0 if mc is None else mc.frames_checked}
 
 
 def cpu_per_frame(seed: int, frames: int) -> float:
