@@ -1,15 +1,20 @@
 """Moved-marker detection: each mapped marker checked against the others over time (issue 13).
 
 A marker bumped in the hall otherwise biases every pose that uses it. For every ring frame whose
-pose the gate accepted, :class:`MarkerCheck` computes, per marker in view:
+pose the gate accepted while the robot stood or crept (``max_speed``, ``max_yaw_rate``; frames
+taken while it drives are skipped, at no cost), :class:`MarkerCheck` computes, per marker in view:
 
 1. its **leave-one-out residual**: the corners' residuals (normalised image coordinates) against
    the pose estimated from the *other* markers of the frame. The pose from the others is one
    Gauss-Newton step of the frame's least-squares problem without that marker's rows, from the
    measured pose (a rank-6 down-date of the 6x6 normal matrix: cheap, no new solve);
 2. the **displacement** of the marker that explains it, linearised: a 3-vector in the map frame,
-   as information ``A = sum J^T J / s^2`` and ``b = sum J^T r / s^2`` (``J``: corners w.r.t. the
-   marker's position, ``s``: ``pixel_noise / f``).
+   as information ``A = sum J^T W J`` and ``b = sum J^T W r`` (``J``: corners w.r.t. the marker's
+   position; ``W``: per (camera, marker) block of 4 corners, the inverse of ``s^2 I + j^2 Jr Jr^T``
+   with ``s`` = ``pixel_noise / f`` and ``j`` the cameras' per-frame rotation jitter, ``Jr`` the
+   corners w.r.t. the camera's rotation), with the uncertainty of the pose from the others
+   marginalised (Schur complement), judged against the change from each (marker, camera) pair's
+   baseline for the current set of other (camera, marker) pairs (:meth:`MarkerCheck._baseline_of`).
 
 ``A`` and ``b`` are summed over the last ``window`` seconds. The estimated displacement is
 ``d = A^-1 b`` and the **test statistic**
@@ -24,7 +29,10 @@ calibration errors, which do not average out over frames). A marker with ``T > t
 Only the worst marker is declared per frame, and the evidence of every other marker is discarded
 then: it was gathered with the moved one still in their poses.
 
-The default threshold (30, chi^2_3 at about 1e-6) with ``systematic_std`` 1 cm flags a marker whose
+The computation is vectorised over the frame's blocks: every leave-one-out pose is one batched
+6x6 solve, the Schur complements one batched solve, the window sums are kept running.
+
+The default threshold (30, chi^2_3 at about 1e-6) with ``systematic_std`` 5 mm flags a marker whose
 window displacement is above about 5.5 sigma_sys; ``min_move`` (2 cm) keeps a well-seen marker
 (tiny ``A^-1``) from being flagged for a sub-centimetre map error. The false alarm rate on a long
 static and driving run of the simulated lab is measured in the unit tests and the benchmark.
