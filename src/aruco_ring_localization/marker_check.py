@@ -1,15 +1,20 @@
 """Moved-marker detection: each mapped marker checked against the others over time (issue 13).
 
 A marker bumped in the hall otherwise biases every pose that uses it. For every ring frame whose
-pose the gate accepted, :class:`MarkerCheck` computes, per marker in view:
+pose the gate accepted while the robot stood or crept (``max_speed``, ``max_yaw_rate``; frames
+taken while it drives are skipped, at no cost), :class:`MarkerCheck` computes, per marker in view:
 
 1. its **leave-one-out residual**: the corners' residuals (normalised image coordinates) against
    the pose estimated from the *other* markers of the frame. The pose from the others is one
    Gauss-Newton step of the frame's least-squares problem without that marker's rows, from the
    measured pose (a rank-6 down-date of the 6x6 normal matrix: cheap, no new solve);
 2. the **displacement** of the marker that explains it, linearised: a 3-vector in the map frame,
-   as information ``A = sum J^T J / s^2`` and ``b = sum J^T r / s^2`` (``J``: corners w.r.t. the
-   marker's position, ``s``: ``pixel_noise / f``).
+   as information ``A = sum J^T W J`` and ``b = sum J^T W r`` (``J``: corners w.r.t. the marker's
+   position; ``W``: per (camera, marker) block of 4 corners, the inverse of ``s^2 I + j^2 Jr Jr^T``
+   with ``s`` = ``pixel_noise / f`` and ``j`` the cameras' per-frame rotation jitter, ``Jr`` the
+   corners w.r.t. the camera's rotation), with the uncertainty of the pose from the others
+   marginalised (Schur complement), judged against the change from each (marker, camera) pair's
+   baseline for the current set of other (camera, marker) pairs (:meth:`MarkerCheck._baseline_of`).
 
 ``A`` and ``b`` are summed over the last ``window`` seconds. The estimated displacement is
 ``d = A^-1 b`` and the **test statistic**
@@ -24,7 +29,10 @@ calibration errors, which do not average out over frames). A marker with ``T > t
 Only the worst marker is declared per frame, and the evidence of every other marker is discarded
 then: it was gathered with the moved one still in their poses.
 
-The default threshold (30, chi^2_3 at about 1e-6) with ``systematic_std`` 1 cm flags a marker whose
+The computation is vectorised over the frame's blocks: every leave-one-out pose is one batched
+6x6 solve, the Schur complements one batched solve, the window sums are kept running.
+
+The default threshold (30, chi^2_3 at about 1e-6) with ``systematic_std`` 5 mm flags a marker whose
 window displacement is above about 5.5 sigma_sys; ``min_move`` (2 cm) keeps a well-seen marker
 (tiny ``A^-1``) from being flagged for a sub-centimetre map error. The false alarm rate on a long
 static and driving run of the simulated lab is measured in the unit tests and the benchmark.
@@ -52,6 +60,7 @@ from .detections import CameraFrame, RingFrame
 from .errors import ConfigError, MeasurementError
 from .marker_map import MarkerEntry, MarkerMap
 from .markers import marker_corners
+from .odometry import displacement_to_transform
 from .ring import CameraRing
 
 logger = logging.getLogger(__name__)
@@ -61,9 +70,9 @@ logger = logging.getLogger(__name__)
 class MarkerCheckParams:
     """Moved-marker detection: per-marker residuals against the pose from the other markers."""
 
-    enabled: bool = param(False, "check every marker in view against the others; a moved one is dropped from "
-                                 "the pose and reported (docs/localization.md). Off by default: with 4 of 8 "
-                                 "cameras silent it dropped good markers (7 cm error in the faults_cameras rostest)")
+    enabled: bool = param(True, "check every marker in view against the others; a moved one is dropped from "
+                                "the pose and reported (docs/localization.md); false: every mapped marker is "
+                                "used as mapped, and ~remap_marker refuses")
     window: float = param(1.0, "the residuals of the last this many seconds (stamps) are accumulated per "
                                "marker", unit="s")
     min_observations: int = param(4, "a marker is judged on the window only when seen in at least this many "
@@ -86,6 +95,11 @@ class MarkerCheckParams:
     instant_threshold: float = param(60.0, "the same statistic on the latest frame alone above which a marker "
                                            "moved at once (a sudden bump is dropped before its frame reaches the "
                                            "filter)")
+    max_speed: float = param(0.05, "a frame is checked only while the robot is this slow (the larger of the filter's "
+                                   "speed and the motion inputs'): while it drives, the cameras' stamps and the "
+                                   "viewpoint change faster than a baseline holds (false moves on the harsh lab)",
+                             unit="m/s")
+    max_yaw_rate: float = param(0.02, "and turns this slowly (the same sources)", unit="rad/s")
     min_move: float = param(0.02, "and its estimated displacement |d| must exceed this", unit="m")
     remap_window: float = param(30.0, "~remap_marker uses a marker's observations of the last this many "
                                       "seconds", unit="s")
@@ -97,7 +111,7 @@ class MarkerCheckParams:
 
     def __post_init__(self) -> None:
         for name in ("window", "pixel_noise", "baseline_time", "baseline_distance", "systematic_std", "threshold",
-                     "instant_threshold", "remap_window"):
+                     "instant_threshold", "remap_window", "max_speed", "max_yaw_rate"):
             if not float(getattr(self, name)) > 0:
                 raise ConfigError(f"must be > 0, got {getattr(self, name)!r}", key=f"marker_check.{name}")
         if not self.min_move >= 0:
@@ -132,24 +146,47 @@ class MovedMarker:
         return float(np.linalg.norm(self.displacement))
 
 
-@dataclass
 class _Evidence:
-    items: Deque[Tuple[float, np.ndarray, np.ndarray]] = field(default_factory=deque)  # (stamp, A, b)
+    """A marker's displacement information over the window: the frames' (stamp, A, b) and their
+    running sums (kept exactly zero once the window is empty, so no rounding accumulates)."""
+
+    __slots__ = ("items", "A", "b")
+
+    def __init__(self) -> None:
+        self.items: Deque[Tuple[float, np.ndarray, np.ndarray]] = deque()
+        self.A = np.zeros((3, 3))
+        self.b = np.zeros(3)
 
     def add(self, stamp: float, A: np.ndarray, b: np.ndarray, window: float) -> None:
         self.items.append((stamp, A, b))
-        while self.items and self.items[0][0] < stamp - window:
-            self.items.popleft()
+        self.A = self.A + A
+        self.b = self.b + b
+        self.prune(stamp - window)
 
-    def estimate(self, sys_std: float, last: bool = False) -> Tuple[np.ndarray, float, int]:
-        """(displacement d, statistic T, frames) over the window (``last``: the latest frame alone)."""
-        items = list(self.items)[-1:] if last else self.items
-        A = sum(a for _, a, _ in items)
-        b = sum(v for _, _, v in items)
-        cov = np.linalg.pinv(A + 1e-12 * np.eye(3))
-        d = cov @ b
-        T = float(d @ np.linalg.solve(cov + sys_std ** 2 * np.eye(3), d))
-        return d, T, len(self.items)
+    def prune(self, oldest: float) -> None:
+        """Forget the frames stamped before ``oldest``."""
+        items = self.items
+        while items and items[0][0] < oldest:
+            _, A, b = items.popleft()
+            self.A = self.A - A
+            self.b = self.b - b
+        if not items:
+            self.clear()
+
+    def clear(self) -> None:
+        self.items.clear()
+        self.A = np.zeros((3, 3))
+        self.b = np.zeros(3)
+
+
+def _statistics(A: np.ndarray, b: np.ndarray, sys_std: float) -> Tuple[np.ndarray, np.ndarray]:
+    """Batched: displacement ``d = A^+ b`` (K, 3) and ``T = d^T (A^+ + sys_std^2 I)^-1 d`` (K,)
+    for information matrices ``A`` (K, 3, 3) and vectors ``b`` (K, 3)."""
+    eye = np.eye(3)
+    cov = np.linalg.pinv(A + 1e-12 * eye)
+    d = np.einsum("kij,kj->ki", cov, b)
+    u = np.linalg.solve(cov + sys_std ** 2 * eye, d[:, :, None])[:, :, 0]
+    return d, np.einsum("ki,ki->k", d, u)
 
 
 @dataclass
@@ -164,25 +201,54 @@ class _Baseline:
 @dataclass
 class _View:
     camera: str
+    index: int                   # the camera's index in the ring (bit of a basis mask)
     model: CameraModel
     R_cam_map: np.ndarray
     t_cam_map: np.ndarray
-    T_cam_base: np.ndarray
+    T_cam_base: np.ndarray       # moved by the robot's motion to the camera's stamp (free-running)
     ids: List[int]
     px: List[np.ndarray]
     xy: np.ndarray               # (4k, 2) normalised, undistorted observed corners
     X: np.ndarray                # (4k, 3) map corners
 
 
-def _projection_rows(R_cam_map: np.ndarray, t_cam_map: np.ndarray, X: np.ndarray):
-    """Predicted normalised corners (n, 2), d xy / d P_cam (n, 2, 3), P_cam (n, 3)."""
-    P = X @ R_cam_map.T + t_cam_map
-    z = P[:, 2]
-    xy = P[:, :2] / z[:, None]
-    D = np.zeros((len(X), 2, 3))
-    D[:, 0, 0] = D[:, 1, 1] = 1.0 / z
-    D[:, :, 2] = -xy / z[:, None]
-    return xy, D, P
+def _rows(views: Sequence[_View], T_base_map: np.ndarray, pixel_noise: float):
+    """Every camera's rows in one pass, per (camera, marker) block of 4 corners (8 rows): residual
+    r (B, 8) in normalised coordinates, J_pose (B, 8, 6) w.r.t. a base-frame perturbation (w, v) of
+    ``T_base_map`` (geo.se3_perturb's order), J_marker (B, 8, 3) w.r.t. the marker's position in the
+    map, and the weight 1/s^2 (B,) of the block's camera."""
+    counts = [len(v.X) for v in views]
+    X = np.concatenate([v.X for v in views])
+    R_cm = np.repeat(np.stack([v.R_cam_map for v in views]), counts, axis=0)          # (n, 3, 3)
+    t_cm = np.repeat(np.stack([v.t_cam_map for v in views]), counts, axis=0)
+    R_cb = np.repeat(np.stack([v.T_cam_base[:3, :3] for v in views]), counts, axis=0)
+    P = np.einsum("nij,nj->ni", R_cm, X) + t_cm
+    z = P[:, 2:3]
+    pred = P[:, :2] / z
+    inv_z = 1.0 / z[:, 0]
+    # d xy / d P_cam: [[1/z, 0, -x/z], [0, 1/z, -y/z]]; times R (3x3): row i = (R[i] - xy_i R[2]) / z.
+    def chain(R):
+        return (R[:, :2, :] - pred[:, :, None] * R[:, 2:3, :]) * inv_z[:, None, None]
+    E = chain(R_cb)                                                                      # d xy / d P_base
+    J_mark = chain(R_cm)
+    Pb = X @ T_base_map[:3, :3].T + T_base_map[:3, 3]
+    J_pose = np.empty((len(X), 2, 6))
+    # d P_base / d(w, v) = [-[P_base]x | I]; a row e^T [-[q]x] is (q x e)^T.
+    q = Pb[:, None, :]
+    J_pose[:, :, 0] = q[..., 1] * E[..., 2] - q[..., 2] * E[..., 1]
+    J_pose[:, :, 1] = q[..., 2] * E[..., 0] - q[..., 0] * E[..., 2]
+    J_pose[:, :, 2] = q[..., 0] * E[..., 1] - q[..., 1] * E[..., 0]
+    J_pose[:, :, 3:] = E
+    Pc = P[:, None, :]
+    Dm = np.zeros((len(X), 2, 3))
+    Dm[:, 0, 0] = Dm[:, 1, 1] = inv_z
+    Dm[:, :, 2] = -pred * inv_z[:, None]
+    J_rot = np.cross(Dm, Pc)                          # d xy / d (camera rotation), up to its sign
+    xy = np.concatenate([v.xy for v in views])
+    B = len(X) // 4
+    w = np.repeat([float(np.sqrt(v.model.fx * v.model.fy)) ** 2 / pixel_noise ** 2 for v in views],
+                  [len(v.ids) for v in views])
+    return (xy - pred).reshape(B, 8), J_pose.reshape(B, 8, 6), J_mark.reshape(B, 8, 3), w, J_rot.reshape(B, 8, 3)
 
 
 class MarkerCheck:
@@ -192,20 +258,31 @@ class MarkerCheck:
         marker_map: the map in use (shared with the estimator; :meth:`remap` updates it).
         params: :class:`MarkerCheckParams`.
         warn: a throttled warning sink ``warn(key, message, now)`` (the pipeline's).
+        extrinsic_jitter: each camera's per-frame rotation jitter (ring vibration), rad per axis:
+            it moves all corners of a camera together, so a block's residuals are correlated
+            (``s^2 I + jitter^2 Jr Jr^T``, ``Jr``: the corners w.r.t. the camera's rotation). Without
+            it two cameras that see a marker "triangulate" a depth change out of their jitter.
     """
 
-    def __init__(self, marker_map: MarkerMap, params: Optional[MarkerCheckParams] = None, warn=None):
+    def __init__(self, marker_map: MarkerMap, params: Optional[MarkerCheckParams] = None, warn=None,
+                 extrinsic_jitter: float = 0.0):
         self.marker_map = marker_map
+        #: per-frame rotation jitter of each camera, rad per axis (the estimator's extrinsic_jitter_deg).
+        self.extrinsic_jitter = float(extrinsic_jitter)
         self.params = params or MarkerCheckParams()
         self._warn = warn
         self._evidence: Dict[int, _Evidence] = {}
-        self._records: Dict[int, Deque[MarkerObservationRecord]] = {}
-        self._baselines: Dict[Tuple[int, str, frozenset], _Baseline] = {}
+        # id -> (stamp, camera, px, model, T_map_base, delta, T_cam_base): what a re-map needs,
+        # turned into MarkerObservationRecord only when asked (:meth:`observations`).
+        self._records: Dict[int, Deque[tuple]] = {}
+        self._baselines: Dict[Tuple[int, str, int], _Baseline] = {}
         #: id -> the marker declared moved (dropped from the pose until re-mapped or re-admitted).
         self.moved: Dict[int, MovedMarker] = {}
         #: ids forced out of the pose from outside (``build-map --update``: the markers being re-mapped).
         self.excluded: set = set()
         self.frames_checked = 0
+        #: frames not checked because the robot drove or turned (``max_speed``, ``max_yaw_rate``).
+        self.frames_moving = 0
         self.declarations = 0
         #: id -> (latest d, T, frames) of every marker judged, for diagnostics and tests.
         self.latest: Dict[int, Tuple[np.ndarray, float, int]] = {}
@@ -230,9 +307,10 @@ class MarkerCheck:
 
     # --- the check -------------------------------------------------------------------------------
 
-    def _views(self, frame: RingFrame, ring: CameraRing, T_map_base: np.ndarray) -> List[_View]:
+    def _views(self, frame: RingFrame, ring: CameraRing, T_map_base: np.ndarray, motion=None) -> List[_View]:
         mm = self.marker_map
         T_base_map = geo.inverse(T_map_base)
+        t_ref = float(frame.stamp)
         out = []
         for name, cf in frame.cameras.items():
             if name not in ring.names:
@@ -242,112 +320,153 @@ class MarkerCheck:
                 continue
             cam = ring[name]
             model = cf.model if cf.model is not None else cam.model
-            T_cam_base = geo.inverse(cam.T_base_cam)
+            T_base_cam = cam.T_base_cam
+            moved = None if motion is None or cf.stamp == t_ref else motion(t_ref, float(cf.stamp))
+            if moved is not None:
+                # A free-running camera saw the map from where the robot was at its own stamp
+                # (as the estimator takes it: RingLocalizer._moved_extrinsics).
+                T_base_cam = displacement_to_transform(moved[0]) @ T_base_cam
+            T_cam_base = geo.inverse(T_base_cam)
             T_cam_map = T_cam_base @ T_base_map
             px = [np.asarray(o.corners, dtype=np.float64).reshape(4, 2) for o in obs]
-            out.append(_View(name, model, T_cam_map[:3, :3], T_cam_map[:3, 3], T_cam_base,
+            out.append(_View(name, ring.names.index(name), model, T_cam_map[:3, :3], T_cam_map[:3, 3], T_cam_base,
                              [int(o.marker_id) for o in obs], px, model.normalize(np.concatenate(px)),
                              np.concatenate([mm.corners(int(o.marker_id)) for o in obs])))
         return out
 
-    def update(self, frame: RingFrame, T_map_base: np.ndarray, ring: CameraRing, now: float) -> List[MovedMarker]:
+    def update(self, frame: RingFrame, T_map_base: np.ndarray, ring: CameraRing, now: float,
+               motion=None, speed: Tuple[float, float] = (0.0, 0.0)) -> List[MovedMarker]:
         """Check the markers of ``frame`` (raw, with dropped markers) against the accepted pose
-        ``T_map_base`` (measured without the dropped markers); returns the markers declared moved now."""
+        ``T_map_base`` (measured without the dropped markers); returns the markers declared moved now.
+        ``motion``: the pipeline's ``motion(t_ref, t_c) -> (d, cov_d)`` or None (see
+        :meth:`RingLocalizer.process`): each free-running camera is taken at its own stamp.
+        ``speed``: the robot's (speed m/s, |yaw rate| rad/s); above ``max_speed`` or
+        ``max_yaw_rate`` the frame is not checked (``frames_moving``): nothing is computed.
+
+        Vectorised over the frame's (camera, marker) blocks of 4 corners: the leave-one-out poses
+        are one batched 6x6 solve, the displacement information one batched Schur complement."""
         p = self.params
-        views = self._views(frame, ring, T_map_base)
+        if speed[0] > p.max_speed or speed[1] > p.max_yaw_rate:
+            self.frames_moving += 1
+            return []
+        views = self._views(frame, ring, T_map_base, motion)
         if not views:
             return []
         stamp = float(frame.stamp)
         drop = self.dropped
-        # Rows of the pose problem: per corner, r (2,), J_pose (2, 6) w.r.t. a base-frame perturbation
-        # of T_base_map, J_marker (2, 3) w.r.t. the marker's position in the map, weight 1/s^2.
         T_base_map = geo.inverse(T_map_base)
-        per_marker: Dict[int, List[Tuple[np.ndarray, np.ndarray, np.ndarray, float]]] = {}
-        for v in views:
-            pred, D, _ = _projection_rows(v.R_cam_map, v.t_cam_map, v.X)
-            r = v.xy - pred
-            Pb = v.X @ T_base_map[:3, :3].T + T_base_map[:3, 3]
-            R_cb = v.T_cam_base[:3, :3]
-            dPb = np.zeros((len(Pb), 3, 6))
-            dPb[:, :, :3] = -np.array([geo.skew(q) for q in Pb])   # (w, v): geo.se3_perturb's order
-            dPb[:, :, 3:] = np.eye(3)
-            J_pose = np.einsum("nij,jk,nkl->nil", D, R_cb, dPb)
-            J_mark = np.einsum("nij,jk->nik", D, v.R_cam_map)
-            s = p.pixel_noise / float(np.sqrt(v.model.fx * v.model.fy))
-            w = 1.0 / s ** 2
-            for k, mid in enumerate(v.ids):
-                sl = slice(4 * k, 4 * k + 4)
-                per_marker.setdefault(mid, []).append((r[sl], J_pose[sl], J_mark[sl], w, v, k))
-        used = [m for m in per_marker if m not in drop]
-        H_all = np.zeros((6, 6))
-        g_all = np.zeros(6)
-        Hm: Dict[int, np.ndarray] = {}
-        gm: Dict[int, np.ndarray] = {}
-        for mid in used:
-            H = np.zeros((6, 6))
-            g = np.zeros(6)
-            for r, Jp, _, w, _, _ in per_marker[mid]:
-                Jf = Jp.reshape(-1, 6)
-                H += w * Jf.T @ Jf
-                g += w * Jf.T @ r.reshape(-1)
-            Hm[mid], gm[mid] = H, g
-            H_all += H
-            g_all += g
+        # Blocks: one (camera, marker) pair, its 8 rows.
+        r, Jp, Jm, w, Jr = _rows(views, T_base_map, p.pixel_noise)
+        blk_view = [vi for vi, v in enumerate(views) for _ in v.ids]
+        blk_k = [k for v in views for k in range(len(v.ids))]
+        blk_mid = [i for v in views for i in v.ids]
+        mids, blk_m = np.unique(np.asarray(blk_mid), return_inverse=True)
+        M = len(mids)
+        used = np.array([int(m) not in drop for m in mids])
+        S = np.zeros((M, len(w)))                                    # marker <- block sums
+        S[blk_m, np.arange(len(w))] = 1.0
+        if self.extrinsic_jitter > 0:
+            # Each block's weight: the inverse of s^2 I + jitter^2 Jr Jr^T (8x8).
+            C = np.einsum("bri,bsi->brs", Jr, Jr) * self.extrinsic_jitter ** 2
+            C += (1.0 / w)[:, None, None] * np.eye(8)
+            W = np.linalg.inv(C)
+            wJp = W @ Jp
+            wJm = W @ Jm
+        else:
+            wJp = w[:, None, None] * Jp
+            wJm = w[:, None, None] * Jm
+        H_b = np.einsum("bri,brj->bij", wJp, Jp)
+        g_b = np.einsum("bri,br->bi", wJp, r)
+        Hm = (S @ H_b.reshape(-1, 36)).reshape(M, 6, 6)
+        gm = S @ g_b
+        H_all = Hm[used].sum(axis=0)
+        g_all = gm[used].sum(axis=0)
+        n_used = int(used.sum())
         self.frames_checked += 1
-        for mid, rows in per_marker.items():
-            others = [m for m in used if m != mid]
-            if len(others) < p.min_other_markers:
-                continue
-            if mid in drop:
-                H, g = H_all, g_all
-            else:
-                H, g = H_all - Hm[mid], g_all - gm[mid]
-            try:
-                delta = np.linalg.solve(H + 1e-12 * np.eye(6), g)   # the pose from the others, one GN step
-            except np.linalg.LinAlgError:
-                continue
-            # The cameras that give the pose from the others: each camera's extrinsic error moves
-            # that pose its own way, so the offset a (marker, camera) pair shows holds for one set.
-            # A camera dropping out changes the set: the pair's residual jumps although nothing
-            # moved; it is judged against the baseline of the new set once that is learnt.
-            basis = frozenset(v.camera for m in others for _, _, _, _, v, _ in per_marker[m])
-            A = np.zeros((3, 3))
-            b = np.zeros(3)
-            H_joint = H.copy()          # the pose's information from the others and these rows
-            cross = np.zeros((3, 6))    # sum w Jm^T Jp
-            proj = np.zeros(6)          # sum w Jp^T e
-            n = 0
-            for r, Jp, Jm, w, v, k in rows:
-                Jpf = Jp.reshape(-1, 6)
-                res = r.reshape(-1) - Jpf @ delta
-                self._record(mid, stamp, v, k, T_map_base, delta)
-                base = self._baseline_of(mid, v.camera, basis, stamp, res, -v.R_cam_map.T @ v.t_cam_map)
-                if base is None:
-                    continue   # a pair not seen long enough to know its own offset yet
-                Jmf = Jm.reshape(-1, 3)
-                e = res - base
-                A += w * Jmf.T @ Jmf
-                b += w * Jmf.T @ e
-                cross += w * Jmf.T @ Jpf
-                proj += w * Jpf.T @ e
-                H_joint += w * Jpf.T @ Jpf
-                n += 1
-            if n:
-                # The pose from the others is uncertain too (few markers, one camera): the residual's
-                # covariance is W^-1 + Jp H^-1 Jp^T. Its inverse (Woodbury) W - W Jp H_joint^-1 Jp^T W
-                # turns the sums into the displacement's information with the pose marginalised (the
-                # Schur complement): a displacement that the pose from a few markers can absorb is
-                # weak evidence, so a frame with few cameras or markers does not declare a move.
+        if self.frames_checked % 100 == 0:
+            self._forget(stamp)
+        eligible = (n_used - used.astype(int)) >= p.min_other_markers
+        if not eligible.any():
+            return self._judge(stamp, now)
+        # The pose from the others: one Gauss-Newton step without the marker's rows.
+        H_loo = H_all[None] - Hm * used[:, None, None]
+        g_loo = g_all[None] - gm * used[:, None]
+        eye6 = 1e-12 * np.eye(6)
+        try:
+            delta = np.linalg.solve(H_loo + eye6, g_loo[:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:
+            delta = np.zeros((M, 6))
+            for m in np.flatnonzero(eligible):
                 try:
-                    K = np.linalg.solve(H_joint + 1e-12 * np.eye(6), cross.T)   # (6, 3)
+                    delta[m] = np.linalg.solve(H_loo[m] + eye6, g_loo[m])
                 except np.linalg.LinAlgError:
-                    continue
-                A = A - cross @ K
-                b = b - K.T @ proj
-                self._evidence.setdefault(mid, _Evidence()).add(stamp, 0.5 * (A + A.T), b, p.window)
+                    eligible[m] = False
+        res = r - np.einsum("bri,bi->br", Jp, delta[blk_m])
+        # The (camera, marker) pairs that give the pose from the others: each camera's extrinsic
+        # error pulls that pose its own way, and each marker seen weighs in, so the offset a
+        # (marker, camera) pair shows holds for one set of others. A camera dropping out, or another
+        # marker coming into view, changes the set: the pair's residual jumps although nothing
+        # moved (on the harsh lab, 6 mrad when cam4 started to see one more marker); it is judged
+        # against the baseline of the new set once that is learnt.
+        pairs = [(views[vi].index, int(mids[m])) for m, vi in zip(blk_m, blk_view)]
+        everyone = frozenset(pr for pr, m in zip(pairs, blk_m) if used[m])
+        own: Dict[int, set] = {}
+        for pr, m in zip(pairs, blk_m):
+            own.setdefault(int(m), set()).add(pr)
+        masks = [hash(everyone - own[m]) for m in range(M)]
+        positions = [-v.R_cam_map.T @ v.t_cam_map for v in views]
+        have = np.zeros(len(w), dtype=bool)
+        e = np.zeros_like(res)
+        for b_ in range(len(w)):
+            m = blk_m[b_]
+            if not eligible[m]:
+                continue
+            mid = int(mids[m])
+            v = views[blk_view[b_]]
+            self._record(mid, stamp, v, blk_k[b_], T_map_base, delta[m])
+            base = self._baseline_of(mid, v.camera, masks[m], stamp, res[b_], positions[blk_view[b_]])
+            if base is not None:   # else a pair not seen long enough to know its own offset yet
+                have[b_] = True
+                e[b_] = res[b_] - base
+        if not have.any():
+            return self._judge(stamp, now)
+        # The pose from the others is uncertain too (few markers, one camera): the residual's
+        # covariance is W^-1 + Jp H^-1 Jp^T. Its inverse (Woodbury) W - W Jp H_joint^-1 Jp^T W
+        # turns the sums into the displacement's information with the pose marginalised (the
+        # Schur complement): a displacement that the pose from a few markers can absorb is weak
+        # evidence, so a frame with few cameras or markers does not declare a move.
+        Sh = S * have[None, :]
+        M9 = Sh @ np.concatenate([np.einsum("bri,brj->bij", wJm, Jm).reshape(-1, 9),        # A
+                                  np.einsum("bri,br->bi", wJm, e),                           # b
+                                  np.einsum("bri,brj->bij", wJm, Jp).reshape(-1, 18),       # cross
+                                  np.einsum("bri,br->bi", wJp, e),                           # proj
+                                  H_b.reshape(-1, 36)], axis=1)
+        A = M9[:, :9].reshape(M, 3, 3)
+        b = M9[:, 9:12]
+        cross = M9[:, 12:30].reshape(M, 3, 6)
+        proj = M9[:, 30:36]
+        H_joint = H_loo + M9[:, 36:].reshape(M, 6, 6)
+        judged = np.flatnonzero(Sh.any(axis=1))
+        try:
+            K = np.linalg.solve(H_joint[judged] + eye6, np.transpose(cross[judged], (0, 2, 1)))   # (k, 6, 3)
+        except np.linalg.LinAlgError:
+            return self._judge(stamp, now)
+        A = A[judged] - np.einsum("kij,kjl->kil", cross[judged], K)
+        b = b[judged] - np.einsum("kji,kj->ki", K, proj[judged])
+        for j, m in enumerate(judged):
+            Aj = A[j]
+            self._evidence.setdefault(int(mids[m]), _Evidence()).add(stamp, 0.5 * (Aj + Aj.T), b[j], p.window)
         return self._judge(stamp, now)
 
-    def _baseline_of(self, mid: int, camera: str, basis: frozenset, stamp: float, res: np.ndarray,
+    def _forget(self, stamp: float) -> None:
+        """Drop the baselines that nothing refreshed for ``window + baseline_time`` (stale: they
+        would start over) and whose queue is empty by then: the table stays as large as what is in view."""
+        horizon = stamp - self.params.window - self.params.baseline_time
+        for key in [k for k, bl in self._baselines.items()
+                    if (bl.stamp is None or bl.stamp < horizon) and (not bl.pending or bl.pending[-1][0] < horizon)]:
+            del self._baselines[key]
+
+    def _baseline_of(self, mid: int, camera: str, basis: int, stamp: float, res: np.ndarray,
                      position: np.ndarray) -> Optional[np.ndarray]:
         """The pair's offset learnt from its residuals older than the window (None: none yet); queue ``res``.
 
@@ -355,7 +474,9 @@ class MarkerCheck:
         exponential average over ``baseline_time``), so a move is judged against what the pair showed
         before it. The offset depends on the viewpoint (a calibration error projects differently from
         elsewhere): a baseline is valid within ``baseline_distance`` of the camera positions it was
-        learnt at, and starts over beyond. The baseline of a marker declared moved is frozen.
+        learnt at, and starts over beyond. A baseline that no residual refreshed for ``baseline_time``
+        starts over too (the robot came back after a loop: learnt from another heading, the same
+        place is another view). The baseline of a marker declared moved is frozen.
         """
         p = self.params
         key = (mid, camera, basis)
@@ -368,7 +489,8 @@ class MarkerCheck:
             t, r, pos = bl.pending.popleft()
             if frozen:
                 continue
-            if bl.value is None or float(np.linalg.norm(pos - bl.position)) > p.baseline_distance:
+            if bl.value is None or t - bl.stamp > p.baseline_time or \
+                    float(np.linalg.norm(pos - bl.position)) > p.baseline_distance:
                 bl.value, bl.position, bl.count, bl.stamp = r.copy(), pos.copy(), 1, t
                 continue
             bl.count += 1
@@ -376,28 +498,47 @@ class MarkerCheck:
             bl.value = bl.value + alpha * (r - bl.value)
             bl.position = bl.position + alpha * (pos - bl.position)
             bl.stamp = t
-        if bl.value is None or float(np.linalg.norm(position - bl.position)) > p.baseline_distance:
+        if bl.value is None or stamp - bl.stamp > p.window + p.baseline_time or \
+                float(np.linalg.norm(position - bl.position)) > p.baseline_distance:
             return None
         return bl.value
 
     def _record(self, mid: int, stamp: float, v: _View, k: int, T_map_base: np.ndarray, delta: np.ndarray) -> None:
-        # T_base_map' = exp(delta) T_base_map  ->  T_map_cam' = T_map_base exp(-delta) T_base_cam
-        T_base_map = geo.se3_perturb(geo.inverse(T_map_base), delta)
-        T_map_cam = geo.inverse(v.T_cam_base @ T_base_map)
-        q = self._records.setdefault(mid, deque())
-        q.append(MarkerObservationRecord(stamp, v.camera, v.px[k], v.model, T_map_cam))
-        while q and q[0].stamp < stamp - self.params.remap_window:
+        q = self._records.get(mid)
+        if q is None:
+            q = self._records[mid] = deque()
+        q.append((stamp, v.camera, v.px[k], v.model, T_map_base, delta, v.T_cam_base))
+        oldest = stamp - self.params.remap_window
+        while q and q[0][0] < oldest:
             q.popleft()
 
     def _judge(self, stamp: float, now: float) -> List[MovedMarker]:
         p = self.params
-        worst: Optional[Tuple[int, np.ndarray, float]] = None
+        oldest = stamp - p.window
+        ids, As, bs, counts, fresh = [], [], [], [], []
         for mid, ev in self._evidence.items():
-            while ev.items and ev.items[0][0] < stamp - p.window:
-                ev.items.popleft()
+            ev.prune(oldest)
             if not ev.items:
                 continue
-            d, T, n = ev.estimate(p.systematic_std)
+            ids.append(mid)
+            As.append(ev.A)
+            bs.append(ev.b)
+            counts.append(len(ev.items))
+            if ev.items[-1][0] == stamp:
+                fresh.append(len(ids) - 1)
+        if not ids:
+            return []
+        d_all, T_all = _statistics(np.stack(As), np.stack(bs), p.systematic_std)
+        if fresh:   # the latest frame alone
+            last = [self._evidence[ids[j]].items[-1] for j in fresh]
+            d1_all, T1_all = _statistics(np.stack([a for _, a, _ in last]), np.stack([v for _, _, v in last]),
+                                         p.systematic_std)
+            instant = dict(zip(fresh, zip(d1_all, T1_all)))
+        else:
+            instant = {}
+        worst: Optional[Tuple[int, np.ndarray, float]] = None
+        for j, mid in enumerate(ids):
+            d, T, n = d_all[j], float(T_all[j]), counts[j]
             self.latest[mid] = (d, T, n)
             if mid in self.moved:
                 self.moved[mid].displacement = d
@@ -408,8 +549,9 @@ class MarkerCheck:
             if n >= p.min_observations and T > p.threshold and float(np.linalg.norm(d)) > p.min_move and (
                     worst is None or T > worst[2]):
                 worst = (mid, d, T)
-            if ev.items[-1][0] == stamp:
-                d1, T1, _ = ev.estimate(p.systematic_std, last=True)
+            if j in instant:
+                d1, T1 = instant[j]
+                T1 = float(T1)
                 if T1 > p.instant_threshold and float(np.linalg.norm(d1)) > p.min_move and (
                         worst is None or T1 > worst[2]):
                     worst = (mid, d1, T1)
@@ -421,9 +563,9 @@ class MarkerCheck:
         self.declarations += 1
         for other in list(self._evidence):
             if other not in self.moved:
-                self._evidence[other].items.clear()
+                self._evidence[other].clear()
         q = self._records.get(mid)
-        while q and q[0].stamp < stamp:
+        while q and q[0][0] < stamp:
             q.popleft()   # where it was: re-mapping uses what it shows from the declaration on
         for (m, _, _), bl in self._baselines.items():
             if m != mid:
@@ -445,7 +587,13 @@ class MarkerCheck:
     # --- re-mapping -------------------------------------------------------------------------------
 
     def observations(self, marker_id: int) -> List[MarkerObservationRecord]:
-        return list(self._records.get(int(marker_id), ()))
+        """The marker's recent views, each with the camera pose from the other markers."""
+        out = []
+        for stamp, camera, px, model, T_map_base, delta, T_cam_base in self._records.get(int(marker_id), ()):
+            # T_base_map' = exp(delta) T_base_map  ->  T_map_cam' = (T_cam_base T_base_map')^-1
+            T_base_map = geo.se3_perturb(geo.inverse(T_map_base), delta)
+            out.append(MarkerObservationRecord(stamp, camera, px, model, geo.inverse(T_cam_base @ T_base_map)))
+        return out
 
     def remap(self, marker_id: int) -> Tuple[MarkerEntry, float]:
         """Re-estimate ``marker_id`` from its recent observations (others fixed), put it in the map,
@@ -483,7 +631,7 @@ class MarkerCheck:
     def reset(self) -> None:
         """Forget the evidence (the track restarted); declared markers stay dropped."""
         for ev in self._evidence.values():
-            ev.items.clear()
+            ev.clear()
 
 
 def estimate_marker_pose(records: Sequence[MarkerObservationRecord], size: float,

@@ -407,7 +407,8 @@ class LocalizationPipeline(_RingPipeline):
         #: ``filter/model: 6dof``: the 6-DOF tracker replaces the gate and the planar filter.
         self.tracker6 = Tracker6(config.tracker6) if config.filter.model == "6dof" else None
         #: moved-marker detection (marker_check.py), None when marker_check.enabled is false.
-        self.marker_check = MarkerCheck(marker_map, config.marker_check, self.warn) \
+        self.marker_check = MarkerCheck(marker_map, config.marker_check, self.warn,
+                                        extrinsic_jitter=np.radians(config.estimator.extrinsic_jitter_deg)) \
             if config.marker_check.enabled else None
         self._motion: Dict[str, _Motion] = {}
         #: Odometry poses (and IMU yaw) by stamp, with ``motion.odometry`` (issue 12).
@@ -768,7 +769,8 @@ class LocalizationPipeline(_RingPipeline):
         message = ("moved (dropped from the pose): " + ", ".join(f"{m.marker_id} by {100 * m.distance:.1f} cm"
                                                                   for m in moved)) if moved else "no moved marker"
         values = [("moved_markers", " ".join(str(m.marker_id) for m in moved)),
-                  ("frames_checked", str(mc.frames_checked)), ("declared", str(mc.declarations))]
+                  ("frames_checked", str(mc.frames_checked)), ("frames_moving", str(mc.frames_moving)),
+                  ("declared", str(mc.declarations))]
         values += [(f"marker_{m.marker_id}_moved_cm", f"{100 * m.distance:.1f}") for m in moved]
         values += [(f"marker_{m.marker_id}_displacement_m", " ".join(f"{v:.3f}" for v in m.displacement))
                    for m in moved]
@@ -903,7 +905,11 @@ class LocalizationPipeline(_RingPipeline):
                 geo.pose_distance(loc.T_map_base, pred)[0] <= self.config.gate.base_distance:
             # Moved-marker check (marker_check.py) on a measurement near the prediction, before the
             # filter: a marker declared moved now is dropped from this very frame's pose.
-            if check.update(ring_frame, loc.T_map_base, self.localizer.ring, stamp):
+            speed, yaw_rate = self._speeds(stamp if self._clock is None else self._clock)
+            if self.filter.initialized:
+                twist = self.filter.body_twist
+                speed, yaw_rate = max(speed, float(np.hypot(twist[0], twist[1]))), max(yaw_rate, abs(float(twist[2])))
+            if check.update(ring_frame, loc.T_map_base, self.localizer.ring, stamp, motion, (speed, yaw_rate)):
                 loc = self.localizer.process(check.strip(ring_frame), pred, motion)
             check.warn_moved(stamp if self._clock is None else self._clock)
         for k, v in loc.rejected.items():

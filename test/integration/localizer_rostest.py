@@ -71,10 +71,19 @@ class LocalizerSimTest(unittest.TestCase):
         with cls.lock:
             cls.diags.append((msg.header.stamp.to_sec(), {st.name: st for st in msg.status}))
 
+    def _expected(self) -> set:
+        """The statuses of a full array: every camera, the filter and, with marker_check/enabled (the
+        default), the moved-marker check's."""
+        names = {f"localizer: camera {n}" for n in self.ring.names} | {"localizer: filter"}
+        if rospy.get_param("/localizer/marker_check/enabled", True):
+            names.add("localizer: markers")
+        return names
+
     def _diags_between(self, a: float, b: float):
-        """The full arrays (every camera and the filter) stamped in [a, b)."""
+        """The full arrays (every camera, the filter, the marker check) stamped in [a, b)."""
+        n = len(self._expected())
         with self.lock:
-            return [d for t, d in self.diags if a <= t < b and len(d) == len(self.ring.names) + 1]
+            return [d for t, d in self.diags if a <= t < b and len(d) == n]
 
     def _play(self, t0: float, t1: float, path_t0: float = 0.0, cameras=None, rate_hz: float = 10.0):
         """Publish clock + detections from sim time t0 to t1 (robot at _path(t - t0 + path_t0))."""
@@ -161,9 +170,11 @@ class LocalizerSimTest(unittest.TestCase):
     def test_5_diagnostics_follow_diagnostic_updater_conventions(self):
         full = self._diags_between(100.0, 200.0)
         self.assertGreater(len(full), 5, f"only {len(full)} full /diagnostics arrays in tests 1-3")
-        expected = {f"localizer: camera {n}" for n in self.ring.names} | {"localizer: filter"}
+        expected = self._expected()
         for d in full:
             self.assertEqual(set(d), expected)
+            if "localizer: markers" in d:   # no marker moved here: the check must not declare one
+                self.assertEqual(d["localizer: markers"].level, DiagnosticStatus.OK, d["localizer: markers"].message)
             for name in self.ring.names:
                 self.assertEqual(d[f"localizer: camera {name}"].hardware_id, name)
             self.assertTrue(d["localizer: filter"].hardware_id)

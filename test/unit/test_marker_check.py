@@ -1,8 +1,9 @@
 """Moved-marker check (marker_check.py, issue 13.3): detection, false alarms, re-mapping, the scene event.
 
 Measured false alarm rate (these runs, and bench_moved_marker.py's): no declaration in 60 s parked
-plus 60 s driving here per rig seed (2 seeds: 0 in 4 simulated minutes, 2400 checked ring frames);
-the benchmark's figure (moved_marker_false_alarm_per_hour) covers longer runs.
+plus 60 s driving here per rig seed (2 seeds: 0 in 4 simulated minutes) and in 36 s of driving on
+the harsh lab; the benchmark's figures (moved_marker_false_alarm_per_hour, and
+moved_marker_harsh_false_alarms over 1 h of the harsh lab) cover longer runs.
 """
 from __future__ import annotations
 
@@ -191,3 +192,96 @@ def test_simulator_event_moves_the_marker_at_its_time():
         SimulatorConfig(events=[{"t": 2.0, "move": [0.05, 0.0, 0.0]}])
     with pytest.raises(ConfigError, match="events"):
         SimulatorCore(SimulatorConfig(events=[{"t": 2.0, "marker": 99999}]), Scene.default(), ring)
+
+
+def _harsh_run(seed: int, duration: float, parked: bool = False, move_at: float = None, **overrides):
+    """The harsh lab (config/lab_harsh.yaml) in corners mode, the stock localizer config: driving
+    around the test positions (or parked at one), each camera at its own exposure stamp. Returns
+    (pipeline, moved marker or None, stamp it was declared or None)."""
+    from aruco_ring_localization.simulation.params import lab_config
+    from aruco_ring_localization.simulation.scene import resolve_scene_file
+
+    base = lab_config("harsh")
+    scene = Scene.load(resolve_scene_file(base.scene.file))
+    over = {"seed": seed, "robot.loop": True}
+    if parked:
+        x, y, yaw = scene.test_positions[seed % len(scene.test_positions)]
+        over.update({"robot.waypoints": "none", "robot.start_pose": [x, y, float(np.degrees(yaw))]})
+    ring = CameraRing.load(RING)
+    core = SimulatorCore(with_overrides(base, over), scene, ring)
+    pipe = LocalizationPipeline(with_overrides(LocalizerConfig(), {**OFFLINE, **overrides}), ring, scene.truth_map())
+    t, moved_id, declared_at = 0.0, None, None
+    while t < duration:
+        t = round(t + 0.1, 6)
+        st = core.step(t, 0.1)
+        dets = core.detections()
+        if move_at is not None and moved_id is None and t >= move_at:
+            counts = {}
+            for obs in dets.values():
+                for o in obs:
+                    counts[o.marker_id] = counts.get(o.marker_id, 0) + 1
+            moved_id = max(counts, key=lambda k: (counts[k], -k))
+            core.sim.move_marker(moved_id, _along_wall(scene, moved_id, 0.05))
+            dets = core.detections()
+        pipe.on_motion("cmd_vel", None, st.cmd[:2], float(st.cmd[2]), t)
+        for name in sorted(dets, key=core.camera_stamp):
+            stamp = core.camera_stamp(name)
+            pipe.on_detections(name, stamp, dets[name], stamp + 0.02)
+        pipe.poll(t + 0.02)
+        if moved_id is not None and declared_at is None and moved_id in pipe.marker_check.moved:
+            declared_at = t
+    return pipe, moved_id, declared_at
+
+
+def test_on_by_default():
+    assert LocalizerConfig().marker_check.enabled
+    assert LocalizationPipeline(with_overrides(LocalizerConfig(), OFFLINE), CameraRing.load(RING),
+                                Scene.default().truth_map()).marker_check is not None
+
+
+def test_no_false_alarm_on_the_harsh_lab_with_vibration_modelled():
+    """Harsh lab, driving, seed 4: the ring's vibration (0.05 deg per frame per camera) made two
+    cameras "triangulate" a 13 cm move of marker 126 at 34 s when the check weighted corners by the
+    pixel noise alone (the second run shows it: the test can fail); with the estimator's
+    extrinsic_jitter_deg in each block's weight, nothing is declared."""
+    pipe, _, _ = _harsh_run(4, 36.0)
+    mc = pipe.marker_check
+    assert mc.frames_checked > 100 and mc.frames_moving > 100
+    assert mc.declarations == 0, f"false alarms: {[(m.marker_id, m.distance, m.since) for m in mc.moved.values()]}"
+    pipe2, _, _ = _harsh_run(4, 36.0, **{"estimator.extrinsic_jitter_deg": 0.0, "estimator.extrinsic_jitter_m": 0.0})
+    assert pipe2.marker_check.declarations >= 1, "without the jitter in its noise model the check stayed quiet: " \
+                                                 "this test no longer shows what it guards"
+
+
+def test_detects_a_5cm_move_on_the_harsh_lab_parked():
+    pipe, mid, declared_at = _harsh_run(2, 9.0, parked=True, move_at=5.0)
+    mc = pipe.marker_check
+    assert declared_at is not None, f"marker {mid} moved by 5 cm at 5 s, not declared; latest {mc.latest.get(mid)}"
+    assert declared_at - 5.0 <= 2.0
+    assert set(mc.moved) == {mid}
+
+
+def test_frames_are_not_checked_while_the_robot_drives():
+    scene, sim, pipe = _setup(1)
+    mc = pipe.marker_check
+    frame = sim.observe(scene.test_positions[0], stamp=1.0)
+    T = Scene.T_world_base(scene.test_positions[0])
+    assert mc.update(frame, T, pipe.localizer.ring, 1.0, speed=(0.06, 0.0)) == []
+    assert mc.update(frame, T, pipe.localizer.ring, 1.0, speed=(0.0, 0.03)) == []
+    assert mc.frames_moving == 2 and mc.frames_checked == 0 and not mc._evidence and not mc._baselines
+    mc.update(frame, T, pipe.localizer.ring, 1.0, speed=(0.04, 0.01))
+    assert mc.frames_checked == 1
+
+
+def test_window_sums_follow_the_items():
+    """The running sums of a marker's evidence equal the sum of what is in its window."""
+    from aruco_ring_localization.marker_check import _Evidence
+
+    rng = np.random.default_rng(3)
+    ev = _Evidence()
+    for k in range(50):
+        ev.add(0.1 * k, rng.normal(size=(3, 3)) * 1e5, rng.normal(size=3) * 1e3, window=1.0)
+        assert np.allclose(ev.A, sum(a for _, a, _ in ev.items), rtol=0, atol=1e-6)
+        assert np.allclose(ev.b, sum(b for _, _, b in ev.items), rtol=0, atol=1e-8)
+    ev.prune(100.0)
+    assert not ev.items and not ev.A.any() and not ev.b.any()
