@@ -25,6 +25,7 @@ For every recording the package can handle (the others are listed with the reaso
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -45,7 +46,8 @@ sys.path.insert(0, HERE)
 from tagslam_reference import DATA, cached_bag, load_test, ring_frames, write_camera_poses  # noqa: E402
 
 from aruco_ring_localization import geometry as geo  # noqa: E402
-from aruco_ring_localization.errors import ArucoRingError  # noqa: E402
+from aruco_ring_localization.anchors import anchor_report  # noqa: E402
+from aruco_ring_localization.errors import ArucoRingError, MapSanityError  # noqa: E402
 from aruco_ring_localization.evaluation.maps import map_error  # noqa: E402
 from aruco_ring_localization.importers import read_rig, tagslam_anchors, write_ring_files  # noqa: E402
 from aruco_ring_localization.localization import LocalizationParams, RingLocalizer  # noqa: E402
@@ -201,7 +203,12 @@ def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool =
     # TagSLAM's surveyed tags (the poses tagslam.yaml fixes) as anchors, as TagSLAM uses them.
     survey = tagslam_anchors(tags, ignore, os.path.join(src, "tagslam.yaml")) if anchors else None
     res["anchored"] = [] if survey is None else survey.ids
-    b = MapBuilder(ring, sizes, options=MappingOptions(frame="marker"), anchors=survey)
+    options = MappingOptions(frame="marker")
+    if survey is not None and tags.pixel_noise:
+        # TagSLAM's problem: its known poses' noise against its corner noise (tagslam.yaml), so that
+        # the survey and the images weigh as they do in the reference.
+        options = dataclasses.replace(options, ba=dataclasses.replace(options.ba, pixel_noise=tags.pixel_noise))
+    b = MapBuilder(ring, sizes, options=options, anchors=survey)
     for f in frames:
         b.add_frame(f)
     ours: Optional[MarkerMap] = None
@@ -209,6 +216,16 @@ def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool =
     try:
         ours = b.build()
         ours.save(os.path.join(out_dir, "map.yaml"), b.options.sanity)
+    except MapSanityError as exc:
+        # Not written. The figures below are those of the map the checks refused (said in the row):
+        # where it is only the anchors check, TagSLAM's own tags are measured against it too.
+        note = str(exc)
+        res["map_refused"] = sorted({p.split(":")[0] for p in exc.problems})
+        if survey is not None and ours is not None and ours.anchors:
+            own = anchor_report(survey, {i: T for i, T in ref.tags.items() if i in survey.ids}, ours.anchors["kind"])
+            res["tagslam_anchor_sigmas_max"] = max((p.get("residual_sigmas", 0.0) for p in own["points"]), default=0.0)
+            res["anchor_sigmas_max"] = max((p.get("residual_sigmas", 0.0) for p in ours.anchors["points"]),
+                                           default=0.0)
     except ArucoRingError as exc:
         note = str(exc)
         ours = None
@@ -343,6 +360,16 @@ def _anchored(ids) -> str:
     if not ids:
         return "none"
     return f"{len(ids)} tags" if len(ids) > 12 else f"{len(ids)}: {ids}"
+
+
+def _refused(r: dict) -> str:
+    """The map cell's note when the sanity checks refused the save (the figures are of that map)."""
+    if not r.get("map_refused"):
+        return ""
+    own = r.get("tagslam_anchor_sigmas_max")
+    extra = (f": anchors up to {_fmt(r.get('anchor_sigmas_max'))} sigma from tagslam.yaml's poses; TagSLAM's own "
+             f"tags {_fmt(own)} sigma" if own is not None and "anchors" in r["map_refused"] else "")
+    return f" (**save refused** by the {', '.join(r['map_refused'])} check{'s' if len(r['map_refused']) > 1 else ''}{extra})"
 
 
 def _fmt(v, digits=1) -> str:
@@ -499,7 +526,7 @@ def report(rows: Dict[str, dict], failed: Dict[str, str], load, quick: bool, tes
             continue
         lines.append(
             f"| {t} | {r['cameras']} | {r['frames']} | {r['stations']}{' (SE3)' if r['se3'] else ''} | "
-            f"{_fmt(r['map_rms_mm'], 2)} / {_fmt(r['map_max_mm'], 1)} | {_fmt(r.get('map_rot_median_deg'), 2)} / "
+            f"{_fmt(r['map_rms_mm'], 2)} / {_fmt(r['map_max_mm'], 1)}{_refused(r)} | {_fmt(r.get('map_rot_median_deg'), 2)} / "
             f"{_fmt(r.get('map_rot_max_deg'), 1)} | {r['tags_missing']} of {r['tagslam_tags']}"
             f"{' ' + str(r['missing_ids']) if r['tags_missing'] else ''} | "
             f"{_fmt(r['tagslam_loc_median_mm'], 2)} / {_fmt(r['tagslam_loc_p95_mm'])} / {_fmt(r['tagslam_loc_max_mm'])}, "
