@@ -381,6 +381,12 @@ def _fmt(v, digits=1) -> str:
 
 
 def run(quick: bool = False) -> dict:
+    """Every recording (``make bench``); with ``BENCH_REAL_RENDER=1`` in the environment nothing is
+    measured: the section is rendered from the saved rows (:func:`render_saved`), so that
+    ``BENCH_REAL_RENDER=1 python bench/run.py --only real`` rewrites it in docs/benchmarks.md after
+    ``--only test_N --merge`` runs, keeping the rows not re-measured as the document has them."""
+    if os.environ.get("BENCH_REAL_RENDER"):
+        return render_saved()
     load = os.getloadavg()
     tests = [t for t in _tests() if not quick or t in QUICK]
     rows = {}
@@ -427,6 +433,21 @@ def doc_rows(path: str = DOC) -> Dict[str, List[str]]:
     return out
 
 
+def doc_notes(path: str = DOC) -> List[str]:
+    """The paragraphs of the current "Real recordings" section that say what was re-measured when
+    (``**Re-measured ...``): kept by ``--render`` under the table."""
+    if not os.path.exists(path):
+        return []
+    with open(path, encoding="utf-8") as fh:
+        text = fh.read()
+    start = text.find("## Real recordings")
+    if start < 0:
+        return []
+    end = text.find("\n## ", start + 1)
+    paras = text[start:end if end > 0 else None].split("\n\n")
+    return [p.strip() for p in paras if p.strip().startswith("**Re-measured")]
+
+
 def _doc_number(cell: str, pattern: str) -> float:
     m = re.search(pattern, cell)
     return float(m.group(1)) if m else float("nan")
@@ -461,7 +482,8 @@ def merge_loc(row: Optional[dict], loc: dict, cells: Optional[List[str]]) -> dic
     return out
 
 
-def report(rows: Dict[str, dict], failed: Dict[str, str], load, quick: bool, tests: List[str]) -> dict:
+def report(rows: Dict[str, dict], failed: Dict[str, str], load, quick: bool, tests: List[str],
+           notes: Optional[List[str]] = None) -> dict:
     """The results keys and the markdown section of a run (also from a saved rows.json: --render)."""
     results: Dict[str, float] = {}
     rows = {t: (_from_doc(r["_doc_only"]) if "_doc_only" in r else r) for t, r in rows.items()}
@@ -500,7 +522,9 @@ def report(rows: Dict[str, dict], failed: Dict[str, str], load, quick: bool, tes
              "Map columns: after the SE(3) fit of our map onto TagSLAM's "
              "tags over the 4 corners of every common tag; *loc on our map*: our map and refined extrinsics, our "
              "poses expressed in TagSLAM's frame through that same fit (nothing fitted to the trajectory).",
-             "", f"Load average at the start {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f} (2 cores shared). "
+             "", (f"Load average at the start {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f} (2 cores shared). "
+                  if load is not None else "Rows measured at different times: each row's last column gives when "
+                  "and at what load average (2 cores shared). ")
              + ("`--quick`: 4 recordings, at most 600 frames each." if quick else ""), "",
              "| test | cams | frames | stations | map RMS / max mm | rot med / max deg | tags missing | "
              "loc on TagSLAM's map: median / p95 / max mm, rot median deg | filtered (model): median / max mm, "
@@ -578,7 +602,39 @@ def report(rows: Dict[str, dict], failed: Dict[str, str], load, quick: bool, tes
     for t, r in rows.items():
         if r.get("note"):
             lines.append(f"\n{t}: {r['note']}")
+    for note in notes or []:
+        lines.append(f"\n{note}")
     return {"results": results, "markdown": "\n".join(lines) + "\n", "rows": rows}
+
+
+def render_saved(extra_notes: Optional[List[str]] = None) -> dict:
+    """The section from the saved rows: the last full run (rows.json), rows re-measured alone
+    (``--only ... --merge``: <test>/row.json, newer than rows.json) and localization-only rows
+    (loc_row.json), and for every recording this worktree never measured, its line of the current
+    docs/benchmarks.md verbatim (with its date); the document's ``**Re-measured`` notes are kept."""
+    saved = {"rows": {}, "failed": {}, "load": os.getloadavg(), "quick": False, "tests": _tests()}
+    if os.path.exists(os.path.join(OUT, "rows.json")):
+        with open(os.path.join(OUT, "rows.json"), encoding="utf-8") as fh:
+            saved = json.load(fh)
+    for t in _tests():   # rows re-measured alone (--only ... --merge) replace the full run's
+        row = os.path.join(OUT, t, "row.json")
+        if os.path.exists(row) and (t not in saved["rows"] or os.path.getmtime(row) > os.path.getmtime(
+                os.path.join(OUT, "rows.json"))):
+            with open(row, encoding="utf-8") as fh:
+                saved["rows"][t] = json.load(fh)
+    # Localization re-measured alone (--loc-only --merge) over the row (or the doc's line).
+    in_doc = doc_rows()
+    for t in _tests():
+        path = os.path.join(OUT, t, "loc_row.json")
+        if os.path.exists(path):
+            with open(path, encoding="utf-8") as fh:
+                saved["rows"][t] = merge_loc(saved["rows"].get(t), json.load(fh), in_doc.get(t))
+    for t, cells in in_doc.items():   # rows this worktree never measured: as the doc has them
+        if t not in saved["rows"]:
+            saved["rows"][t] = {"_doc_only": cells}
+    saved["rows"] = {k: saved["rows"][k] for k in sorted(saved["rows"], key=lambda n: int(n.split("_")[1]))}
+    notes = doc_notes() + list(extra_notes or [])
+    return report(saved["rows"], saved["failed"], None, saved["quick"], saved["tests"], notes)
 
 
 if __name__ == "__main__":
@@ -596,28 +652,7 @@ if __name__ == "__main__":
                                                            "localization columns (the mapping columns stay)")
     a = p.parse_args()
     if a.render:
-        saved = {"rows": {}, "failed": {}, "load": os.getloadavg(), "quick": False, "tests": _tests()}
-        if os.path.exists(os.path.join(OUT, "rows.json")):
-            with open(os.path.join(OUT, "rows.json"), encoding="utf-8") as fh:
-                saved = json.load(fh)
-        for t in _tests():   # rows re-measured alone (--only ... --merge) replace the full run's
-            row = os.path.join(OUT, t, "row.json")
-            if os.path.exists(row) and (t not in saved["rows"] or os.path.getmtime(row) > os.path.getmtime(
-                    os.path.join(OUT, "rows.json"))):
-                with open(row, encoding="utf-8") as fh:
-                    saved["rows"][t] = json.load(fh)
-        # Localization re-measured alone (--loc-only --merge) over the row (or the doc's line).
-        in_doc = doc_rows()
-        for t in _tests():
-            path = os.path.join(OUT, t, "loc_row.json")
-            if os.path.exists(path):
-                with open(path, encoding="utf-8") as fh:
-                    saved["rows"][t] = merge_loc(saved["rows"].get(t), json.load(fh), in_doc.get(t))
-        for t, cells in in_doc.items():   # rows this worktree never measured: as the doc has them
-            if t not in saved["rows"]:
-                saved["rows"][t] = {"_doc_only": cells}
-        saved["rows"] = {k: saved["rows"][k] for k in sorted(saved["rows"], key=lambda n: int(n.split("_")[1]))}
-        out = report(saved["rows"], saved["failed"], saved["load"], saved["quick"], saved["tests"])
+        out = render_saved()
         print(out["markdown"])
         print(json.dumps(out["results"], indent=1, sort_keys=True))
     elif a.only and a.loc_only:

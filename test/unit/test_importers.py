@@ -142,6 +142,20 @@ def test_import_kalibr_command(tmp_path, capsys):
     assert "cam1, cam2, cam3" in capsys.readouterr().err and not (tmp_path / "r5.yaml").exists()
 
 
+def test_import_kalibr_writes_tagslams_known_poses_as_anchors(tmp_path, capsys):
+    from aruco_ring_localization.anchors import load_anchors
+
+    anchors = tmp_path / "anchors.yaml"
+    args = ["import-kalibr", str(DATA / "test_11" / "cameras.yaml"), "--out", str(tmp_path / "ring.yaml")]
+    assert main(args + ["--tagslam", str(DATA / "test_12" / "tagslam.yaml"), "--anchors-out", str(anchors)]) == 0
+    assert "1 anchored tags" in capsys.readouterr().out
+    back = load_anchors(str(anchors))
+    assert back.ids == [6] and back.anchors[0].rotation is not None
+    np.testing.assert_allclose(back.anchors[0].position_std, [1e-4] * 3)
+    assert main(args + ["--anchors-out", str(tmp_path / "a2.yaml")]) == 2      # needs --tagslam
+    assert "--tagslam" in capsys.readouterr().err and not (tmp_path / "a2.yaml").exists()
+
+
 def test_tagslam_tags_sizes_ignored_moving_and_remaps():
     t12 = read_tagslam_tags(str(DATA / "test_12" / "tagslam.yaml"))
     assert t12.default_size == 0.15 and t12.marker_sizes()(6) == 0.15
