@@ -105,6 +105,10 @@ class MappingOptions:
                                                "far (median) from the current station's first frame; frames "
                                                "in between are left out (0: every moving frame is a station)",
                                          unit="px")
+    keep_linking_frames: bool = param(True, "automatic stations of a moving ring: a frame that min_station_motion_px "
+                                            "would leave out is kept (as a new station) when it sees a marker no "
+                                            "kept frame saw, or markers that no kept frame links (seen together, "
+                                            "directly or through others): leaving it out would split the map")
     min_views_for_consensus: int = param(2, "distinct (station, camera) views needed to resolve a marker seen only "
                                             "ambiguously")
     consensus_angle_deg: float = param(10.0, "agreement tolerance of that consensus, rotation", unit="deg")
@@ -305,6 +309,7 @@ class MapBuilder:
         self._station_frames: List[int] = []
         self._camera_frames: Dict[Tuple[int, str], int] = defaultdict(int)   # (station, camera) -> frames kept
         self._anchor_corners: Dict[Tuple[str, int], np.ndarray] = {}
+        self._links: Dict[int, int] = {}       # union-find of the markers linked by the kept frames
         self._last_station: Optional[int] = None
         self.frames = 0
         #: frames left out because the ring was moving but had not moved min_station_motion_px yet.
@@ -381,8 +386,24 @@ class MapBuilder:
                 continue
             self._obs.append(_Obs(st, name, int(o.marker_id), o.corners, xy, focal, np.array(T_base_cam), model,
                                   model.pixel_jacobian(xy)))
+        kept = sorted({int(o.marker_id) for _, o, _, _ in detections})
+        for a, b in zip(kept, kept[1:] + kept[:1]):
+            self._links[self._link_root(a)] = self._link_root(b)
         self._version += 1
         return st
+
+    def _link_root(self, m: int) -> int:
+        while self._links.setdefault(m, m) != m:
+            self._links[m] = self._links[self._links[m]]
+            m = self._links[m]
+        return m
+
+    def _brings_links(self, detections) -> bool:
+        """Whether a frame sees a marker no kept frame saw, or markers the kept frames do not link."""
+        ids = {int(o.marker_id) for _, o, _, _ in detections}
+        if any(m not in self._links for m in ids):
+            return True
+        return len({self._link_root(m) for m in ids}) > 1
 
     def _reject(self, reason: str, camera: str, n: int = 1, detail: str = "") -> None:
         before = self.rejected_detections[reason]
@@ -409,7 +430,8 @@ class MapBuilder:
                 move = float(np.median(moves))
                 if move <= self.options.still_px:
                     return self._last_station
-                if move < self.options.min_station_motion_px:
+                if move < self.options.min_station_motion_px and not (self.options.keep_linking_frames
+                                                                      and self._brings_links(detections)):
                     return -1       # moving, but still close to the last station: adds little
         self._station_frames.append(0)
         self._anchor_corners = {(name, o.marker_id): o.corners for name, o, _, _ in detections}
