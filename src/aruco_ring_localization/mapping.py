@@ -63,7 +63,7 @@ from typing import Any, Dict, Hashable, List, Optional, Tuple
 import numpy as np
 
 from . import geometry as geo
-from .anchors import AnchorSet, anchor_report, fit_frame, frame_definition
+from .anchors import AnchorSet, anchor_report, fit_frame, frame_definition, frame_kind
 from .bundle_adjustment import (BAOptions, BAProblem, BAResult, MarkerPriors, bundle_adjust,
                                 camera_cov_in_optical_frames, marker_std_in_frame, observation_rms_px)
 from .config import in_radians, param, section
@@ -105,6 +105,10 @@ class MappingOptions:
                                                "far (median) from the current station's first frame; frames "
                                                "in between are left out (0: every moving frame is a station)",
                                          unit="px")
+    keep_linking_frames: bool = param(True, "automatic stations of a moving ring: a frame that min_station_motion_px "
+                                            "would leave out is kept (as a new station) when it sees a marker no "
+                                            "kept frame saw, or markers that no kept frame links (seen together, "
+                                            "directly or through others): leaving it out would split the map")
     min_views_for_consensus: int = param(2, "distinct (station, camera) views needed to resolve a marker seen only "
                                             "ambiguously")
     consensus_angle_deg: float = param(10.0, "agreement tolerance of that consensus, rotation", unit="deg")
@@ -252,6 +256,11 @@ class _Init:
     ambiguous: Dict[int, Tuple[float, float]] = field(default_factory=dict)  # id -> (rad, m) between candidates
     planar: bool = True                                                # station model of the initialisation
     station_note: str = ""                                             # why the planar prior was dropped
+    #: stations that seeded a group of markers never seen with the others, placed through the surveyed
+    #: markers it sees (anchors): station -> the anchors' frame kind there (``pose``, ``points``, ``points_level``)
+    seeds: Dict[int, str] = field(default_factory=dict)
+    #: markers of a group never seen with the mapped ones that its surveyed markers could not place: why
+    unplaced: Dict[int, str] = field(default_factory=dict)
 
 
 class MapBuilder:
@@ -312,6 +321,7 @@ class MapBuilder:
         self._station_frames: List[int] = []
         self._camera_frames: Dict[Tuple[int, str], int] = defaultdict(int)   # (station, camera) -> frames kept
         self._anchor_corners: Dict[Tuple[str, int], np.ndarray] = {}
+        self._links: Dict[int, int] = {}       # union-find of the markers linked by the kept frames
         self._last_station: Optional[int] = None
         self.frames = 0
         #: frames left out because the ring was moving but had not moved min_station_motion_px yet.
@@ -388,8 +398,24 @@ class MapBuilder:
                 continue
             self._obs.append(_Obs(st, name, int(o.marker_id), o.corners, xy, focal, np.array(T_base_cam), model,
                                   model.pixel_jacobian(xy)))
+        kept = sorted({int(o.marker_id) for _, o, _, _ in detections})
+        for a, b in zip(kept, kept[1:] + kept[:1]):
+            self._links[self._link_root(a)] = self._link_root(b)
         self._version += 1
         return st
+
+    def _link_root(self, m: int) -> int:
+        while self._links.setdefault(m, m) != m:
+            self._links[m] = self._links[self._links[m]]
+            m = self._links[m]
+        return m
+
+    def _brings_links(self, detections) -> bool:
+        """Whether a frame sees a marker no kept frame saw, or markers the kept frames do not link."""
+        ids = {int(o.marker_id) for _, o, _, _ in detections}
+        if any(m not in self._links for m in ids):
+            return True
+        return len({self._link_root(m) for m in ids}) > 1
 
     def _reject(self, reason: str, camera: str, n: int = 1, detail: str = "") -> None:
         before = self.rejected_detections[reason]
@@ -416,7 +442,8 @@ class MapBuilder:
                 move = float(np.median(moves))
                 if move <= self.options.still_px:
                     return self._last_station
-                if move < self.options.min_station_motion_px:
+                if move < self.options.min_station_motion_px and not (self.options.keep_linking_frames
+                                                                      and self._brings_links(detections)):
                     return -1       # moving, but still close to the last station: adds little
         self._station_frames.append(0)
         self._anchor_corners = {(name, o.marker_id): o.corners for name, o, _, _ in detections}
@@ -459,7 +486,7 @@ class MapBuilder:
         data fall apart into groups never seen together, the map is the largest one, not whichever
         the first frame happened to see.
         """
-        comp = self._largest_component(groups)
+        comp = self._main_component(groups)
         scored = [(g.distance / max(g.cos_facing, 0.05), g.station, g.marker_id) for g in groups
                   if self._unambiguous(g) and (self.reference_marker is not None or g.marker_id in comp)]
         if not scored:
@@ -477,6 +504,33 @@ class MapBuilder:
     @staticmethod
     def _largest_component(groups: List[_Group]) -> set:
         """Marker ids of the largest set linked by co-visibility (seen at a common station)."""
+        comps = MapBuilder._components(groups)
+        return comps[0] if comps else set()
+
+    def _main_component(self, groups: List[_Group]) -> set:
+        """The co-visibility component the map grows from: the largest one; with anchors, the largest
+        whose own surveyed markers fix a frame (a surveyed pose or 3 positions off one line, else 2
+        positions), so that the other groups can be placed through theirs (:meth:`_anchor_seed`)."""
+        comps = self._components(groups)
+        if self.anchors is not None:
+            kinds = [self._anchor_kind(c) for c in comps]
+            for wanted in (("pose", "points"), ("points_level",)):
+                for c, k in zip(comps, kinds):
+                    if k in wanted:
+                        return c
+        return comps[0] if comps else set()
+
+    def _anchor_kind(self, ids) -> Optional[str]:
+        """:func:`anchors.frame_kind` of the anchors among marker ``ids``; None when they fix no frame."""
+        assert self.anchors is not None
+        try:
+            return frame_kind(self.anchors.subset(ids))
+        except ConfigError:
+            return None
+
+    @staticmethod
+    def _components(groups: List[_Group]) -> List[set]:
+        """Marker ids of the sets linked by co-visibility (seen at a common station), largest first."""
         parent: Dict[int, int] = {}
 
         def find(a: int) -> int:
@@ -496,7 +550,7 @@ class MapBuilder:
         comps: Dict[int, set] = defaultdict(set)
         for m in parent:
             comps[find(m)].add(m)
-        return max(comps.values(), key=lambda c: (len(c), -min(c))) if comps else set()
+        return sorted(comps.values(), key=lambda c: (-len(c), min(c)))
 
     def _initialize(self) -> _Init:
         if self._init_cache is not None and self._init_cache[0] == self._version:
@@ -555,14 +609,34 @@ class MapBuilder:
         order = [ref_st]
         since_ba = 0
         init_extr: Dict[str, np.ndarray] = {}
+        # Groups of markers never seen with the mapped ones, seeded from the anchors they hold
+        # (station -> frame kind); the windowed adjustments stay inside one group (group_start), the
+        # calibration uses the first group (order[:main_end]).
+        seeds: Dict[int, str] = {}
+        T_map_W: Optional[np.ndarray] = None
+        group_start, main_end = 0, None
         # Growth in co-visibility order: the station that sees the most mapped markers enters next.
         pending = set(est_pos) - {ref_st}
         while pending:
             links = {s: [m for m in est_pos[s] if m in T_W_m] for s in pending}
             s = max(pending, key=lambda k: (len(links[k]), sum(est_pos[k][m][1] for m in links[k]), -k))
-            if not links[s]:
-                break
-            T_W_s[s] = self._station_pose(est_pos[s], est.get(s, {}), T_W_m, links[s], planar)
+            if links[s]:
+                T_W_s[s] = self._station_pose(est_pos[s], est.get(s, {}), T_W_m, links[s], planar)
+            else:
+                # No station left that sees a mapped marker: the rest are groups never seen with the
+                # mapped markers. With anchors, a station that sees enough of a group's surveyed
+                # markers to fix its own pose is placed where the survey has them, and the growth
+                # goes on from it through that group; without, the map ends here (unlinked).
+                if self.anchors is None:
+                    break
+                if T_map_W is None:
+                    T_map_W = self._anchor_frame(T_W_m)
+                seed = self._anchor_seed(pending, est, est_pos, T_map_W, planar) if T_map_W is not None else None
+                if seed is None:
+                    break
+                s, T_W_s[s], seeds[s] = seed
+                group_start = len(order)
+                main_end = len(order) if main_end is None else main_end
             for m, (T, _) in est.get(s, {}).items():
                 if m not in T_W_m:
                     T_W_m[m] = T_W_s[s] @ T
@@ -571,24 +645,26 @@ class MapBuilder:
             since_ba += 1
             if not windowed:
                 continue
-            if not calibrated and len(order) >= next_calibration:
+            if not calibrated and len(order[:main_end]) >= next_calibration:
                 # All linked stations, extrinsics refined; again each time the linked set doubles
                 # (up to init_calibrate_max stations): a calibration from the first few stations
                 # alone still leaves a bias that the chain accumulates.
-                extr = self._init_adjust(groups, order, T_W_m, T_W_s, refine_extrinsics=True, prior=calib0)
+                extr = self._init_adjust(groups, order[:main_end], T_W_m, T_W_s, refine_extrinsics=True,
+                                         prior=calib0)
                 init_extr = dict(extr)
                 for g in groups:
                     g.T_base_cam = extr[g.camera]
                 est = self._station_marker_estimates(groups, self._unambiguous)
                 est_pos = self._station_marker_estimates(groups, lambda g: True)
                 since_ba = 0
-                next_calibration = 2 * len(order)
+                next_calibration = 2 * len(order[:main_end])
                 calibrated = next_calibration > opts.init_calibrate_max
             elif len(order) >= opts.init_calibrate_after and since_ba >= opts.init_ba_every:
-                self._init_adjust(groups, order[-opts.init_window_stations:], T_W_m, T_W_s)
+                self._init_adjust(groups, order[max(group_start, len(order) - opts.init_window_stations):], T_W_m,
+                                  T_W_s)
                 since_ba = 0
         if windowed and since_ba:
-            self._init_adjust(groups, order[-opts.init_window_stations:], T_W_m, T_W_s)
+            self._init_adjust(groups, order[max(group_start, len(order) - opts.init_window_stations):], T_W_m, T_W_s)
         if not windowed or self._revisits(est_pos, order):
             # Alternating re-averaging (no-op with one station): markers over stations, stations
             # over markers. After a windowed growth too when stations far apart in the growth
@@ -626,8 +702,82 @@ class MapBuilder:
             if o.marker_id in T_W_m and o.station in T_W_s:
                 marker_obs[o.marker_id].append(i)
         unlinked = [m for m in all_ids if m not in T_W_m and m not in rejected]
+        unplaced = self._unplaced(groups, unlinked, planar) if self.anchors is not None else {}
         return _Init(ref, ref_st, T_W_m, T_W_s, dict(marker_obs), unlinked, rejected, init_extr, ambiguous,
-                     planar, note)
+                     planar, note, seeds=seeds, unplaced=unplaced)
+
+    def _anchor_frame(self, T_W_m: Dict[int, np.ndarray]) -> Optional[np.ndarray]:
+        """``T_map_W`` of the surveyed frame fitted to the anchors mapped so far (None: too few)."""
+        assert self.anchors is not None
+        if self._anchor_kind(list(T_W_m)) is None:
+            return None
+        return fit_frame(self.anchors, T_W_m).T_map_W
+
+    def _anchor_seed(self, pending, est, est_pos, T_map_W: np.ndarray,
+                     planar: bool) -> Optional[Tuple[int, np.ndarray, str]]:
+        """A station of a group never seen with the mapped markers, placed through the surveyed markers it
+        sees: ``(station, T_W_station, frame kind)``, or None when no pending station sees enough of them.
+
+        The station's own view of its surveyed markers is fitted to the survey (:func:`anchors.fit_frame`,
+        weighted by the std): one surveyed pose (its orientation only from an unambiguous view: a
+        mirrored pose would turn the whole group), or 3 surveyed positions off one line; 2 positions
+        only for a ground robot (``planar``: the station's z is the floor's). Among the stations that
+        can, the one whose surveyed markers it sees best (detections / distance^2) seeds.
+        """
+        assert self.anchors is not None
+        by_id = {a.marker_id: a for a in self.anchors.anchors}
+        best = None
+        for s in pending:
+            seen = [m for m in est_pos[s] if m in by_id]
+            if not seen:
+                continue
+            clear = est.get(s, {})
+            usable = [by_id[m] if (by_id[m].rotation is None or m in clear)
+                      else dataclasses.replace(by_id[m], rotation=None, rotation_std=None) for m in seen]
+            try:
+                sub = AnchorSet(usable, self.anchors.frame_id, self.anchors.source)
+            except ConfigError:
+                continue
+            kind = frame_kind(sub)
+            if kind == "points_level" and not planar:
+                continue
+            key = (kind == "points_level", -sum(est_pos[s][m][1] for m in seen), s)
+            if best is None or key < best[0]:
+                best = (key, s, sub, kind)
+        if best is None:
+            return None
+        _, s, sub, kind = best
+        T_s_m = {m: (est[s][m][0] if m in est.get(s, {}) else est_pos[s][m][0]) for m in sub.ids}
+        T_W_s = geo.inverse(T_map_W) @ fit_frame(sub, T_s_m).T_map_W
+        if planar:   # a ground robot's station moves in W's plane
+            T_W_s = geo.make_transform(geo.rot_z(float(np.arctan2(T_W_s[1, 0], T_W_s[0, 0]))), T_W_s[:3, 3])
+        logger.info("mapping: station %d (it sees markers %s, never seen with the mapped ones) placed through the "
+                    "surveyed marker(s) %s (%s)", s, sorted(est_pos[s]), sub.ids, kind)
+        return s, T_W_s, kind
+
+    def _unplaced(self, groups: List[_Group], unlinked: List[int], planar: bool) -> Dict[int, str]:
+        """Why each marker of ``unlinked`` stayed out of a map with anchors: its group (markers seen
+        together) holds no surveyed marker, or too few to fix the group's pose from one station."""
+        assert self.anchors is not None
+        left = set(unlinked)
+        out: Dict[int, str] = {}
+        for c in self._components(groups):
+            if not c & left:
+                continue
+            surveyed = sorted(set(self.anchors.ids) & c)
+            group = sorted(c)
+            if surveyed:
+                why = (f"its group {group} is never seen together with the mapped markers, and no single view of "
+                       f"its surveyed markers {surveyed} fixes the group's pose (that takes one surveyed pose seen "
+                       f"unambiguously, or 3 surveyed positions off one line"
+                       f"{', or 2 for a ground robot' if planar else ''}, in one station's view): survey more of "
+                       f"them, or map so that the group is seen with the others")
+            else:
+                why = (f"its group {group} is never seen together with the mapped markers and holds no surveyed "
+                       f"marker ({self.anchors.source}): map so that it is, or survey one of them")
+            for m in c & left:
+                out[m] = why
+        return out
 
     def _revisits(self, est_pos, order: List[int]) -> bool:
         """Whether some marker is seen from stations more than two windows apart in ``order``
@@ -955,6 +1105,8 @@ class MapBuilder:
                 continue
             if m in init.rejected:
                 out[m] = init.rejected[m]
+            elif m in init.unplaced:
+                out[m] = init.unplaced[m]
             elif m in init.unlinked:
                 out[m] = "never seen together with mapped markers: drive so that it is"
             elif m not in kept:
@@ -1001,6 +1153,7 @@ class MapBuilder:
             "ambiguous": sorted(m for m in init.ambiguous if m not in after_ba),
             "station_model": "planar" if init.planar else "se3",
             "station_note": init.station_note,
+            "anchor_seeded_groups": len(init.seeds),
             "rejected_detections": dict(self.rejected_detections),
         }
 
@@ -1013,6 +1166,9 @@ class MapBuilder:
         if s["ambiguous"]:
             text += (f"; orientation ambiguous (one viewpoint, better solution kept, large uncertainty): "
                      f"{s['ambiguous']}")
+        if s.get("anchor_seeded_groups"):
+            text += (f"; {s['anchor_seeded_groups']} group(s) never seen with the others placed through their "
+                     f"surveyed markers")
         if s["unlinked"]:
             text += f"; seen but not linked: {s['unlinked']}"
         if s["rejected"]:
@@ -1223,7 +1379,8 @@ class MapBuilder:
                                   position=[a.position for a in pos], position_std=[a.position_std for a in pos],
                                   rotation_marker=[mi[a.marker_id] for a in rot], rotation=[a.rotation for a in rot],
                                   rotation_std=[a.rotation_std for a in rot],
-                                  level_station=[fixed_station] if fit.kind == "points_level" else [],
+                                  level_station=([fixed_station] if fit.kind == "points_level" else [])
+                                  + [si[s] for s, k in init.seeds.items() if k == "points_level"],
                                   level_sigma=LEVEL_SIGMA)
             fixed_station = None
         # Each observation carries the extrinsics in force when it was taken; the solver keeps one
@@ -1264,7 +1421,11 @@ class MapBuilder:
             obs_k = np.array([k for k, m in enumerate(mids) for _ in init.marker_obs.get(m, [])], dtype=int)
             n_k = np.maximum(np.bincount(obs_k, minlength=len(mids)), 1)
             rms = np.sqrt(np.bincount(obs_k, weights=np.square(res.per_obs_rms_px), minlength=len(mids)) / n_k)
-            bad = [m for k, m in enumerate(mids) if rms[k] > self.options.max_marker_rms_px and m != init.reference]
+            # A surveyed marker stays (the sanity checks name it if it does not fit): without it a group
+            # placed through it would have nothing to hold it.
+            surveyed = set(self.anchors.ids) if self.anchors is not None else set()
+            bad = [m for k, m in enumerate(mids) if rms[k] > self.options.max_marker_rms_px and m != init.reference
+                   and m not in surveyed]
             if not bad or attempt == 2 or len(bad) >= len(mids) - 1:
                 break
             for m in bad:

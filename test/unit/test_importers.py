@@ -142,6 +142,20 @@ def test_import_kalibr_command(tmp_path, capsys):
     assert "cam1, cam2, cam3" in capsys.readouterr().err and not (tmp_path / "r5.yaml").exists()
 
 
+def test_import_kalibr_writes_tagslams_known_poses_as_anchors(tmp_path, capsys):
+    from aruco_ring_localization.anchors import load_anchors
+
+    anchors = tmp_path / "anchors.yaml"
+    args = ["import-kalibr", str(DATA / "test_11" / "cameras.yaml"), "--out", str(tmp_path / "ring.yaml")]
+    assert main(args + ["--tagslam", str(DATA / "test_12" / "tagslam.yaml"), "--anchors-out", str(anchors)]) == 0
+    assert "1 anchored tags" in capsys.readouterr().out
+    back = load_anchors(str(anchors))
+    assert back.ids == [6] and back.anchors[0].rotation is not None
+    np.testing.assert_allclose(back.anchors[0].position_std, [1e-4] * 3)
+    assert main(args + ["--anchors-out", str(tmp_path / "a2.yaml")]) == 2      # needs --tagslam
+    assert "--tagslam" in capsys.readouterr().err and not (tmp_path / "a2.yaml").exists()
+
+
 def test_tagslam_tags_sizes_ignored_moving_and_remaps():
     t12 = read_tagslam_tags(str(DATA / "test_12" / "tagslam.yaml"))
     assert t12.default_size == 0.15 and t12.marker_sizes()(6) == 0.15
@@ -219,3 +233,72 @@ def test_tagslam_pose_uncertainty_comes_from_its_R_and_a_made_up_one_is_said(tmp
     with pytest.raises(ConfigError) as err:
         read_rig(str(DATA / "test_11" / "cameras.yaml"), camera_poses=str(p))
     assert "cam0.pose.R" in str(err.value) and "camera_poses.yaml" in str(err.value)
+
+
+_SURVEYED = """
+tagslam_parameters:
+  pixel_noise: 0.8
+body_defaults:
+  position_noise: 0.05
+  rotation_noise: 0.01
+default_body: lab
+bodies:
+ - lab:
+     is_static: true
+     default_tag_size: 0.15
+     {override}
+     pose:
+       position: {{x: 0, y: 0, z: 0}}
+       rotation: {{x: 0, y: 0, z: 0}}
+     tags:
+       - id: 3
+         pose:
+           position: {{x: 1.0, y: 2.0, z: 0.5}}
+           rotation: {{x: 0, y: 1.570796327, z: 0}}
+           position_noise: {{x: 0.0001, y: 0.0001, z: 0.0001}}
+           rotation_noise: {{x: 1.0e-05, y: 1.0e-05, z: 1.0e-05}}
+       - id: 4
+         pose:
+           position: {{x: 3.0, y: 2.0, z: 0.5}}
+           rotation: {{x: 0, y: 0, z: 0}}
+"""
+
+
+def test_tagslam_anchors_are_full_poses_with_the_files_noise(tmp_path):
+    """Every known tag pose becomes a full-pose anchor (one anchored tag can place a group that no
+    image links to the others); its noise is the tag's, else body_defaults'; TagSLAM's pixel_noise
+    is read (what the images weigh against the known poses)."""
+    from aruco_ring_localization.importers import tagslam_anchors
+
+    p = tmp_path / "tagslam.yaml"
+    p.write_text(_SURVEYED.format(override=""))
+    tags = read_tagslam_tags(str(p))
+    assert tags.pixel_noise == pytest.approx(0.8)
+    a = tagslam_anchors(tags, source=str(p))
+    assert a.ids == [3, 4] and all(x.rotation is not None for x in a.anchors)
+    three, four = a.anchors
+    np.testing.assert_allclose(three.position_std, [1e-4] * 3)
+    assert three.rotation_std == pytest.approx(1e-5)
+    np.testing.assert_allclose(three.rotation, geo.transform_from_rvec_tvec([0, np.pi / 2, 0], [0, 0, 0])[:3, :3], atol=1e-9)
+    np.testing.assert_allclose(four.position_std, [0.05] * 3)          # body_defaults
+    assert four.rotation_std == pytest.approx(0.01)
+    positions = tagslam_anchors(tags, full_pose=False)
+    assert all(x.rotation is None for x in positions.anchors)
+
+
+def test_tagslam_body_override_replaces_every_tags_noise(tmp_path):
+    """override_tag_position_noise / override_tag_rotation_noise (test_10, test_11): TagSLAM replaces
+    the noise of every known tag pose of the body with them, when both are positive."""
+    p = tmp_path / "tagslam.yaml"
+    p.write_text(_SURVEYED.format(override="override_tag_position_noise: 0.5\n     override_tag_rotation_noise: 0.1"))
+    tags = read_tagslam_tags(str(p))
+    for i in (3, 4):
+        pos, rot = tags.known_noise[i]
+        np.testing.assert_allclose(pos, [0.5] * 3)
+        assert rot == pytest.approx(0.1)
+    p.write_text(_SURVEYED.format(override="override_tag_position_noise: 0.5"))       # one alone: ignored
+    assert read_tagslam_tags(str(p)).known_noise[3][1] == pytest.approx(1e-5)
+    p.write_text(_SURVEYED.format(override="override_tag_position_noise: fast\n     override_tag_rotation_noise: 0.1"))
+    with pytest.raises(ConfigError) as err:
+        read_tagslam_tags(str(p))
+    assert err.value.key == "bodies[0].lab.override_tag_position_noise"

@@ -255,3 +255,27 @@ def test_a_marker_that_does_not_fit_the_adjustment_is_rejected_not_saved(ring, s
     assert 42 not in m and "after the adjustment" in s["rejected"].get(42, ""), s["rejected"]
     assert len(m) == len(scene.markers) - 1 and all(e.rms_px < 1.0 for e in m)
     m.save(str(tmp_path / "map.yaml"), b.options.sanity)
+
+
+def test_a_frame_that_links_markers_is_kept_while_moving(ring, scene):
+    """A moving ring: the frames between stations are left out, except one that brings a link: here
+    the only frame that sees the two sets of markers together. Without it the map splits in two."""
+    sim = RingSimulator(scene, ring, pixel_noise=0.0, seed=0)
+    x0, y0, _ = scene.mapping_pose
+    s1, s2 = {42, 318, 580, 777}, {17, 64, 95, 203, 451, 126}
+
+    def frames():
+        for k in range(40):                   # driving at 1 cm per frame along x
+            f = sim.observe(Scene.T_world_base((x0 - 0.2 + 0.01 * k, y0, 0.0)), stamp=0.1 * k)
+            keep = s1 | s2 if k == 11 else (s1 if k < 11 else s2)
+            yield RingFrame(f.stamp, {c: CameraFrame(c, cf.stamp, [o for o in cf.observations if o.marker_id in keep])
+                                      for c, cf in f.cameras.items()})
+
+    groups = {}
+    for on in (False, True):
+        b = MapBuilder(ring, MarkerSizes(0.2), options=MappingOptions(keep_linking_frames=on))
+        for f in frames():
+            b.add_frame(f)
+        groups[on] = [sorted(c) for c in b._components(b._groups())]
+    assert len(groups[False]) == 2, f"the linking frame was kept anyway: {groups[False]}"
+    assert len(groups[True]) == 1 and set(groups[True][0]) == set(groups[False][0]) | set(groups[False][1]), groups

@@ -5,14 +5,18 @@ plumb_bob / rational_polynomial / none, ``resolution``) and the camera poses (Ta
 ``camera_poses.yaml``, Kalibr ``T_cam_imu`` or ``T_cn_cnm1``), writes one camera_info file per
 camera and the ring file (docs/formats.md, "Importers"). A camera without a pose is an error
 naming it. With ``--tagslam tagslam.yaml`` it also prints the marker sizes and ignored ids in
-aruco_detect's ``fiducial_len`` / ``fiducial_len_override`` / ``ignore_fiducials`` syntax.
+aruco_detect's ``fiducial_len`` / ``fiducial_len_override`` / ``ignore_fiducials`` syntax, and with
+``--anchors-out FILE`` writes the tag poses it fixes (surveyed) as an anchors file for
+``build-map --anchors`` (:func:`importers.tagslam_anchors`: full poses with TagSLAM's noise).
 """
 from __future__ import annotations
 
 import argparse
 import sys
 
-from ..importers import read_rig, read_tagslam_tags, write_ring_files
+from ..anchors import anchors_yaml
+from ..fileio import atomic_write_text
+from ..importers import read_rig, read_tagslam_tags, tagslam_anchors, write_ring_files
 from ..ring import ring_summary
 
 COMMAND = "import-kalibr"
@@ -29,9 +33,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="directory of the camera_info files (default: camera_info/ beside --out)")
     parser.add_argument("--base-frame", default="rig", help="name of the rig's base frame in the ring file")
     parser.add_argument("--tagslam", default=None, help="tagslam.yaml: print its tag sizes and ignored tags")
+    parser.add_argument("--anchors-out", default=None, metavar="FILE",
+                        help="with --tagslam: write the tag poses tagslam.yaml fixes as an anchors file (build-map "
+                             "--anchors), full poses with TagSLAM's noise")
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.anchors_out and not args.tagslam:
+        sys.stderr.write("import-kalibr: --anchors-out needs --tagslam tagslam.yaml (the tag poses it fixes)\n")
+        return 2
     rig = read_rig(args.camchain, camera_poses=args.camera_poses, base_frame=args.base_frame)
     ring = rig.ring()
     files = write_ring_files(ring, args.out, args.camera_info_dir)
@@ -53,4 +63,14 @@ def run(args: argparse.Namespace) -> int:
                   f"  fiducial_len_override \"{tags.fiducial_len_override()}\"\n"
                   f"  ignore_fiducials \"{tags.ignore_fiducials()}\"   (TagSLAM's ignore_tags and the tags of moving "
                   f"bodies {', '.join(tags.moving_bodies) or '-'})\n")
+        if args.anchors_out:
+            anchors = tagslam_anchors(tags, tags.ignore | tags.moving, source=args.tagslam)
+            if anchors is None:
+                sys.stderr.write(f"import-kalibr: {args.tagslam} fixes no tag pose on a static body: no anchors "
+                                 f"written to {args.anchors_out}\n")
+                return 1
+            atomic_write_text(args.anchors_out, anchors_yaml(anchors, f"TagSLAM's known tag poses of {args.tagslam} "
+                                                                      f"(full poses, TagSLAM's noise)"),
+                              keep_backup=False)
+            out.write(f"wrote {args.anchors_out}: {len(anchors.anchors)} anchored tags (build-map --anchors)\n")
     return 0

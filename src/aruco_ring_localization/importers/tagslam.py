@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Mapping, Set, Tuple
+from typing import Any, Dict, List, Mapping, Optional, Set, Tuple
 
 import numpy as np
 
@@ -41,6 +41,7 @@ class TagslamTags:
         moving: ids of tags on bodies that are not static (not part of a static map).
         known_poses: id -> ``T_body_tag`` for tags whose pose the file gives, on static bodies.
         static_bodies, moving_bodies: body names.
+        pixel_noise: TagSLAM's ``tagslam_parameters.pixel_noise`` (px), or None.
         remaps: TagSLAM's ``tag_id_remap``: (detected id, id it stands for, start s, end s), for one
             id printed on several tags seen at different times (:meth:`remap`).
     """
@@ -51,11 +52,15 @@ class TagslamTags:
     moving: Set[int] = field(default_factory=set)
     known_poses: Dict[int, np.ndarray] = field(default_factory=dict)
     #: id -> (position std (3,) m, rotation std rad) of a known pose (its ``position_noise`` /
-    #: ``rotation_noise``, else ``body_defaults``').
+    #: ``rotation_noise``, else ``body_defaults``'; the body's ``override_tag_*_noise`` replace both
+    #: when it gives them, as in TagSLAM).
     known_noise: Dict[int, Tuple[np.ndarray, float]] = field(default_factory=dict)
     static_bodies: List[str] = field(default_factory=list)
     moving_bodies: List[str] = field(default_factory=list)
     remaps: List[Tuple[int, int, float, float]] = field(default_factory=list)
+    #: ``tagslam_parameters.pixel_noise``: the corner noise (px) TagSLAM weighs the images with
+    #: against the known poses' noise (None when the file does not give it).
+    pixel_noise: Optional[float] = None
 
     def remap(self, marker_id: int, stamp: float) -> int:
         """The id a detection of ``marker_id`` at ``stamp`` (s) stands for (``tag_id_remap``)."""
@@ -124,17 +129,38 @@ def _noise(node: Mapping[str, Any], defaults: Any, path: str, key: str) -> Tuple
     return out[0], float(out[1].max())
 
 
-def tagslam_anchors(tags: TagslamTags, exclude: Set[int] = frozenset(), source: str = "tagslam.yaml"):
+def _override_noise(body: Mapping[str, Any], path: str, key: str) -> Optional[Tuple[np.ndarray, float]]:
+    """A body's ``override_tag_position_noise`` / ``override_tag_rotation_noise``: when it gives both
+    (positive), TagSLAM replaces the noise of every known tag pose of the body with them (a survey
+    it trusts less than each tag's line says); None otherwise."""
+    names = ("override_tag_position_noise", "override_tag_rotation_noise")
+    values = [body.get(n) for n in names]
+    if all(v is None for v in values):
+        return None
+    for n, v in zip(names, values):
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v)):
+            raise ConfigError(f"expected a number, got {v!r}", path=path, key=f"{key}.{n}")
+    if any(v is None or v <= 0 for v in values):
+        return None      # TagSLAM applies the override only when both are positive
+    return np.full(3, float(values[0])), float(values[1])
+
+
+def tagslam_anchors(tags: TagslamTags, exclude: Set[int] = frozenset(), source: str = "tagslam.yaml",
+                    full_pose: bool = True):
     """The tags whose poses ``tagslam.yaml`` fixes (surveyed) as anchors (:class:`anchors.AnchorSet`)
-    for ``build-map --anchors``, or None when it fixes none: positions with their
-    ``position_noise`` as std; a single fixed tag comes with its full pose (``rotation_noise``),
-    since one position cannot fix a frame. ``exclude``: ids not to anchor (ignored, moving)."""
+    for ``build-map --anchors``, or None when it fixes none. Each anchor is the tag's full pose, as
+    TagSLAM uses it: position with its ``position_noise`` as std, orientation with its
+    ``rotation_noise`` (the body's ``override_tag_*_noise`` when it sets them). With full poses one
+    anchored tag places a group of tags that no image links to the others (:class:`mapping.MapBuilder`
+    seeds it from the anchor). ``full_pose=False``: positions only (a single fixed tag still keeps
+    its rotation, since one position cannot fix a frame). ``exclude``: ids not to anchor (ignored,
+    moving)."""
     from ..anchors import Anchor, AnchorSet
 
     ids = sorted(i for i in tags.known_poses if i not in exclude)
     if not ids:
         return None
-    full = len(ids) == 1
+    full = full_pose or len(ids) == 1
     out = []
     for i in ids:
         T = tags.known_poses[i]
@@ -193,6 +219,7 @@ def read_tagslam_tags(path: str, rig_bodies: Tuple[str, ...] = ()) -> TagslamTag
             if name == default_body or (default_body is None and default_size is None and static):
                 default_size = size
         ids: Dict[int, float] = {}
+        override = _override_noise(body, path, key)
         for j, tag in enumerate(body.get("tags") or []):
             tkey = f"{key}.tags[{j}]"
             if not isinstance(tag, Mapping) or isinstance(tag.get("id"), bool) or not isinstance(tag.get("id"), int):
@@ -204,7 +231,8 @@ def read_tagslam_tags(path: str, rig_bodies: Tuple[str, ...] = ()) -> TagslamTag
             if static and tag.get("pose") is not None and body.get("pose") is not None:
                 T_w_body = _pose(body["pose"], path, f"{key}.pose")
                 out.known_poses[tag["id"]] = T_w_body @ _pose(tag["pose"], path, f"{tkey}.pose")
-                out.known_noise[tag["id"]] = _noise(tag["pose"], data.get("body_defaults"), path, f"{tkey}.pose")
+                out.known_noise[tag["id"]] = override or _noise(tag["pose"], data.get("body_defaults"), path,
+                                                                f"{tkey}.pose")
         kind = str(body.get("type", "simple"))
         if kind in ("board", "staggered_board"):
             grid = body.get(kind)
@@ -232,6 +260,9 @@ def read_tagslam_tags(path: str, rig_bodies: Tuple[str, ...] = ()) -> TagslamTag
         raise ConfigError("no default_tag_size in the default body (or in any static body)", path=path,
                           key="default_body")
     out.default_size = default_size
+    params = data.get("tagslam_parameters")
+    if isinstance(params, Mapping) and params.get("pixel_noise") is not None:
+        out.pixel_noise = _positive(params["pixel_noise"], path, "tagslam_parameters.pixel_noise")
     return out
 
 
