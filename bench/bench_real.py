@@ -47,7 +47,8 @@ from tagslam_reference import DATA, cached_bag, load_test, ring_frames, write_ca
 from aruco_ring_localization import geometry as geo  # noqa: E402
 from aruco_ring_localization.errors import ArucoRingError  # noqa: E402
 from aruco_ring_localization.evaluation.maps import map_error  # noqa: E402
-from aruco_ring_localization.importers import read_rig, tagslam_anchors, write_ring_files  # noqa: E402
+from aruco_ring_localization.importers import read_rig, tagslam_anchors, tagslam_odometry, write_ring_files  # noqa: E402
+from aruco_ring_localization.mapping_odometry import MappingOdometryOptions  # noqa: E402
 from aruco_ring_localization.localization import LocalizationParams, RingLocalizer  # noqa: E402
 from aruco_ring_localization.mapping import MapBuilder, MappingOptions  # noqa: E402
 from aruco_ring_localization.marker_map import MarkerEntry, MarkerMap  # noqa: E402
@@ -191,7 +192,28 @@ def _load_case(test: str, max_frames: int = 0):
     return out_dir, src, tags, ref, ring, sizes, ignore, frames, truth
 
 
-def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool = True) -> Dict[str, float]:
+def _odometry(test: str, src: str, rig_body: str, frames) -> Tuple[Optional[MappingOdometryOptions], tuple]:
+    """The odometry TagSLAM uses for ``test`` (its rig body's ``odom_topic`` and ``T_body_odom`` in
+    tagslam.yaml), read from the detections' bag by the bag source's reader, cut to the frames'
+    span: ``(options, (stamps, poses))``, or ``(None, ())`` when the recording has none."""
+    from aruco_ring_localization.ros.bag_source import read_reference
+
+    found = tagslam_odometry(os.path.join(src, "tagslam.yaml"), rig_body)
+    if found is None:
+        return None, ()
+    topic, T_body_odom = found
+    rvec, tvec = geo.rvec_tvec_from_transform(T_body_odom)
+    opts = MappingOdometryOptions(topic=topic, base_to_odom=tuple(float(v) for v in np.r_[tvec, rvec]))
+    with open(os.devnull, "w", encoding="utf-8") as null:
+        stamps, poses, _ = read_reference(cached_bag(test, "tag_detections"), topic=topic, out=null)
+    if frames:
+        keep = stamps <= frames[-1].stamp + 1.0
+        stamps, poses = stamps[keep], poses[keep]
+    return opts, (stamps, poses)
+
+
+def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool = True,
+            odometry: bool = True) -> Dict[str, float]:
     out_dir, src, tags, ref, ring, sizes, ignore, frames, truth = _load_case(test, max_frames)
     write_ring_files(ring, os.path.join(out_dir, "ring.yaml"))
     truth.save(os.path.join(out_dir, "tagslam_map.yaml"))
@@ -201,7 +223,13 @@ def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool =
     # TagSLAM's surveyed tags (the poses tagslam.yaml fixes) as anchors, as TagSLAM uses them.
     survey = tagslam_anchors(tags, ignore, os.path.join(src, "tagslam.yaml")) if anchors else None
     res["anchored"] = [] if survey is None else survey.ids
-    b = MapBuilder(ring, sizes, options=MappingOptions(frame="marker"), anchors=survey)
+    # TagSLAM's odometry (tagslam.yaml's odom_topic, T_body_odom) as links between stations, as TagSLAM uses it.
+    odo_opts, odo = _odometry(test, src, ref.rig_body, frames) if odometry else (None, ())
+    res["odometry"] = odo_opts.topic if odo_opts is not None else ""
+    options = MappingOptions(frame="marker") if odo_opts is None else MappingOptions(frame="marker", odometry=odo_opts)
+    b = MapBuilder(ring, sizes, options=options, anchors=survey)
+    if odo:
+        b.set_odometry(*odo)
     for f in frames:
         b.add_frame(f)
     ours: Optional[MarkerMap] = None

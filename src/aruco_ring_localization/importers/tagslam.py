@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Mapping, Set, Tuple
+from typing import Any, Dict, List, Mapping, Optional, Set, Tuple
 
 import numpy as np
 
@@ -105,6 +105,38 @@ def _pose(node: Any, path: str, key: str) -> np.ndarray:
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(r))):
         raise ConfigError("contains NaN or infinite values", path=path, key=key)
     return geo.transform_from_rvec_tvec(r, t)
+
+
+def _override_noise(body: Mapping[str, Any], path: str, key: str) -> Optional[Tuple[np.ndarray, float]]:
+    """A body's ``override_tag_position_noise`` / ``override_tag_rotation_noise`` (TagSLAM applies
+    them to every tag of the body with a pose, in place of the tag's own noise, when both are > 0)."""
+    p, r = body.get("override_tag_position_noise"), body.get("override_tag_rotation_noise")
+    if p is None or r is None:
+        return None
+    for name, v in (("override_tag_position_noise", p), ("override_tag_rotation_noise", r)):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+            raise ConfigError(f"expected a number, got {v!r}", path=path, key=f"{key}.{name}")
+    if p <= 0 or r <= 0:
+        return None
+    return np.full(3, float(p)), float(r)
+
+
+def tagslam_odometry(path: str, rig_body: str) -> Optional[Tuple[str, np.ndarray]]:
+    """``(odom_topic, T_body_odom)`` of the rig body of a ``tagslam.yaml``, or None when it has no
+    odometry: the topic of its nav_msgs/Odometry and the pose of the odometry's frame in the rig
+    body (``mapping.odometry.base_to_odom`` when the ring's base frame is the rig body; identity
+    when the file omits it, as TagSLAM assumes)."""
+    data = load_yaml_file(path)
+    if not isinstance(data, Mapping):
+        raise ConfigError("expected a mapping", path=path)
+    for i, (name, body) in enumerate(_bodies(data, path)):
+        if name != rig_body or not body.get("odom_topic"):
+            continue
+        T = np.eye(4)
+        if body.get("T_body_odom") is not None:
+            T = _pose(body["T_body_odom"], path, f"bodies[{i}].{name}.T_body_odom")
+        return str(body["odom_topic"]), T
+    return None
 
 
 def _noise(node: Mapping[str, Any], defaults: Any, path: str, key: str) -> Tuple[np.ndarray, float]:
@@ -205,6 +237,9 @@ def read_tagslam_tags(path: str, rig_bodies: Tuple[str, ...] = ()) -> TagslamTag
                 T_w_body = _pose(body["pose"], path, f"{key}.pose")
                 out.known_poses[tag["id"]] = T_w_body @ _pose(tag["pose"], path, f"{tkey}.pose")
                 out.known_noise[tag["id"]] = _noise(tag["pose"], data.get("body_defaults"), path, f"{tkey}.pose")
+                override = _override_noise(body, path, key)
+                if override is not None:      # TagSLAM: the body's override replaces every tag's noise
+                    out.known_noise[tag["id"]] = override
         kind = str(body.get("type", "simple"))
         if kind in ("board", "staggered_board"):
             grid = body.get(kind)
