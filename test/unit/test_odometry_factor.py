@@ -182,3 +182,48 @@ def test_odometry_removes_the_drift_of_a_weak_chain():
     assert e1 < 0.25 * e0, f"without {1000 * e0:.1f} mm, with odometry {1000 * e1:.1f} mm"
     assert e2 < 0.3 * e0, f"a 0.5 m glitch moved the worst marker to {1000 * e2:.1f} mm (Huber)"
     assert e3 > 10 * e2, f"plain least squares with the glitch: {1000 * e3:.1f} mm"
+
+
+@pytest.mark.parametrize("offset", [False, True])
+def test_odometry_links_a_station_no_marker_links(ring, scene, offset):
+    """A marker seen only from a station 27 m away, with nothing in common with the mapped set, is
+    'not linked' without odometry; with the robot's odometry (exact here, 20 Hz) the station is
+    placed by it and the marker mapped where it is. ``offset``: the odometry reports a body frame
+    that is not the ring's base (a VIO's IMU), declared by ``base_to_odom``."""
+    from aruco_ring_localization.evaluation.maps import map_error
+    from aruco_ring_localization.mapping import MapBuilder, MappingOptions
+    from aruco_ring_localization.mapping_odometry import MappingOdometryOptions
+    from aruco_ring_localization.markers import MarkerSizes
+    from aruco_ring_localization.simulation.ring_sim import RingSimulator
+    from aruco_ring_localization.simulation.scene import Scene, SceneMarker, marker_pose
+
+    far = SceneMarker(999, marker_pose([30.0, 4.5, 1.0], np.pi), 0.2)
+    big = Scene(**{**scene.__dict__, "markers": list(scene.markers) + [far]})
+    big.room = type(scene.room)(origin=(0.0, 0.0), size=(40.0, 9.0), height=3.0)
+    sim = RingSimulator(big, ring, pixel_noise=0.0, seed=0, max_range=8.0)
+    start, end = np.array(scene.mapping_pose, dtype=float), np.array([27.0, 4.5, 0.0])
+    X = geo.make_transform(geo.rotation_from_rvec([0.02, -0.01, 3.1]), [0.03, 0.02, -0.02]) if offset else np.eye(4)
+    rvec, tvec = geo.rvec_tvec_from_transform(X)
+    opts = MappingOptions(odometry=MappingOdometryOptions(topic="odom", base_to_odom=tuple(np.r_[tvec, rvec])))
+
+    def build(with_odometry: bool) -> MapBuilder:
+        b = MapBuilder(ring, MarkerSizes(0.2), options=opts)
+        if with_odometry:
+            t = np.arange(0.0, 10.3, 0.05)
+            s = np.clip((t - 0.2) / 9.8, 0.0, 1.0)
+            poses = [Scene.T_world_base(tuple((1 - a) * start + a * end)) @ X for a in s]
+            b.set_odometry(t, np.stack(poses))
+        for k, pose in enumerate([tuple(start), tuple(end)]):
+            for f in range(2):
+                b.add_frame(sim.observe(Scene.T_world_base(pose), stamp=10.0 * k + 0.1 * f))
+        return b
+
+    alone = build(False)
+    assert alone.unlinked_markers() == [999]
+    b = build(True)
+    assert b.unlinked_markers() == []
+    m = b.build("refined")
+    assert 999 in m
+    err = map_error(m, big.truth_map(), best_fit=True)
+    assert err["per_marker"][999][0] < 1.0, f"marker 999 {err['per_marker'][999][0]:.2f} mm off"
+    assert err["position_rms_mm"] < 1.0, f"RMS {err['position_rms_mm']:.2f} mm"
