@@ -20,11 +20,14 @@ link). Nothing about the odom frame itself is used: its drift does not enter.
 **Noise model** (per link, 1-sigma on each axis; ``d`` the distance and ``a`` the angle of the
 link's motion, both from the odometry)::
 
-    sigma_trans^2 = min_translation^2 + translation_noise^2 * d + jumps_trans^2
-    sigma_rot^2   = min_rotation^2 + rotation_noise^2 * a + rotation_per_metre^2 * d + jumps_rot^2
+    sigma_trans^2 = min_translation^2 + translation_noise^2 * d + translation_per_second^2 * dt + jumps_trans^2
+    sigma_rot^2   = min_rotation^2 + rotation_noise^2 * a + rotation_per_metre^2 * d
+                    + rotation_per_second^2 * dt + jumps_rot^2
 
 (a random walk: the variance grows with the distance and the angle travelled, as wheel odometry
-and VIO drift). **Jumps**: an odometry message whose motion departs from the constant-velocity
+and VIO drift, and with the time ``dt`` between the stations: TagSLAM's odometry model is that
+term alone, ``acceleration * dt_msg^2`` per message of period ``dt_msg``, i.e.
+``translation_per_second = odom_acceleration * dt_msg^1.5``). **Jumps**: an odometry message whose motion departs from the constant-velocity
 prediction of the previous one by more than ``max_acceleration * dt^2`` (``max_angular_acceleration``
 for the rotation) adds that excess to the sigma of the link that spans it (``jumps_*``: root sum of
 squares): a VIO reset or a wheel slip widens its own link instead of bending the map. On top, the
@@ -64,6 +67,10 @@ class MappingOdometryOptions:
                                   unit="rad/sqrt(rad)")
     rotation_per_metre: float = param(0.002, "odometry's rotation error after 1 m travelled (square root growth)",
                                       unit="rad/sqrt(m)")
+    translation_per_second: float = param(0.0, "odometry's position error after 1 s (square root growth; 0: "
+                                               "none)", unit="m/sqrt(s)")
+    rotation_per_second: float = param(0.0, "odometry's rotation error after 1 s (square root growth; 0: none)",
+                                       unit="rad/sqrt(s)")
     min_translation: float = param(0.002, "floor of a link's position error", unit="m")
     min_rotation: float = param(0.001, "floor of a link's rotation error", unit="rad")
     max_acceleration: float = param(5.0, "jumps: an odometry message departing from the previous one's constant "
@@ -78,7 +85,8 @@ class MappingOdometryOptions:
         if len(self.base_to_odom) != 6 or not all(np.isfinite(float(v)) for v in self.base_to_odom):
             raise ConfigError(f"expected 6 finite numbers x y z rx ry rz, got {list(self.base_to_odom)!r}",
                               key="base_to_odom")
-        for key in ("translation_noise", "rotation_noise", "rotation_per_metre", "max_acceleration",
+        for key in ("translation_noise", "rotation_noise", "rotation_per_metre", "translation_per_second",
+                    "rotation_per_second", "max_acceleration",
                     "max_angular_acceleration", "max_gap", "robust_scale"):
             v = getattr(self, key)
             if not (np.isfinite(v) and v >= 0):
@@ -195,9 +203,11 @@ class OdometryTrack:
                 a = float(np.linalg.norm(Rotation.from_matrix(D[:3, :3]).as_rotvec()))
                 inside = (t_all > ta) & (t_all <= tb)
                 jt, jr = (np.sqrt(np.sum(jumps[inside] ** 2, axis=0)) if np.any(inside) else (0.0, 0.0))
-                st = np.sqrt(opts.min_translation ** 2 + opts.translation_noise ** 2 * d + jt ** 2)
+                dt = tb - ta
+                st = np.sqrt(opts.min_translation ** 2 + opts.translation_noise ** 2 * d
+                             + opts.translation_per_second ** 2 * dt + jt ** 2)
                 sr = np.sqrt(opts.min_rotation ** 2 + opts.rotation_noise ** 2 * a + opts.rotation_per_metre ** 2 * d
-                             + jr ** 2)
+                             + opts.rotation_per_second ** 2 * dt + jr ** 2)
                 I.append(prev)
                 J.append(s)
                 Z.append(D)

@@ -121,11 +121,12 @@ def _override_noise(body: Mapping[str, Any], path: str, key: str) -> Optional[Tu
     return np.full(3, float(p)), float(r)
 
 
-def tagslam_odometry(path: str, rig_body: str) -> Optional[Tuple[str, np.ndarray]]:
-    """``(odom_topic, T_body_odom)`` of the rig body of a ``tagslam.yaml``, or None when it has no
-    odometry: the topic of its nav_msgs/Odometry and the pose of the odometry's frame in the rig
-    body (``mapping.odometry.base_to_odom`` when the ring's base frame is the rig body; identity
-    when the file omits it, as TagSLAM assumes)."""
+def tagslam_odometry(path: str, rig_body: str) -> Optional[Tuple[str, np.ndarray, float, float]]:
+    """``(odom_topic, T_body_odom, odom_acceleration, odom_angular_acceleration)`` of the rig body of
+    a ``tagslam.yaml``, or None when it has no odometry: the topic of its nav_msgs/Odometry, the
+    pose of the odometry's frame in the rig body (``mapping.odometry.base_to_odom`` when the ring's
+    base frame is the rig body; identity when the file omits it, as TagSLAM assumes), and TagSLAM's
+    noise parameters (m/s^2, rad/s^2; its default 5 when omitted)."""
     data = load_yaml_file(path)
     if not isinstance(data, Mapping):
         raise ConfigError("expected a mapping", path=path)
@@ -135,7 +136,13 @@ def tagslam_odometry(path: str, rig_body: str) -> Optional[Tuple[str, np.ndarray
         T = np.eye(4)
         if body.get("T_body_odom") is not None:
             T = _pose(body["T_body_odom"], path, f"bodies[{i}].{name}.T_body_odom")
-        return str(body["odom_topic"]), T
+        acc = []
+        for name_ in ("odom_acceleration", "odom_angular_acceleration"):
+            v = body.get(name_, 5.0)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v <= 0:
+                raise ConfigError(f"expected a positive number, got {v!r}", path=path, key=f"bodies[{i}].{name}.{name_}")
+            acc.append(float(v))
+        return str(body["odom_topic"]), T, acc[0], acc[1]
     return None
 
 
