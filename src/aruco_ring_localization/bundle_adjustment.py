@@ -22,6 +22,14 @@ Jacobian of the raw pixels with respect to them at the observed corner (``obs_le
 of the expected corner noise. Undistorting once keeps the lens model out of the solver, and the
 local lens scale keeps a fisheye's border corners weighted as what they are.
 
+Optional relative-pose factors (:class:`RelativePoseFactors`, the robot's odometry between two
+stations, :mod:`mapping_odometry`): the measured motion ``Z = (R_z, t_z)`` of the base frame from
+station ``i`` to station ``j`` (expressed in ``i``) against the estimate ``T_i^-1 T_j``, residual
+``(log(R_z^T R_i^T R_j) / sigma_rot, (R_i^T (t_j - t_i) - t_z) / sigma_trans)`` per axis, each
+factor with its own sigmas (the odometry's noise model: grows with the distance and the angle
+travelled). Odometry glitches (a VIO reset, a jump) are down-weighted by a Huber loss on the
+factor's whitened norm (``robust_scale`` sigmas): one weight for its 6 rows.
+
 Each pose is a perturbation of its initial value, ``R = exp(w) R0``, ``t = t0 + dt`` (w in the
 parent frame), so the parameters stay near zero. The Jacobian is analytic (left Jacobian of
 SO(3) included) and sparse; the solver is Levenberg-Marquardt on the sparse normal equations
@@ -103,6 +111,42 @@ class MarkerPriors:
 
 
 @dataclass
+class RelativePoseFactors:
+    """Measured motions between pairs of stations (odometry): K factors.
+
+    Attributes:
+        station_i, station_j: (K,) station indices (the motion goes from i to j).
+        T_ij: (K, 4, 4) the measured ``T_W_i^-1 T_W_j`` (the base frame at j seen from i).
+        sigma: (K, 6) 1-sigma of the residual: rotation (rad, 3 axes) then translation (m, 3 axes
+            of station i's base frame).
+        robust_scale: whitened norm beyond which a factor's weight falls as ``robust_scale / norm``
+            (Huber): a glitch of the odometry pulls with a bounded force; <= 0: plain least squares.
+    """
+
+    station_i: np.ndarray
+    station_j: np.ndarray
+    T_ij: np.ndarray
+    sigma: np.ndarray
+    robust_scale: float = 3.0
+
+    def __post_init__(self) -> None:
+        self.station_i = np.asarray(self.station_i, dtype=int).reshape(-1)
+        self.station_j = np.asarray(self.station_j, dtype=int).reshape(-1)
+        self.T_ij = np.asarray(self.T_ij, dtype=float).reshape(-1, 4, 4)
+        self.sigma = np.asarray(self.sigma, dtype=float).reshape(-1, 6)
+        K = len(self.station_i)
+        if len(self.station_j) != K or len(self.T_ij) != K or len(self.sigma) != K:
+            raise GeometryError("RelativePoseFactors: station_i, station_j, T_ij and sigma must have the same length")
+        if np.any(self.station_i == self.station_j):
+            raise GeometryError("RelativePoseFactors: a factor links a station to itself")
+        if not np.all(np.isfinite(self.T_ij)) or not np.all(np.isfinite(self.sigma)) or np.any(self.sigma <= 0):
+            raise GeometryError("RelativePoseFactors: every motion must be finite and every sigma positive")
+
+    def __len__(self) -> int:
+        return len(self.station_i)
+
+
+@dataclass
 class BAProblem:
     """Inputs of :func:`bundle_adjust`. N observations of 4 corners.
 
@@ -126,6 +170,7 @@ class BAProblem:
             Default: ``diag(obs_focal)``, the ideal pinhole camera.
         priors: optional :class:`MarkerPriors` (surveyed markers, level stations): with them no
             marker or station needs to be fixed.
+        odometry: optional :class:`RelativePoseFactors` between stations (the robot's odometry).
     """
 
     T_W_markers: np.ndarray
@@ -142,6 +187,7 @@ class BAProblem:
     T_base_cams_start: Optional[np.ndarray] = None
     obs_lens: Optional[np.ndarray] = None
     priors: Optional[MarkerPriors] = None
+    odometry: Optional[RelativePoseFactors] = None
 
 
 @dataclass(frozen=True)
@@ -271,7 +317,13 @@ class _Model:
             if np.any(self.col_m[priors.position_marker] < 0) or np.any(self.col_m[priors.rotation_marker] < 0) \
                     or np.any(self.col_s[priors.level_station] < 0):
                 raise GeometryError("bundle adjustment: a prior on a fixed marker or station (leave it free)")
-        self.n_res = self.n_obs_res + self.n_prior_res + self.n_anchor_res
+        odo = prob.odometry if prob.odometry is not None and len(prob.odometry) else None
+        if odo is not None and (np.any(odo.station_i < 0) or np.any(odo.station_i >= S) or np.any(odo.station_j < 0)
+                                or np.any(odo.station_j >= S)):
+            raise GeometryError("bundle adjustment: an odometry factor names a station that does not exist")
+        self.odo = odo
+        self.n_odo_res = 6 * len(odo) if odo is not None else 0
+        self.n_res = self.n_obs_res + self.n_prior_res + self.n_anchor_res + self.n_odo_res
         self._build_pattern()
 
     def _build_pattern(self) -> None:
@@ -303,6 +355,10 @@ class _Model:
             ar, ac = self._anchor_pattern(self.n_obs_res + self.n_prior_res)
             extra_r.append(ar)
             extra_c.append(ac)
+        if self.n_odo_res:
+            orr, occ = self._odometry_pattern(self.n_obs_res + self.n_prior_res + self.n_anchor_res)
+            extra_r.append(orr)
+            extra_c.append(occ)
         self.rows = np.concatenate(self._blk_rows + extra_r)
         self.cols = np.concatenate(self._blk_cols + extra_c)
 
@@ -325,6 +381,73 @@ class _Model:
         rows.append(np.broadcast_to(r, (J, 2, 3)).ravel())
         cols.append(np.broadcast_to(c, (J, 2, 3)).ravel())
         return np.concatenate(rows).astype(int), np.concatenate(cols).astype(int)
+
+    def _odometry_pattern(self, base: int) -> Tuple[np.ndarray, np.ndarray]:
+        """Rows/columns of the odometry block: per factor 6 rows x the 12 columns (w, t of station
+        i, then of station j), the columns of a fixed station left out (``self._odo_mask``)."""
+        K = len(self.odo)
+        rows = base + 6 * np.arange(K)[:, None, None] + np.arange(6)[None, :, None]
+        ci, cj = self.col_s[self.odo.station_i], self.col_s[self.odo.station_j]
+        cols = np.concatenate([ci[:, None] + np.arange(6), cj[:, None] + np.arange(6)], axis=1)[:, None, :]
+        free = np.concatenate([np.repeat((ci >= 0)[:, None], 6, 1), np.repeat((cj >= 0)[:, None], 6, 1)], axis=1)
+        self._odo_mask = np.broadcast_to(free[:, None, :], (K, 6, 12))
+        rows = np.broadcast_to(rows, (K, 6, 12))
+        cols = np.broadcast_to(cols, (K, 6, 12))
+        return rows[self._odo_mask].astype(int), cols[self._odo_mask].astype(int)
+
+    def _odometry_residuals(self, ws, Rs, ts, jacobian: bool = False):
+        """The odometry rows (whitened), and with ``jacobian`` their (K, 6, 12) Jacobian (columns
+        w_i, t_i, w_j, t_j) masked to the pattern's order.
+
+        ``e_R = log(R_z^T R_i^T R_j)``, ``e_t = R_i^T (t_j - t_i) - t_z``. With ``R = exp(w) R0``:
+        ``de_R/dw_j = J_l(e_R)^-1 R_z^T R_i^T J_l(w_j)`` and ``de_R/dw_i`` its negative with
+        ``J_l(w_i)``; ``de_t/dw_i = R0_i^T [exp(-w_i) (t_j - t_i)]x J_l(-w_i)``, ``de_t/dt_i = -R_i^T``,
+        ``de_t/dt_j = R_i^T``.
+        """
+        o = self.odo
+        i, j = o.station_i, o.station_j
+        Rz, tz = o.T_ij[:, :3, :3], o.T_ij[:, :3, 3]
+        RiT = np.transpose(Rs[i], (0, 2, 1))
+        A = np.transpose(Rz, (0, 2, 1)) @ RiT                          # R_z^T R_i^T
+        eR = Rotation.from_matrix(A @ Rs[j]).as_rotvec()
+        q = ts[j] - ts[i]
+        et = (RiT @ q[:, :, None])[..., 0] - tz
+        r = (np.concatenate([eR, et], axis=1) / o.sigma).ravel()
+        if not jacobian:
+            return r
+        K = len(o)
+        Jinv = np.linalg.inv(geo.so3_left_jacobian(eR))
+        JA = Jinv @ A
+        Jm = np.zeros((K, 6, 12))
+        Jm[:, :3, 0:3] = -JA @ geo.so3_left_jacobian(ws[i])
+        Jm[:, :3, 6:9] = JA @ geo.so3_left_jacobian(ws[j])
+        Einv = Rotation.from_rotvec(-ws[i]).as_matrix()
+        u = (Einv @ q[:, :, None])[..., 0]
+        Jm[:, 3:, 0:3] = np.transpose(self.R_s0[i], (0, 2, 1)) @ (geo.skew(u) @ geo.so3_left_jacobian(-ws[i]))
+        Jm[:, 3:, 3:6] = -RiT
+        Jm[:, 3:, 9:12] = RiT
+        Jm /= o.sigma[:, :, None]
+        return r, Jm[self._odo_mask]
+
+    def odometry_weights(self, r: np.ndarray) -> np.ndarray:
+        """(n_odo_res,) IRLS weights of the odometry rows of residuals ``r`` (Huber on each factor's
+        whitened norm, the same weight for its 6 rows)."""
+        ro = r[self.n_res - self.n_odo_res:].reshape(-1, 6)
+        c = self.odo.robust_scale
+        if c <= 0:
+            return np.ones(ro.size)
+        n = np.linalg.norm(ro, axis=1)
+        return np.repeat(np.where(n <= c, 1.0, c / np.maximum(n, 1e-300)), 6)
+
+    def odometry_cost(self, r: np.ndarray) -> float:
+        """sum of the Huber losses ``rho(|r_k|)`` of the odometry factors (``|r_k|^2`` inside the scale)."""
+        if not self.n_odo_res:
+            return 0.0
+        n = np.linalg.norm(r[self.n_res - self.n_odo_res:].reshape(-1, 6), axis=1)
+        c = self.odo.robust_scale
+        if c <= 0:
+            return float(np.sum(n * n))
+        return float(np.sum(np.where(n <= c, n * n, 2.0 * c * n - c * c)))
 
     def _anchor_residuals(self, wm, Rm, tm, ws, Rs, jacobian: bool = False):
         """The prior residuals (and with ``jacobian`` their Jacobian's non-zeros, pattern order)."""
@@ -382,7 +505,7 @@ class _Model:
         return (wm, Rm, tm), (ws, Rs, ts, Es), (wc, Rc, tc, Ec), a, q, q2, pc
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
-        (wm, Rm, tm), (ws, Rs, _, _), _, _, _, _, pc = self._forward(x)
+        (wm, Rm, tm), (ws, Rs, ts, _), _, _, _, _, pc = self._forward(x)
         z = pc[..., 2]
         z = np.where(np.abs(z) < 1e-9, 1e-9, z)
         proj = pc[..., :2] / z[..., None]
@@ -395,6 +518,8 @@ class _Model:
             out = np.concatenate([out, prior.ravel()])
         if self.n_anchor_res:
             out = np.concatenate([out, self._anchor_residuals(wm, Rm, tm, ws, Rs)])
+        if self.n_odo_res:
+            out = np.concatenate([out, self._odometry_residuals(ws, Rs, ts)])
         return out
 
     def _jacobian_blocks(self, x: np.ndarray):
@@ -442,6 +567,8 @@ class _Model:
                                        np.full(3, 1.0 / self.o.extrinsics_trans_sigma)], self.C))
         if self.n_anchor_res:
             extra.append(self._anchor_residuals(wm, Rm, tm, ws, Rs, jacobian=True)[1])
+        if self.n_odo_res:
+            extra.append(self._odometry_residuals(ws, Rs, ts, jacobian=True)[1])
         return blocks, (np.concatenate(extra) if extra else None)
 
     def jacobian(self, x: np.ndarray) -> sp.csr_matrix:
@@ -475,7 +602,7 @@ class _Model:
         self._h_pair = pair
         lin = [(np.broadcast_to(gcol[:, :, None], (N, K, K)) * n + np.broadcast_to(gcol[:, None, :], (N, K, K)))[pair]]
         n_obs_lin = len(lin[0])
-        n_extra = self.n_prior_res + self.n_anchor_res
+        n_extra = self.n_prior_res + self.n_anchor_res + self.n_odo_res
         if n_extra:
             k0 = sum(len(r) for r in self._blk_rows)
             self._extra_rows = self.rows[k0:] - self.n_obs_res
@@ -605,12 +732,17 @@ def _solve_lm(model: _Model, x0: np.ndarray, f_scale: float, opts: BAOptions, ma
     n_obs = model.n_obs_res
     s2 = f_scale * f_scale
 
+    n_quad = model.n_res - model.n_odo_res        # the priors' rows stay quadratic; odometry: Huber per factor
+
     def cost_of(r: np.ndarray) -> float:
-        return 0.5 * s2 * _loss_cost(r[:n_obs] ** 2 / s2, opts.loss) + 0.5 * float(r[n_obs:] @ r[n_obs:])
+        return (0.5 * s2 * _loss_cost(r[:n_obs] ** 2 / s2, opts.loss) + 0.5 * float(r[n_obs:n_quad] @ r[n_obs:n_quad])
+                + 0.5 * model.odometry_cost(r))
 
     def weights(r: np.ndarray) -> np.ndarray:
         w = np.ones_like(r)
         w[:n_obs] = _loss_weights(r[:n_obs] ** 2 / s2, opts.loss)
+        if model.n_odo_res:
+            w[n_quad:] = model.odometry_weights(r)
         return w
 
     x = x0.copy()

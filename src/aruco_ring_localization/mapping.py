@@ -58,17 +58,18 @@ import dataclasses
 import logging
 from collections import defaultdict
 from dataclasses import dataclass, field
-from typing import Any, Dict, Hashable, List, Optional, Tuple
+from typing import Any, Dict, Hashable, List, Optional, Sequence, Tuple
 
 import numpy as np
 
 from . import geometry as geo
 from .anchors import AnchorSet, anchor_report, fit_frame, frame_definition, frame_kind
-from .bundle_adjustment import (BAOptions, BAProblem, BAResult, MarkerPriors, bundle_adjust,
+from .bundle_adjustment import (BAOptions, BAProblem, BAResult, MarkerPriors, RelativePoseFactors, bundle_adjust,
                                 camera_cov_in_optical_frames, marker_std_in_frame, observation_rms_px)
 from .config import in_radians, param, section
 from .errors import ArucoRingError, ConfigError, GeometryError, MeasurementError
 from .detections import RingFrame
+from .mapping_odometry import MappingOdometryOptions, OdometryTrack
 from .marker_map import MapSanityLimits, MarkerEntry, MarkerMap, map_frame_from_reference
 from .markers import MarkerSizes, marker_corners
 from .camera import CameraModel
@@ -146,6 +147,9 @@ class MappingOptions:
     ba: BAOptions = section(BAOptions, "bundle adjustment of method refined; the ring extrinsics are refined too, "
                                        "with priors around the calibration (several stations make them observable)",
                             refine_extrinsics=True)
+    odometry: MappingOdometryOptions = section(MappingOdometryOptions, "the robot's odometry as links between "
+                                                                      "consecutive stations of the bundle adjustment "
+                                                                      "(long walks: mapping_odometry.py)")
     sanity: MapSanityLimits = section(MapSanityLimits, "checks every map passes before it is saved (a map failing one "
                                                        "is not written, the previous file stays)")
 
@@ -319,6 +323,8 @@ class MapBuilder:
         self._obs: List[_Obs] = []
         self._station_keys: Dict[Hashable, int] = {}
         self._station_frames: List[int] = []
+        self._station_stamps: List[float] = []                               # stamp of each station's first frame
+        self.odometry = OdometryTrack()                                       # mapping.odometry's poses
         self._camera_frames: Dict[Tuple[int, str], int] = defaultdict(int)   # (station, camera) -> frames kept
         self._anchor_corners: Dict[Tuple[str, int], np.ndarray] = {}
         self._links: Dict[int, int] = {}       # union-find of the markers linked by the kept frames
@@ -372,6 +378,8 @@ class MapBuilder:
         if st < 0:
             self.skipped_moving += 1
             return -1
+        while len(self._station_stamps) < len(self._station_frames):
+            self._station_stamps.append(float(ring_frame.stamp))
         if self._station_frames[st] >= opts.max_frames_per_station:
             return st
         self._station_frames[st] += 1
@@ -416,6 +424,58 @@ class MapBuilder:
         if any(m not in self._links for m in ids):
             return True
         return len({self._link_root(m) for m in ids}) > 1
+
+    def add_odometry(self, stamp: float, T_odom_body: np.ndarray) -> bool:
+        """One odometry pose (``mapping.odometry``: the odometry body in its odom frame at ``stamp``);
+        consecutive stations are linked by the motion between them. False when it is not a finite
+        rigid transform (ignored)."""
+        ok = self.odometry.add(stamp, T_odom_body)
+        if ok:
+            self._version += 1
+        return ok
+
+    def set_odometry(self, stamps: Sequence[float], poses: np.ndarray) -> int:
+        """Replace the odometry by these poses (:meth:`add_odometry` each); returns how many were kept."""
+        self.odometry = OdometryTrack(stamps, poses)
+        self._version += 1
+        return len(self.odometry)
+
+    def _odometry_factors(self, stations: Sequence[int], index: Dict[int, int]) -> Optional[RelativePoseFactors]:
+        """Odometry links between consecutive ``stations`` (by stamp), station indices mapped through
+        ``index`` (station -> the problem's station index); None without odometry."""
+        if len(self.odometry) < 2:
+            return None
+        links = self.odometry.links({s: self._station_stamps[s] for s in stations if s < len(self._station_stamps)},
+                                    self.options.odometry)
+        if links is None:
+            return None
+        return RelativePoseFactors([index[s] for s in links.station_i], [index[s] for s in links.station_j],
+                                   links.T_ij, links.sigma, robust_scale=links.robust_scale)
+
+    def _odometry_bridge(self, pending, T_W_s: Dict[int, np.ndarray]) -> Optional[Tuple[int, np.ndarray]]:
+        """A pending station that no mapped marker links, placed by the odometry from the placed
+        station nearest in time (``(station, T_W_station)``), or None (no odometry covers one)."""
+        if len(self.odometry) < 2 or not T_W_s:
+            return None
+        opts = self.options.odometry
+        X = opts.T_base_odom
+        placed = sorted(T_W_s, key=lambda k: self._station_stamps[k])
+        stamps = np.array([self._station_stamps[k] for k in placed])
+        best = None
+        for s in pending:
+            t = self._station_stamps[s]
+            k = int(np.argmin(np.abs(stamps - t)))
+            gap = abs(stamps[k] - t)
+            if best is None or gap < best[0]:
+                best = (gap, s, placed[k])
+        if best is None:
+            return None
+        _, s, p = best
+        P_s = self.odometry.pose_at(self._station_stamps[s], opts.max_gap)
+        P_p = self.odometry.pose_at(self._station_stamps[p], opts.max_gap)
+        if P_s is None or P_p is None:
+            return None
+        return s, T_W_s[p] @ X @ geo.inverse(P_p) @ P_s @ geo.inverse(X)
 
     def _reject(self, reason: str, camera: str, n: int = 1, detail: str = "") -> None:
         before = self.rejected_detections[reason]
@@ -626,17 +686,23 @@ class MapBuilder:
                 # No station left that sees a mapped marker: the rest are groups never seen with the
                 # mapped markers. With anchors, a station that sees enough of a group's surveyed
                 # markers to fix its own pose is placed where the survey has them, and the growth
-                # goes on from it through that group; without, the map ends here (unlinked).
-                if self.anchors is None:
-                    break
-                if T_map_W is None:
-                    T_map_W = self._anchor_frame(T_W_m)
-                seed = self._anchor_seed(pending, est, est_pos, T_map_W, planar) if T_map_W is not None else None
-                if seed is None:
-                    break
-                s, T_W_s[s], seeds[s] = seed
-                group_start = len(order)
-                main_end = len(order) if main_end is None else main_end
+                # goes on from it through that group; else the odometry (mapping.odometry) places the
+                # pending station nearest in time to a placed one; without either the map ends here.
+                seed = None
+                if self.anchors is not None:
+                    if T_map_W is None:
+                        T_map_W = self._anchor_frame(T_W_m)
+                    if T_map_W is not None:
+                        seed = self._anchor_seed(pending, est, est_pos, T_map_W, planar)
+                if seed is not None:
+                    s, T_W_s[s], seeds[s] = seed
+                    group_start = len(order)
+                    main_end = len(order) if main_end is None else main_end
+                else:
+                    bridged = self._odometry_bridge(pending, T_W_s)
+                    if bridged is None:
+                        break
+                    s, T_W_s[s] = bridged
             for m, (T, _) in est.get(s, {}).items():
                 if m not in T_W_m:
                     T_W_m[m] = T_W_s[s] @ T
@@ -830,6 +896,7 @@ class MapBuilder:
             fixed_marker=None,
             fixed_station=0,
             T_base_cams_start=np.stack([current[c] for c in cams]),
+            odometry=self._odometry_factors(sts, si),
         )
         # A quick adjustment of the growing initialisation: the user's noise, loss and priors,
         # loose tolerances, no covariance.
@@ -1400,6 +1467,7 @@ class MapBuilder:
             fixed_station=fixed_station,
             priors=priors,
             T_base_cams_start=np.stack([init.extrinsics.get(c, self.ring[c].T_base_cam) for c in cams]),
+            odometry=self._odometry_factors(sts, si),
         )
 
     def _refine(self, init: _Init) -> Tuple[BAResult, List[int], _Init]:

@@ -1125,6 +1125,16 @@ class MappingPipeline(_RingPipeline):
         self.calibration = cal
         return cal
 
+    @property
+    def odometry_topic(self) -> str:
+        """``mapping.odometry.topic``: the nav_msgs/Odometry whose poses link the stations ("": none)."""
+        return self.config.mapping.odometry.topic
+
+    def on_odometry(self, stamp: float, T_odom_body: np.ndarray) -> bool:
+        """One odometry pose (the odometry body in its odom frame, ``mapping.odometry``): kept to link
+        consecutive stations in the bundle adjustment. False when it is not a rigid transform."""
+        return self.builder.add_odometry(stamp, T_odom_body)
+
     # --- the map ------------------------------------------------------------------------------
 
     def build(self, method: Optional[str] = None) -> MarkerMap:

@@ -302,3 +302,40 @@ def test_tagslam_body_override_replaces_every_tags_noise(tmp_path):
     with pytest.raises(ConfigError) as err:
         read_tagslam_tags(str(p))
     assert err.value.key == "bodies[0].lab.override_tag_position_noise"
+
+
+def test_tagslam_override_noise_and_odometry(tmp_path):
+    """A body's override_tag_*_noise replaces every tag's own noise (TagSLAM's rule); the rig body's
+    odom_topic, T_body_odom and odom_acceleration are read (defaults when omitted)."""
+    import numpy as np
+
+    from aruco_ring_localization.importers import read_tagslam_tags, tagslam_odometry
+
+    pose = ("pose: {position: {x: 1.0, y: 2.0, z: 0.5}, rotation: {x: 0.0, y: 0.0, z: 0.0}, "
+            "position_noise: {x: 0.0001, y: 0.0001, z: 0.0001}, rotation_noise: {x: 1.0e-5, y: 1.0e-5, z: 1.0e-5}}")
+    text = f"""
+default_body: floor
+bodies:
+ - floor:
+     is_static: true
+     default_tag_size: 0.15
+     override_tag_position_noise: 0.1
+     override_tag_rotation_noise: 0.05
+     pose: {{position: {{x: 0, y: 0, z: 0}}, rotation: {{x: 0, y: 0, z: 0}}}}
+     tags:
+       - {{id: 3, size: 0.15, {pose}}}
+ - rig:
+     is_static: false
+     odom_topic: /vio/odom
+     odom_acceleration: 2.0
+     T_body_odom: {{position: {{x: 0.1, y: 0.0, z: 0.0}}, rotation: {{x: 0.0, y: 0.0, z: 3.14159265}}}}
+"""
+    path = tmp_path / "tagslam.yaml"
+    path.write_text(text)
+    tags = read_tagslam_tags(str(path), rig_bodies=("rig",))
+    pos_std, rot_std = tags.known_noise[3]
+    assert np.allclose(pos_std, 0.1) and rot_std == 0.05
+    topic, T, acc, ang = tagslam_odometry(str(path), "rig")
+    assert topic == "/vio/odom" and acc == 2.0 and ang == 5.0
+    assert np.allclose(T[:3, 3], [0.1, 0, 0]) and np.allclose(T[:3, :3], np.diag([-1.0, -1.0, 1.0]), atol=1e-6)
+    assert tagslam_odometry(str(path), "floor") is None

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import List, Optional
 
 import numpy as np
 
@@ -55,6 +56,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frame", choices=("floor", "marker"),
                         help="mapping/frame: floor = on the floor below the reference marker, z up (ground "
                              "robots); marker = the reference marker's own frame (fiducial_slam's; handheld rigs)")
+    parser.add_argument("--odom-topic", metavar="TOPIC",
+                        help="mapping/odometry/topic: nav_msgs/Odometry in the bag whose poses link consecutive "
+                             "stations (long walks; docs/mapping.md)")
+    parser.add_argument("--odom-extrinsics", metavar="'X Y Z RX RY RZ'",
+                        help="mapping/odometry/base_to_odom: pose of the odometry's body frame (child_frame_id) in "
+                             "the ring's base frame, m and rotation vector in rad (TagSLAM's T_body_odom)")
     parser.add_argument("--progress", action="store_true", help="progress bar on stderr even when it is not a terminal")
 
 
@@ -68,7 +75,21 @@ def load_config(args: argparse.Namespace) -> MapperConfig:
         "markers.fiducial_len": args.fiducial_len, "markers.fiducial_len_override": args.fiducial_len_override,
         "input.ignore_fiducials": args.ignore_fiducials, "input.slop": args.slop, "map.map_frame": args.map_frame,
         "map.anchors_file": args.anchors,
-        "mapping.frame": args.frame})
+        "mapping.frame": args.frame, "mapping.odometry.topic": getattr(args, "odom_topic", None),
+        "mapping.odometry.base_to_odom": _six_numbers(getattr(args, "odom_extrinsics", None), "--odom-extrinsics")})
+
+
+def _six_numbers(text: Optional[str], option: str) -> Optional[List[float]]:
+    """``"x y z rx ry rz"`` (spaces or commas) as 6 floats; None when the option is not given."""
+    if text is None:
+        return None
+    try:
+        values = [float(v) for v in text.replace(",", " ").split()]
+    except ValueError:
+        values = []
+    if len(values) != 6 or not all(np.isfinite(values)):
+        raise ConfigError(f"expected 6 numbers 'x y z rx ry rz' (m, rad), got {text!r}", key=option)
+    return values
 
 
 def run(args: argparse.Namespace) -> int:

@@ -9,7 +9,7 @@
 from __future__ import annotations
 
 from .rig import ImportedCamera, ImportedRig, read_rig, write_ring_files
-from .tagslam import TagslamTags, read_tagslam_tags, tagslam_anchors
+from .tagslam import TagslamTags, read_tagslam_tags, tagslam_anchors, tagslam_odometry
 
 __all__ = ["ImportedCamera", "ImportedRig", "read_rig", "write_ring_files", "TagslamTags", "read_tagslam_tags",
-           "tagslam_anchors"]
+           "tagslam_anchors", "tagslam_odometry"]

@@ -112,6 +112,45 @@ def _pose(node: Any, path: str, key: str) -> np.ndarray:
     return geo.transform_from_rvec_tvec(r, t)
 
 
+def _override_noise(body: Mapping[str, Any], path: str, key: str) -> Optional[Tuple[np.ndarray, float]]:
+    """A body's ``override_tag_position_noise`` / ``override_tag_rotation_noise`` (TagSLAM applies
+    them to every tag of the body with a pose, in place of the tag's own noise, when both are > 0)."""
+    p, r = body.get("override_tag_position_noise"), body.get("override_tag_rotation_noise")
+    if p is None or r is None:
+        return None
+    for name, v in (("override_tag_position_noise", p), ("override_tag_rotation_noise", r)):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+            raise ConfigError(f"expected a number, got {v!r}", path=path, key=f"{key}.{name}")
+    if p <= 0 or r <= 0:
+        return None
+    return np.full(3, float(p)), float(r)
+
+
+def tagslam_odometry(path: str, rig_body: str) -> Optional[Tuple[str, np.ndarray, float, float]]:
+    """``(odom_topic, T_body_odom, odom_acceleration, odom_angular_acceleration)`` of the rig body of
+    a ``tagslam.yaml``, or None when it has no odometry: the topic of its nav_msgs/Odometry, the
+    pose of the odometry's frame in the rig body (``mapping.odometry.base_to_odom`` when the ring's
+    base frame is the rig body; identity when the file omits it, as TagSLAM assumes), and TagSLAM's
+    noise parameters (m/s^2, rad/s^2; its default 5 when omitted)."""
+    data = load_yaml_file(path)
+    if not isinstance(data, Mapping):
+        raise ConfigError("expected a mapping", path=path)
+    for i, (name, body) in enumerate(_bodies(data, path)):
+        if name != rig_body or not body.get("odom_topic"):
+            continue
+        T = np.eye(4)
+        if body.get("T_body_odom") is not None:
+            T = _pose(body["T_body_odom"], path, f"bodies[{i}].{name}.T_body_odom")
+        acc = []
+        for name_ in ("odom_acceleration", "odom_angular_acceleration"):
+            v = body.get(name_, 5.0)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v <= 0:
+                raise ConfigError(f"expected a positive number, got {v!r}", path=path, key=f"bodies[{i}].{name}.{name_}")
+            acc.append(float(v))
+        return str(body["odom_topic"]), T, acc[0], acc[1]
+    return None
+
+
 def _noise(node: Mapping[str, Any], defaults: Any, path: str, key: str) -> Tuple[np.ndarray, float]:
     """(position std (3,), rotation std) of a TagSLAM pose: its own noise, else body_defaults'."""
     defaults = defaults if isinstance(defaults, Mapping) else {}
@@ -127,22 +166,6 @@ def _noise(node: Mapping[str, Any], defaults: Any, path: str, key: str) -> Tuple
             raise ConfigError(f"expected positive values, got {value!r}", path=path, key=f"{key}.{name}")
         out.append(v)
     return out[0], float(out[1].max())
-
-
-def _override_noise(body: Mapping[str, Any], path: str, key: str) -> Optional[Tuple[np.ndarray, float]]:
-    """A body's ``override_tag_position_noise`` / ``override_tag_rotation_noise``: when it gives both
-    (positive), TagSLAM replaces the noise of every known tag pose of the body with them (a survey
-    it trusts less than each tag's line says); None otherwise."""
-    names = ("override_tag_position_noise", "override_tag_rotation_noise")
-    values = [body.get(n) for n in names]
-    if all(v is None for v in values):
-        return None
-    for n, v in zip(names, values):
-        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v)):
-            raise ConfigError(f"expected a number, got {v!r}", path=path, key=f"{key}.{n}")
-    if any(v is None or v <= 0 for v in values):
-        return None      # TagSLAM applies the override only when both are positive
-    return np.full(3, float(values[0])), float(values[1])
 
 
 def tagslam_anchors(tags: TagslamTags, exclude: Set[int] = frozenset(), source: str = "tagslam.yaml",

@@ -283,6 +283,16 @@ class BagSource:
             kinds.update({t: ("info", cam) for t in topics})
         for source, topics in plan.motion.items():
             kinds.update({t: ("motion", source) for t in topics})
+        odom_topic = str(getattr(pipeline, "odometry_topic", "") or "")
+        if odom_topic:
+            # mapping.odometry.topic: the robot's odometry links the mapping's stations.
+            found = [t for t, (typ, _) in self.topics.items() if _norm(t) == _norm(odom_topic)]
+            odoms = sorted(t for t, (typ, _) in self.topics.items() if typ == "nav_msgs/Odometry")
+            if not found or any(self.topics[t][0] != "nav_msgs/Odometry" for t in found):
+                raise ConfigError(f"mapping/odometry/topic {odom_topic}: no nav_msgs/Odometry on it in the bag "
+                                  f"(nav_msgs/Odometry topics there: {odoms or 'none'})", path=self.path)
+            kinds.update({t: ("odometry", t) for t in found})
+            self.say(f"{command}: odometry from {' '.join(found)} ({plan.count(found)} messages)")
         for cam, (topics, typ) in sorted(plan.detections.items()):
             self.say(f"{command}: {cam}: {DETECTION_CONVERTERS[typ].what} from {' '.join(topics)} "
                      f"({plan.count(topics)} messages)")
@@ -349,6 +359,11 @@ class BagSource:
             if contexts[name].model is None or not _same_model(contexts[name].model, model):
                 contexts[name].model = model
                 pipeline.on_camera_info(name, model)
+            return None
+        if kind == "odometry":
+            T = pose_msg_to_transform(msg.pose.pose, f"{name} pose.pose")
+            stamp = stamp_to_sec(msg.header.stamp)
+            pipeline.on_odometry(stamp if stamp > 0 else t, T)
             return None
         if not hasattr(pipeline, "on_motion"):
             return None

@@ -4,7 +4,8 @@ Thin: it converts messages, calls :class:`aruco_ring_localization.pipeline.Mappi
 publishes; ``aruco_ring build-map`` drives the same pipeline from a bag (config/mapping.yaml).
 
 Subscribes (through :class:`ros.ring_input.RingSubscriber`): ``<ns>/fiducial_vertices`` and
-``<ns>/camera_info`` of every ring camera; extrinsics from tf (or the ring file).
+``<ns>/camera_info`` of every ring camera; extrinsics from tf (or the ring file); with
+``mapping/odometry/topic`` set, that nav_msgs/Odometry (links between stations, docs/mapping.md).
 
 Publishes:
     ``~markers`` (visualization_msgs/MarkerArray, latched): a thin box per mapped marker, coloured
@@ -58,7 +59,7 @@ from ..ring import CameraRing
 from ..threads import limit_threads
 from ..schemas import MapperConfig
 from . import log_bridge
-from .conversions import make_transform_stamped, pose_to_msg
+from .conversions import make_transform_stamped, pose_msg_to_transform, pose_to_msg
 from .params import read_config
 from .ring_input import MAPPER_QUEUE_SIZE, RingSubscriber
 from .ring_tf import default_ring_file, ring_transforms
@@ -158,6 +159,11 @@ class MapperNode:
         self._progress_frames = -1     # frames at the previous progress line
         if out.publish_tf:
             rospy.Timer(rospy.Duration(out.tf_period), self.on_tf_timer, reset=True)
+        if config.mapping.odometry.topic:
+            # mapping.odometry: the robot's odometry links consecutive stations in the adjustment.
+            from nav_msgs.msg import Odometry
+
+            rospy.Subscriber(config.mapping.odometry.topic, Odometry, self.on_odometry, queue_size=100)
         rospy.Service("~save_map", Trigger, self.on_save_map)
         rospy.Service("~clear", Trigger, self.on_clear)
         rospy.Timer(rospy.Duration(config.output.publish_period), self.on_publish_timer, reset=True)
@@ -169,6 +175,15 @@ class MapperNode:
             rospy.loginfo("mapper: calibrating the ring from the rough values of %s (published on tf by this node); "
                           "~save_map writes the calibrated ring to %s", config.ring_file or default_ring_file(),
                           self.ring_file_out)
+
+    def on_odometry(self, msg) -> None:
+        try:
+            T = pose_msg_to_transform(msg.pose.pose, f"{self.config.mapping.odometry.topic} pose.pose")
+        except ArucoRingError as exc:
+            self.pipeline.warn("odometry.error", f"mapper: {exc}", msg.header.stamp.to_sec())
+            return
+        with self.ring_input.lock:
+            self.pipeline.on_odometry(msg.header.stamp.to_sec(), T)
 
     # --- output -----------------------------------------------------------------------------
 

@@ -1,0 +1,218 @@
+"""The robot's odometry in mapping: links between consecutive stations (issue 11).
+
+A long walk (a handheld rig, a robot driving through a building) sees its markers in small groups;
+chained only through the markers, the stations drift (an open chain: test_11's 240 mm). Odometry
+(wheel odometry, visual-inertial odometry: any ``nav_msgs/Odometry`` whose pose is the odometry
+body in a drifting odom frame) measures the motion between two stations directly, also across
+stretches where no marker is in view. :class:`OdometryTrack` keeps the poses, interpolates them at
+the stations' stamps and turns each pair of consecutive stations into a relative-pose factor of the
+bundle adjustment (:class:`bundle_adjustment.RelativePoseFactors`).
+
+**Frames.** The odometry's pose is ``T_odom_body`` of its own body frame (the message's
+``child_frame_id``: the IMU of a VIO, the wheel base of a robot), which need not be the ring's base
+frame: ``base_to_odom`` is that body's pose in the ring's base frame, ``X = T_base_body`` (TagSLAM's
+``T_body_odom`` of the rig body: its "body" is our base frame, its "odom" the odometry's body). The
+motion of the base frame from station ``i`` to ``j`` is then ``X · P_i^-1 P_j · X^-1`` with ``P`` the
+odometry poses at the stations' stamps (translation interpolated linearly, rotation by slerp,
+between the two messages around each stamp; a stamp farther than ``max_gap`` from a message gets no
+link). Nothing about the odom frame itself is used: its drift does not enter.
+
+**Noise model** (per link, 1-sigma on each axis; ``d`` the distance and ``a`` the angle of the
+link's motion, both from the odometry)::
+
+    sigma_trans^2 = min_translation^2 + translation_noise^2 * d + translation_per_second^2 * dt + jumps_trans^2
+    sigma_rot^2   = min_rotation^2 + rotation_noise^2 * a + rotation_per_metre^2 * d
+                    + rotation_per_second^2 * dt + jumps_rot^2
+
+(a random walk: the variance grows with the distance and the angle travelled, as wheel odometry
+and VIO drift, and with the time ``dt`` between the stations: TagSLAM's odometry model is that
+term alone, ``acceleration * dt_msg^2`` per message of period ``dt_msg``, i.e.
+``translation_per_second = odom_acceleration * dt_msg^1.5``). **Jumps**: an odometry message whose motion departs from the constant-velocity
+prediction of the previous one by more than ``max_acceleration * dt^2`` (``max_angular_acceleration``
+for the rotation) adds that excess to the sigma of the link that spans it (``jumps_*``: root sum of
+squares): a VIO reset or a wheel slip widens its own link instead of bending the map. On top, the
+bundle adjustment's Huber loss on each link's whitened norm (``robust_scale``) bounds what any link
+still off can pull.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from . import geometry as geo
+from .bundle_adjustment import RelativePoseFactors
+from .config import param
+from .errors import ConfigError
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class MappingOdometryOptions:
+    """Odometry links between stations (the mapper's ``mapping.odometry`` section)."""
+
+    topic: str = param("", "nav_msgs/Odometry topic whose poses link consecutive stations in the bundle adjustment "
+                           "(build-map --odom-topic; the mapper node subscribes to it); empty: no odometry")
+    base_to_odom: Tuple[float, ...] = param([0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+                                            "pose of the odometry's body frame (the messages' child_frame_id, e.g. "
+                                            "a VIO's IMU) in the ring's base frame: x, y, z (m), rotation vector "
+                                            "(rad); TagSLAM's T_body_odom")
+    translation_noise: float = param(0.02, "odometry's position error after 1 m travelled (grows with the square "
+                                           "root of the distance)", unit="m/sqrt(m)")
+    rotation_noise: float = param(0.01, "odometry's rotation error after turning 1 rad (square root growth)",
+                                  unit="rad/sqrt(rad)")
+    rotation_per_metre: float = param(0.002, "odometry's rotation error after 1 m travelled (square root growth)",
+                                      unit="rad/sqrt(m)")
+    translation_per_second: float = param(0.0, "odometry's position error after 1 s (square root growth; 0: "
+                                               "none)", unit="m/sqrt(s)")
+    rotation_per_second: float = param(0.0, "odometry's rotation error after 1 s (square root growth; 0: none)",
+                                       unit="rad/sqrt(s)")
+    min_translation: float = param(0.002, "floor of a link's position error", unit="m")
+    min_rotation: float = param(0.001, "floor of a link's rotation error", unit="rad")
+    max_acceleration: float = param(5.0, "jumps: an odometry message departing from the previous one's constant "
+                                         "velocity by more than this x dt^2 widens its link by the excess",
+                                    unit="m/s^2")
+    max_angular_acceleration: float = param(5.0, "... the same for the rotation", unit="rad/s^2")
+    max_gap: float = param(0.5, "a station whose stamp is farther than this from an odometry message (before and "
+                                "after) gets no link", unit="s")
+    robust_scale: float = param(3.0, "Huber loss of each link beyond this many sigmas (whitened norm); 0: none")
+
+    def __post_init__(self) -> None:
+        if len(self.base_to_odom) != 6 or not all(np.isfinite(float(v)) for v in self.base_to_odom):
+            raise ConfigError(f"expected 6 finite numbers x y z rx ry rz, got {list(self.base_to_odom)!r}",
+                              key="base_to_odom")
+        for key in ("translation_noise", "rotation_noise", "rotation_per_metre", "translation_per_second",
+                    "rotation_per_second", "max_acceleration",
+                    "max_angular_acceleration", "max_gap", "robust_scale"):
+            v = getattr(self, key)
+            if not (np.isfinite(v) and v >= 0):
+                raise ConfigError(f"expected a number >= 0, got {v!r}", key=key)
+        for key in ("min_translation", "min_rotation"):
+            v = getattr(self, key)
+            if not (np.isfinite(v) and v > 0):
+                raise ConfigError(f"expected a number > 0, got {v!r}", key=key)
+
+    @property
+    def T_base_odom(self) -> np.ndarray:
+        v = np.asarray(self.base_to_odom, dtype=float)
+        return geo.make_transform(geo.rotation_from_rvec(v[3:]), v[:3])
+
+
+class OdometryTrack:
+    """The odometry poses ``T_odom_body`` by stamp (appended in any order; duplicates keep the last)."""
+
+    def __init__(self, stamps: Sequence[float] = (), poses: Optional[np.ndarray] = None):
+        self._stamps: List[float] = []
+        self._poses: List[np.ndarray] = []
+        self._cache: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None
+        if poses is not None:
+            for t, T in zip(stamps, np.asarray(poses, dtype=float).reshape(-1, 4, 4)):
+                self.add(float(t), T)
+
+    def __len__(self) -> int:
+        return len(self._stamps)
+
+    def add(self, stamp: float, T_odom_body: np.ndarray) -> bool:
+        """Keep one pose; False (ignored) when it is not a finite rigid transform."""
+        T = np.asarray(T_odom_body, dtype=float)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not np.isfinite(stamp) \
+                or abs(np.linalg.det(T[:3, :3]) - 1.0) > 1e-3:
+            return False
+        self._stamps.append(float(stamp))
+        self._poses.append(T)
+        self._cache = None
+        return True
+
+    def _sorted(self) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(stamps, poses, per-message jump excess (N, 2): translation m, rotation rad)."""
+        if self._cache is None:
+            t = np.asarray(self._stamps)
+            order = np.argsort(t, kind="stable")
+            keep = np.ones(len(order), dtype=bool)
+            keep[:-1] = np.diff(t[order]) > 0     # equal stamps: the last one appended
+            idx = order[keep]
+            P = np.stack(self._poses)[idx] if len(idx) else np.zeros((0, 4, 4))
+            self._cache = (t[idx], P, np.zeros((len(idx), 2)))
+        return self._cache
+
+    def jumps(self, max_acceleration: float, max_angular_acceleration: float) -> np.ndarray:
+        """(N, 2) per message: how far its motion departs from the previous message's constant
+        velocity beyond ``max_acceleration * dt^2`` (m; rad for the rotation), else 0."""
+        t, P, _ = self._sorted()
+        out = np.zeros((len(t), 2))
+        if len(t) < 3:
+            return out
+        D = np.einsum("nji,njk->nik", P[:-1], P[1:])                     # P_k-1^-1 P_k (body frame)
+        dt = np.maximum(np.diff(t), 1e-3)
+        dx = D[:, :3, 3]
+        da = Rotation.from_matrix(D[:, :3, :3]).as_rotvec()
+        # Departure of increment k from increment k-1 scaled to its dt (constant velocity).
+        ex = np.linalg.norm(dx[1:] - dx[:-1] * (dt[1:] / dt[:-1])[:, None], axis=1) - max_acceleration * dt[1:] ** 2
+        ea = np.linalg.norm(da[1:] - da[:-1] * (dt[1:] / dt[:-1])[:, None], axis=1) \
+            - max_angular_acceleration * dt[1:] ** 2
+        out[2:, 0] = np.maximum(ex, 0.0)
+        out[2:, 1] = np.maximum(ea, 0.0)
+        return out
+
+    def pose_at(self, stamp: float, max_gap: float) -> Optional[np.ndarray]:
+        """``T_odom_body`` at ``stamp`` (interpolated), or None outside the track or in a gap."""
+        t, P, _ = self._sorted()
+        if len(t) == 0 or stamp < t[0] - 1e-9 or stamp > t[-1] + 1e-9:
+            return None
+        k = int(np.searchsorted(t, stamp))
+        if k < len(t) and abs(t[k] - stamp) <= 1e-9:
+            return P[k].copy()
+        if k == 0:
+            return P[0].copy() if abs(t[0] - stamp) <= 1e-9 else None
+        if k >= len(t):
+            return P[-1].copy()
+        t0, t1 = t[k - 1], t[k]
+        if stamp - t0 > max_gap or t1 - stamp > max_gap:
+            return None
+        s = (stamp - t0) / (t1 - t0)
+        R = Slerp([0.0, 1.0], Rotation.from_matrix(P[k - 1:k + 1, :3, :3]))([s]).as_matrix()[0]
+        return geo.make_transform(R, (1 - s) * P[k - 1][:3, 3] + s * P[k][:3, 3])
+
+    def links(self, station_stamps: Dict[int, float], opts: MappingOdometryOptions
+              ) -> Optional[RelativePoseFactors]:
+        """Factors between consecutive stations (by stamp) of ``station_stamps`` (station -> stamp),
+        in the ring's base frame, with the noise model of the module docstring; None when no pair
+        of stations is covered by the odometry."""
+        if len(self) < 2 or len(station_stamps) < 2:
+            return None
+        X = opts.T_base_odom
+        Xi = geo.inverse(X)
+        t_all, _, _ = self._sorted()
+        jumps = self.jumps(opts.max_acceleration, opts.max_angular_acceleration)
+        order = sorted(station_stamps, key=lambda s: (station_stamps[s], s))
+        poses = {s: self.pose_at(station_stamps[s], opts.max_gap) for s in order}
+        I, J, Z, sig = [], [], [], []
+        prev = None
+        for s in order:
+            if poses[s] is None:
+                prev = None          # no link across a station the odometry does not cover
+                continue
+            if prev is not None:
+                ta, tb = station_stamps[prev], station_stamps[s]
+                D = X @ geo.inverse(poses[prev]) @ poses[s] @ Xi
+                d = float(np.linalg.norm(D[:3, 3]))
+                a = float(np.linalg.norm(Rotation.from_matrix(D[:3, :3]).as_rotvec()))
+                inside = (t_all > ta) & (t_all <= tb)
+                jt, jr = (np.sqrt(np.sum(jumps[inside] ** 2, axis=0)) if np.any(inside) else (0.0, 0.0))
+                dt = tb - ta
+                st = np.sqrt(opts.min_translation ** 2 + opts.translation_noise ** 2 * d
+                             + opts.translation_per_second ** 2 * dt + jt ** 2)
+                sr = np.sqrt(opts.min_rotation ** 2 + opts.rotation_noise ** 2 * a + opts.rotation_per_metre ** 2 * d
+                             + opts.rotation_per_second ** 2 * dt + jr ** 2)
+                I.append(prev)
+                J.append(s)
+                Z.append(D)
+                sig.append(np.r_[np.full(3, sr), np.full(3, st)])
+            prev = s
+        if not I:
+            return None
+        return RelativePoseFactors(I, J, Z, sig, robust_scale=opts.robust_scale)
