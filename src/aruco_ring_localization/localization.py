@@ -130,8 +130,9 @@ class LocalizationParams:
                                         "carries the map's error; false: the map taken as exact (as before)")
     estimate_pixel_noise: bool = param(True, "joint: the pixel noise is measured from each frame's residuals (the "
                                              "whitened chi^2 equal to its degrees of freedom, at least min_pixel_noise); "
-                                             "when it differs from pixel_noise by more than 25 % the pose is solved again "
-                                             "with it, and the covariance uses it; pixel_noise is the first guess; "
+                                             "each frame is solved at the last frame's noise (pixel_noise before the "
+                                             "first) and again at its own when the two differ by more than 25 %; the "
+                                             "covariance uses its own; "
                                              "false: pixel_noise, the covariance scaled up when the residuals are "
                                              "larger (as before)")
     min_pixel_noise: float = param(0.05, "joint, estimate_pixel_noise: the least pixel noise the residuals may say",
@@ -723,10 +724,7 @@ class JointProblem:
             if norm < tol:
                 break  # converged: the step would change nothing measurable
             if norm < last_step and it > 1:
-                T = _perturb(T, delta)
-                b_cam = None if fit.b_cam is None else fit.b_cam + fit.G_cam @ delta
-                fit = JointFit(fit.r + np.einsum("nia,a->ni", fit.J, delta), fit.J, fit.w, fit.H, fit.g * 0.0,
-                               fit.chi2, fit.cost, fit.H_cam, fit.G_cam, b_cam)
+                T, fit = self.linear_step(T, fit, delta)
                 break
             step = 1.0
             for _ in range(8):
@@ -739,6 +737,16 @@ class JointProblem:
                 break  # no descent: at the minimum to numerical precision
             T, fit = T_new, fit_new
         return T, fit, it
+
+    @staticmethod
+    def linear_step(T_base_map: np.ndarray, fit: JointFit, delta: np.ndarray) -> Tuple[np.ndarray, JointFit]:
+        """``T_base_map`` moved by ``delta`` with the residuals (and the per-camera gradients) of
+        ``fit`` following to first order, the normal equations kept: for a step so small that
+        evaluating the problem again would change nothing measurable (~1e-8)."""
+        b_cam = None if fit.b_cam is None else fit.b_cam + fit.G_cam @ delta
+        return _perturb(T_base_map, delta), JointFit(fit.r + np.einsum("nia,a->ni", fit.J, delta), fit.J, fit.w,
+                                                     fit.H, fit.g * 0.0, fit.chi2, fit.cost, fit.H_cam, fit.G_cam,
+                                                     b_cam)
 
     def covariance(self, fit: JointFit) -> np.ndarray:
         """(6, 6) covariance of the left perturbation of ``T_base_map`` (whitened units: multiply
@@ -1388,9 +1396,12 @@ class RingLocalizer:
         the pose), so estimate and covariance agree. The returned fit is at ``pixel_noise`` (what
         the ambiguity tests compare between candidate poses, in the units of ``ambiguity_chi2``).
 
-        Starting from the last frame's noise rather than from ``pixel_noise`` changes which frames
-        are solved twice, not the result's rule (solved at a noise within 25 % of its own): with
-        the detector's 0.1 px against the configured 0.5 px every frame was solved twice.
+        Within 25 % the solution at the frame's own noise is one Gauss-Newton step away: that step
+        is taken from the per-camera blocks already computed (:meth:`JointProblem.refit`, no new
+        residuals), the residuals following it to first order. Starting from the last frame's
+        noise rather than from ``pixel_noise`` changes which frames are solved twice, not the
+        result: with the detector's 0.1 px against the configured 0.5 px every frame was solved
+        twice.
 
         Returns (T_base_map, fit, iterations, rms, covariance, map covariance or None, the
         measured pixel noise)."""
@@ -1405,6 +1416,12 @@ class RingLocalizer:
             rms = float(np.sqrt(np.mean(np.sum(r * r, axis=1)))) if np.isfinite(r).all() else float("inf")
         else:
             fit_s = at.refit(fit)   # the same residuals and Huber weights (the scale is in px)
+            try:
+                delta = -_solve_spd_batch(fit_s.H[None], fit_s.g[None, :, None])[0, :, 0]
+            except np.linalg.LinAlgError:
+                raise MeasurementError("joint estimator: singular normal equations (degenerate geometry)") from None
+            T_bm, fit_s = at.linear_step(T_bm, fit_s, delta)
+            fit_s = at.refit(fit_s)
         return (T_bm, problem.refit(fit_s), iters, rms, at.covariance(fit_s), at.map_covariance(fit_s, T_bm),
                 sigma)
 
