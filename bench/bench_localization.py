@@ -44,7 +44,9 @@ import sys
 import time
 from typing import Dict, List, Optional, Tuple
 
+import cv2
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(os.path.dirname(HERE), "src"))
@@ -376,9 +378,19 @@ def run(quick: bool = False) -> dict:
     flips = _flip_cases(ring, seeds=1 if quick else 2)
     drive = _lab_drive(scene, ring, true_ring, marker_map, T_map_world, waypoints=5 if quick else 15)
     n_lat = 200 if quick else 600
-    lat = {n: _latency(scene, ring, true_ring, _grown_map(truth, n), "joint", n_lat) for n in (10, 100, 1000)}
-    lat_exact = _latency(scene, ring, true_ring, truth, "joint_exact_extrinsics", n_lat)
-    lat_paper = _latency(scene, ring, true_ring, truth, "paper", n_lat // 2)
+    # The latency as the localizer node runs the pipeline: one BLAS and one OpenCV thread
+    # (threads.limit_threads, called by every node). With NumPy's default pool OpenBLAS's workers
+    # spin-wait, and on this loaded machine the calling thread's CPU time measured their hand-over:
+    # 5.4 ms (joint) and 24 ms (paper) against 2.6 and 4.7 with one thread (issue 16).
+    cv_threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        with threadpool_limits(limits=1):
+            lat = {n: _latency(scene, ring, true_ring, _grown_map(truth, n), "joint", n_lat) for n in (10, 100, 1000)}
+            lat_exact = _latency(scene, ring, true_ring, truth, "joint_exact_extrinsics", n_lat)
+            lat_paper = _latency(scene, ring, true_ring, truth, "paper", n_lat // 2)
+    finally:
+        cv2.setNumThreads(cv_threads)
 
     results: Dict[str, float] = {}
     for c, per in [(c, p) for c, p in acc.items()] + [(c + "/kind", p) for c, p in acc_kind.items()]:
@@ -506,7 +518,8 @@ def run(quick: bool = False) -> dict:
         f"Latency of the localization pipeline per ring frame (LocalizationPipeline: 8 cameras' detections in, "
         f"sanitized, assembled, estimated, gated, filtered; {lat[10]['markers']:.1f} markers / "
         f"{lat[10]['detections']:.1f} detections in view on average, the track started at each test pose, {n_lat} "
-        f"frames; single thread; load average {load:.1f} at the end of this run). CPU time of the calling thread "
+        f"frames; single thread, one BLAS and one OpenCV thread as in the node; load average {load:.1f} at the end "
+        "of this run). CPU time of the calling thread "
         "(the keys), because this machine is shared by several sessions and wall-clock times include waiting for "
         "a core; wall-clock shown beside it:",
         "",

@@ -123,12 +123,15 @@ def _ba_time(ring: CameraRing, n_markers: int, frames_per_station: int = 2) -> D
         for _ in range(frames_per_station):
             feed_ring_frame(b, sim.observe(Scene.T_world_base(pose), stamp=t))
             t += 0.1
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     m = b.build("refined")
-    total = time.perf_counter() - t0
+    total, total_cpu = time.perf_counter() - t0, time.process_time() - c0
     ba = b.last_ba
     fit = map_error(m, scene.truth_map(), best_fit=True)
-    return {"ba_seconds": ba.seconds, "build_seconds": total, "markers": len(m), "truth_markers": len(scene.markers),
+    # CPU time (utime + stime of this process) is the work; the wall time on a shared machine
+    # measures the queue for a core as well.
+    return {"ba_seconds": ba.cpu_seconds, "ba_wall_seconds": ba.seconds, "build_seconds": total_cpu,
+            "build_wall_seconds": total, "markers": len(m), "truth_markers": len(scene.markers),
             "stations": b.station_count, "frames": frames_per_station,
             "observations": int(len(ba.per_obs_rms_px)), "params": ba.n_params, "rms_px_before": ba.rms_px_before,
             "rms_px": ba.rms_px_after, "nfev": ba.nfev, "fit_rms_mm": fit["position_rms_mm"],
@@ -155,8 +158,10 @@ def run(quick: bool = False) -> dict:
         "map_frame_yaw_err_deg_paper": abs(lab["yaw_paper"]),
     }
     for n, r in ba.items():
-        results[f"ba_seconds_{n}_markers"] = r["ba_seconds"]
-        results[f"map_build_seconds_{n}_markers"] = r["build_seconds"]
+        results[f"ba_seconds_{n}_markers"] = r["ba_seconds"]            # CPU s
+        results[f"ba_wall_seconds_{n}_markers"] = r["ba_wall_seconds"]
+        results[f"map_build_seconds_{n}_markers"] = r["build_seconds"]  # CPU s
+        results[f"map_build_wall_seconds_{n}_markers"] = r["build_wall_seconds"]
         results[f"hall_map_rms_mm_{n}_markers"] = r["fit_rms_mm"]
     n_st = len(Scene.default().mapping_stations)
     lines = [
@@ -190,20 +195,23 @@ def run(quick: bool = False) -> dict:
               "Long halls (corners mode: projected corners + "
               f"{PIXEL_NOISE} px noise; markers on both walls every 0.8 m, stations every 1.5 m along the "
               "centre line, the true rig perturbed as above; extrinsics refined; covariance included). "
-              "'BA time' is the final bundle adjustment; 'build time' the whole `build('refined')` "
+              "'BA' is the final bundle adjustment (covariance included); 'build' the whole `build('refined')` "
               "(pose candidates, the growing initialisation with its sliding-window adjustments, the final "
-              "adjustment):", "",
+              "adjustment). CPU = utime + stime of this process (the keys `ba_seconds_*` and "
+              "`map_build_seconds_*`); wall beside it (`*_wall_seconds_*`), which on this shared machine "
+              "includes waiting for a core. Target: `ba_seconds_1000_markers` <= 30 s (CPU).", "",
               "| markers | stations x frames | observations | unknowns | RMS before -> after (px) | evaluations | "
-              "BA time (s) | build time (s) | best-fit map RMS / max (mm) |",
-              "|---|---|---|---|---|---|---|---|---|"]
+              "BA CPU (s) | BA wall (s) | build CPU (s) | build wall (s) | best-fit map RMS / max (mm) |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for n, r in ba.items():
         lines.append(f"| {r['markers']}/{r['truth_markers']} | {r['stations']} x {r['frames']} | {r['observations']} | "
                      f"{r['params']} | {r['rms_px_before']:.2f} -> {r['rms_px']:.3f} | {r['nfev']} | "
-                     f"{r['ba_seconds']:.1f} | {r['build_seconds']:.1f} | {r['fit_rms_mm']:.2f} / {r['fit_max_mm']:.1f} |")
+                     f"{r['ba_seconds']:.1f} | {r['ba_wall_seconds']:.1f} | {r['build_seconds']:.1f} | "
+                     f"{r['build_wall_seconds']:.1f} | {r['fit_rms_mm']:.2f} / {r['fit_max_mm']:.1f} |")
     lines.append("")
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     lines.append(f"Python {platform.python_version()} on {platform.machine()}; load average at the end "
-                 f"{load:.1f} on {os.cpu_count()} cores (times on a shared machine are upper bounds).")
+                 f"{load:.1f} on {os.cpu_count()} cores (wall times on a shared machine are upper bounds).")
     return {"results": results, "markdown": "\n".join(lines) + "\n"}
 
 

@@ -11,8 +11,9 @@ ignore lists use its ``ignore_fiducials`` syntax, ``"1,4,9-12"``.
 from __future__ import annotations
 
 import logging
+import math
 import re
-from typing import Dict, FrozenSet, Mapping, Optional
+from typing import Dict, FrozenSet, List, Mapping, Optional
 
 import numpy as np
 
@@ -123,6 +124,12 @@ class MarkerSizes:
         return marker_corners(self(marker_id))
 
 
+#: Up to this many quads :func:`quads_ok` works on Python floats: the same arithmetic as its
+#: array path, without the fixed cost of about twenty small numpy calls (the localizer checks each
+#: camera's few detections on every message).
+_SCALAR_QUADS = 16
+
+
 def quads_ok(corners_px: np.ndarray, min_area_px: float = 4.0) -> np.ndarray:
     """(k,) bool for (k, 4, 2) image corners: True where the four corners form a usable quad.
 
@@ -130,6 +137,8 @@ def quads_ok(corners_px: np.ndarray, min_area_px: float = 4.0) -> np.ndarray:
     Bad detections and corrupted messages give the others.
     """
     c = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    if c.shape[0] <= _SCALAR_QUADS:
+        return np.array([_quad_ok(q, min_area_px) for q in c.tolist()], dtype=bool)
     finite = np.isfinite(c).all(axis=(1, 2))
     c = np.where(np.isfinite(c), c, 0.0)
     nxt = [1, 2, 3, 0]
@@ -141,6 +150,21 @@ def quads_ok(corners_px: np.ndarray, min_area_px: float = 4.0) -> np.ndarray:
         convex = (cross > 0).all(axis=1) | (cross < 0).all(axis=1)
         area = 0.5 * np.abs(np.sum(c[:, :, 0] * cn[:, :, 1] - cn[:, :, 0] * c[:, :, 1], axis=1))
         return finite & convex & (area >= min_area_px)
+
+
+def _quad_ok(q: List[List[float]], min_area_px: float) -> bool:
+    """:func:`quads_ok` of one quad given as 4 [x, y] Python floats (IEEE arithmetic as numpy's:
+    an overflow gives inf, a NaN fails every comparison)."""
+    if not all(math.isfinite(v) for p in q for v in p):
+        return False
+    (x0, y0), (x1, y1), (x2, y2), (x3, y3) = q
+    ex = (x1 - x0, x2 - x1, x3 - x2, x0 - x3)
+    ey = (y1 - y0, y2 - y1, y3 - y2, y0 - y3)
+    cross = [ex[i] * ey[(i + 1) % 4] - ey[i] * ex[(i + 1) % 4] for i in range(4)]
+    if not (all(v > 0 for v in cross) or all(v < 0 for v in cross)):
+        return False
+    area = 0.5 * abs((x0 * y1 - x1 * y0) + (x1 * y2 - x2 * y1) + (x2 * y3 - x3 * y2) + (x3 * y0 - x0 * y3))
+    return area >= min_area_px
 
 
 def quad_is_degenerate(corners_px, min_area_px: float = 4.0) -> bool:

@@ -136,3 +136,27 @@ def test_quad_min_area_threshold():
     small = SQUARE * 0.3  # 9 px^2
     assert not quad_is_degenerate(small, min_area_px=4.0)
     assert quad_is_degenerate(small, min_area_px=10.0)
+
+
+def test_quads_ok_scalar_and_array_paths_agree():
+    # Up to markers._SCALAR_QUADS quads are checked on Python floats, more with numpy: the same
+    # answer for every kind of quad, hostile ones included (NaN, inf, 1e200, zero, self-crossing).
+    import warnings
+
+    from aruco_ring_localization import markers
+
+    rng = np.random.default_rng(5)
+    Q = rng.normal(0, 20, (4000, 4, 2)) + rng.uniform(0, 1000, (4000, 1, 2))
+    Q[::7] *= 0.05            # some below the minimum area
+    Q[::97] *= 1e200          # products overflow
+    Q[::89, 1, 0] = np.nan
+    Q[::83, 2] = np.inf
+    Q[::101] = 0.0
+    Q[::103] = Q[::103][:, [0, 2, 1, 3]]   # self-intersecting
+    n = markers._SCALAR_QUADS
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")     # neither path may warn about overflow or NaN
+        array = markers.quads_ok(Q)
+        scalar = np.concatenate([markers.quads_ok(Q[i:i + n]) for i in range(0, len(Q), n)])
+    assert 0 < array.sum() < len(Q)
+    np.testing.assert_array_equal(scalar, array)

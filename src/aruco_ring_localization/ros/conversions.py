@@ -36,11 +36,13 @@ def fiducial_array_to_observations(msg: FiducialArray, limit: Optional[int] = No
     only the first ``limit`` fiducials are converted (the pipeline refuses a message with more than
     ``input/max_detections``: converting 3,000 quads of a flood would be wasted work).
     """
-    out = []
-    for f in msg.fiducials[:limit]:
-        corners = np.array([[f.x0, f.y0], [f.x1, f.y1], [f.x2, f.y2], [f.x3, f.y3]], dtype=np.float64)
-        out.append(MarkerObservation(int(f.fiducial_id), corners))
-    return out
+    fiducials = msg.fiducials[:limit]
+    if not fiducials:
+        return []
+    # One array for the message (each observation gets a row of it), not one numpy call per fiducial.
+    corners = np.array([(f.x0, f.y0, f.x1, f.y1, f.x2, f.y2, f.x3, f.y3) for f in fiducials],
+                       dtype=np.float64).reshape(-1, 4, 2)
+    return [MarkerObservation(int(f.fiducial_id), c) for f, c in zip(fiducials, corners)]
 
 
 def observations_to_fiducials(observations: Iterable[MarkerObservation]) -> List[Fiducial]:

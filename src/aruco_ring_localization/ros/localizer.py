@@ -52,7 +52,7 @@ from ..marker_check import parse_marker_ids
 from ..marker_map import MarkerMap
 from ..pipeline import LocalizationPipeline, PoseOutput, StatusReport
 from ..ring import CameraRing
-from ..threads import limit_threads
+from ..threads import limit_threads, tune_malloc
 from ..schemas import LocalizerConfig
 from . import log_bridge
 from .conversions import msg_to_transform, pose_msg_to_transform, pose_to_msg, stamp_to_sec
@@ -347,6 +347,7 @@ class Diagnostics:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     limit_threads()  # one BLAS / OpenCV thread (threads.py)
+    tune_malloc()    # rospy's 16 MB receive buffers from the heap, not a fresh mmap per read (threads.py)
     rospy.init_node("localizer", argv=list(argv) if argv is not None else None)
     log_bridge.install()
     try:

@@ -56,7 +56,7 @@ from ..errors import ArucoRingError, ConfigError
 from ..marker_map import MarkerMap
 from ..pipeline import MappingPipeline, ring_file_beside
 from ..ring import CameraRing
-from ..threads import limit_threads
+from ..threads import limit_threads, tune_malloc
 from ..schemas import MapperConfig
 from . import log_bridge
 from .conversions import make_transform_stamped, pose_msg_to_transform, pose_to_msg
@@ -362,6 +362,7 @@ class MapperNode:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     limit_threads()  # one BLAS / OpenCV thread (threads.py)
+    tune_malloc()    # rospy's large receive buffers from the heap, not a fresh mmap per read (threads.py)
     rospy.init_node("mapper", argv=list(argv) if argv is not None else None)
     log_bridge.install()
     try:
