@@ -484,42 +484,36 @@ def run(quick: bool = False) -> dict:
 DOC = os.path.join(ROOT, "docs", "benchmarks.md")
 
 
+def _doc_table_lines(path: str, n_cells: int) -> Dict[str, Tuple[List[str], str]]:
+    """By test: (cells, line) of every ``n_cells``-column row of the "Real recordings" section of
+    docs/benchmarks.md (empty when the file or the section is missing)."""
+    if not os.path.exists(path):
+        return {}
+    with open(path, encoding="utf-8") as fh:
+        text = fh.read()
+    start = text.find("## Real recordings")
+    if start < 0:
+        return {}
+    end = text.find("\n## ", start + 1)
+    out: Dict[str, Tuple[List[str], str]] = {}
+    for line in text[start:end if end > 0 else None].splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == n_cells and re.match(r"^test_\d+$", cells[0]):
+            out[cells[0]] = (cells, line.strip())
+    return out
+
+
 def doc_rows(path: str = DOC) -> Dict[str, List[str]]:
     """The cells of every row of the current "Real recordings" table in docs/benchmarks.md, by test:
     what ``--render`` keeps for a recording (or its mapping columns) this worktree did not re-measure."""
-    if not os.path.exists(path):
-        return {}
-    with open(path, encoding="utf-8") as fh:
-        text = fh.read()
-    start = text.find("## Real recordings")
-    if start < 0:
-        return {}
-    end = text.find("\n## ", start + 1)
-    out: Dict[str, List[str]] = {}
-    for line in text[start:end if end > 0 else None].splitlines():
-        cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if len(cells) == 13 and re.match(r"^test_\d+$", cells[0]):
-            out[cells[0]] = cells
-    return out
+    return {t: cells for t, (cells, _) in _doc_table_lines(path, 13).items()}
 
 
 def doc_explained(path: str = DOC) -> Dict[str, str]:
-    """The lines of the current "what explains it" table (``--loc-only`` runs) by test: kept verbatim by
-    ``--render`` for the recordings whose localization-only run is not in this worktree."""
-    if not os.path.exists(path):
-        return {}
-    with open(path, encoding="utf-8") as fh:
-        text = fh.read()
-    start = text.find("## Real recordings")
-    if start < 0:
-        return {}
-    end = text.find("\n## ", start + 1)
-    out: Dict[str, str] = {}
-    for line in text[start:end if end > 0 else None].splitlines():
-        cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if len(cells) == 5 and re.match(r"^test_\d+$", cells[0]):
-            out[cells[0]] = line.strip()
-    return out
+    """The lines of the current estimators' table (``--loc-only`` runs: test, paper, exact, joint,
+    TagSLAM's px, flips, filtered) by test: kept verbatim by ``--render`` for the recordings whose
+    localization-only run is not in this worktree."""
+    return {t: line for t, (_, line) in _doc_table_lines(path, 7).items()}
 
 
 def doc_notes(path: str = DOC) -> List[str]:
