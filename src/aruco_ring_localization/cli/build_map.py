@@ -43,7 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                         "fixed (moved markers); --config is then the localizer's")
     parser.add_argument("--markers", nargs="+", metavar="ID", help="with --update: the marker ids to re-map")
     parser.add_argument("--ring", help="ring YAML file (default: the config's ring_file, else config/ring.yaml)")
-    parser.add_argument("--config", help="the mapper's parameter file (default: config/mapping.yaml)")
+    parser.add_argument("--config", help="the mapper's parameter file (default: config/mapping.yaml); with --update "
+                        "the localizer's (default: config/localization.yaml)")
     parser.add_argument("--method", choices=("paper", "refined"), help="map/method (default: the config's)")
     parser.add_argument("--reference-marker", type=int, help="map/reference_marker: id fixing the map frame")
     parser.add_argument("--anchors", metavar="FILE",
