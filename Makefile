@@ -20,7 +20,7 @@ help:
 	@echo "make hostile  every hostile-input test (future stamps, NaN, floods, pauses, two localizers, map files;"
 	@echo "           unit + rostest through a real master), docs/reliability.md; figures in results/hostile/"
 	@echo "make setup  install apt packages, the venv and the catkin workspace (.venv/, .ws/)"
-	@echo "make clean  remove the venv, the workspace and results/"
+	@echo "make clean  remove the venv, the workspace and results/ (but the tracked results/bench/results.json)"
 
 setup:
 	@bash tools/setup.sh
@@ -48,4 +48,7 @@ hostile: setup
 		test/unit/test_map_limits.py test/integration/test_node_bad_input.py test/integration/test_rostests.py -k "hostile or map_limits or bad_input"
 
 clean:
-	rm -rf .venv .ws results .pytest_cache .hypothesis
+	rm -rf .venv .ws .pytest_cache .hypothesis
+	@# results/: everything but the tracked benchmark keys (results/bench/results.json)
+	@if [ -d results ]; then find results -mindepth 1 -maxdepth 1 ! -name bench -exec rm -rf {} +; \
+		[ -d results/bench ] && find results/bench -mindepth 1 -maxdepth 1 ! -name results.json -exec rm -rf {} +; true; fi
