@@ -88,3 +88,31 @@ def test_tune_malloc_can_be_turned_off(monkeypatch):
     monkeypatch.setenv(threads.MALLOC_ENV_VAR, "default")
     applied, why = threads.tune_malloc()
     assert not applied and threads.MALLOC_ENV_VAR in why
+
+
+def test_cli_commands_run_with_one_blas_thread(monkeypatch):
+    """`aruco_ring <command>` limits the pools at start, as the nodes do (many small solves)."""
+    from threadpoolctl import threadpool_limits
+
+    from aruco_ring_localization.cli import main
+
+    before = cv2.getNumThreads()
+    blas_before = _blas_threads()
+    seen = {}
+
+    def fake_run(args):
+        seen["blas"], seen["cv"] = _blas_threads(), cv2.getNumThreads()
+        return 0
+
+    try:
+        monkeypatch.delenv(threads.ENV_VAR, raising=False)
+        threadpool_limits(limits=2, user_api="blas")
+        cv2.setNumThreads(2)
+        import aruco_ring_localization.cli.check_config as cc
+        monkeypatch.setattr(cc, "run", fake_run)
+        assert main(["check-config", "--ring", "unused.yaml"]) == 0
+        assert seen["blas"] and set(seen["blas"]) == {1}, seen
+        assert seen["cv"] == 1
+    finally:
+        threadpool_limits(limits=max(blas_before or [1]), user_api="blas")
+        cv2.setNumThreads(before)

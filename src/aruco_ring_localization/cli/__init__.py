@@ -14,6 +14,7 @@ import sys
 from typing import List, Optional
 
 from ..errors import ArucoRingError
+from ..threads import limit_threads
 
 
 def _subcommand_modules():
@@ -46,6 +47,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     if not getattr(args, "_run", None):
         parser.print_help()
         return 2
+    # The commands solve many small problems (per-frame PnP and joint estimates, the mapping's
+    # sparse steps): OpenBLAS's worker threads only spin on them. One thread per pool, as the
+    # nodes (threads.py; ARUCO_RING_THREADS=N overrides).
+    limit_threads()
     try:
         return int(args._run(args) or 0)
     except ArucoRingError as exc:
