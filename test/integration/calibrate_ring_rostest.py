@@ -12,7 +12,6 @@ import os
 import subprocess
 import tempfile
 import threading
-import time
 import unittest
 
 import fiducial_msgs.msg as fiducial_msgs
@@ -23,7 +22,6 @@ import rospy
 import rostest
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import CameraInfo
-from std_msgs.msg import Int32
 
 from aruco_ring_localization import geometry as geo
 from aruco_ring_localization.config import load_config
@@ -32,6 +30,7 @@ from aruco_ring_localization.simulation.calibration_run import rough_ring
 from aruco_ring_localization.simulation.params import SimulatorConfig
 from aruco_ring_localization.simulation.scene import Scene
 from aruco_ring_localization.simulation.simulator import SimulatorCore
+from sim_route import HeldWaypoints
 
 PKG = "aruco_ring_localization"
 
@@ -53,7 +52,6 @@ class CalibrateRingSimTest(unittest.TestCase):
         cls.bag = rosbag.Bag(cls.bag_path, "w")
         cls.closed = False
         cls.counts = {"det": 0, "odom": 0}
-        cls.held = []
         subs = [rospy.Subscriber("/odom", Odometry, cls._writer("/odom", "odom"), queue_size=200)]
         for cam in ring.cameras:
             ns = "/" + cam.namespace.strip("/")
@@ -61,22 +59,16 @@ class CalibrateRingSimTest(unittest.TestCase):
                                          cls._writer(f"{ns}/fiducial_vertices", "det"), queue_size=200))
             subs.append(rospy.Subscriber(f"{ns}/camera_info", CameraInfo, cls._writer(f"{ns}/camera_info", None),
                                          queue_size=50))
-        rospy.Subscriber("/sim/at_waypoint", Int32, cls._on_waypoint, queue_size=100)
-        last = len(cls.core.waypoints()) - 1
-        # Generous: the route is ~60 simulated s; a loaded machine runs the simulator slower.
-        deadline = time.monotonic() + 300.0
-        while time.monotonic() < deadline and not rospy.is_shutdown():
+        route = HeldWaypoints()
+        try:
+            # Generous: the route is ~60 simulated s; a loaded machine runs the simulator slower.
+            route.wait_for_waypoint(len(cls.core.waypoints()) - 1, timeout=300.0)
+        finally:
+            for s in subs:
+                s.unregister()
             with cls.lock:
-                if last in cls.held:
-                    break
-            rospy.rostime.wallsleep(0.1)
-        for s in subs:
-            s.unregister()
-        with cls.lock:
-            cls.closed = True
-            cls.bag.close()
-        if last not in cls.held:
-            raise AssertionError(f"the simulator did not reach the last waypoint {last}: held {cls.held}")
+                cls.closed = True
+                cls.bag.close()
         cls.out = os.path.join(cls.tmp, "ring.yaml")
         cls.proc = subprocess.run(["aruco_ring", "calibrate-ring", cls.bag_path, "--ring", cls.rough_path,
                                    "--out", cls.out], capture_output=True, text=True, timeout=600)
@@ -91,12 +83,6 @@ class CalibrateRingSimTest(unittest.TestCase):
                 if kind:
                     cls.counts[kind] += 1
         return cb
-
-    @classmethod
-    def _on_waypoint(cls, msg):
-        with cls.lock:
-            if not cls.held or cls.held[-1] != msg.data:
-                cls.held.append(msg.data)
 
     def test_1_recorded(self):
         self.assertGreater(self.counts["det"], 8 * 100, self.counts)

@@ -13,15 +13,12 @@ from __future__ import annotations
 
 import os
 import shutil
-import threading
-import time
 import unittest
 
 import numpy as np
 import rospkg
 import rospy
 import rostest
-from std_msgs.msg import Int32
 from std_srvs.srv import Trigger
 
 from aruco_ring_localization.anchors import load_anchors
@@ -32,6 +29,7 @@ from aruco_ring_localization.ring import CameraRing
 from aruco_ring_localization.simulation.params import SimulatorConfig
 from aruco_ring_localization.simulation.scene import Scene
 from aruco_ring_localization.simulation.simulator import SimulatorCore
+from sim_route import HeldWaypoints
 
 PKG = "aruco_ring_localization"
 # Strict (no alignment) error of the surveyed map: the map's geometry (best fit ~1-2 mm) plus the
@@ -53,26 +51,9 @@ class MapperAnchorsTest(unittest.TestCase):
         cls.scene = Scene.load(config.scene.file)
         cls.core = SimulatorCore(config, cls.scene, CameraRing.load(f"{root}/config/ring.yaml"))
         cls.stations = cls.core.waypoints()
-        cls.lock = threading.Lock()
-        cls.held = []
-        rospy.Subscriber("/sim/at_waypoint", Int32, cls._on_waypoint, queue_size=100)
-        last = len(cls.stations) - 1
-        deadline = time.monotonic() + 110.0
-        while time.monotonic() < deadline and not rospy.is_shutdown():
-            with cls.lock:
-                if cls.held[-2:] == [last, -1]:   # held the last station, then finished
-                    break
-            rospy.rostime.wallsleep(0.05)
-        else:
-            raise AssertionError(f"the simulator did not go through the {len(cls.stations)} stations: {cls.held}")
+        HeldWaypoints().wait_for_route_end(len(cls.stations) - 1, timeout=110.0)
         rospy.wait_for_service("/mapper/save_map", timeout=30.0)
         cls.response = rospy.ServiceProxy("/mapper/save_map", Trigger)()
-
-    @classmethod
-    def _on_waypoint(cls, msg):
-        with cls.lock:
-            if not cls.held or cls.held[-1] != msg.data:
-                cls.held.append(msg.data)
 
     def test_0_the_anchors_file_is_the_scenes(self):
         """lab_anchors.yaml is made from config/lab_scene.yaml (its header says how): if the scene

@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import threading
-import time
 import unittest
 
 import numpy as np
@@ -23,7 +21,6 @@ import rospkg
 import rospy
 import rostest
 import tf2_ros
-from std_msgs.msg import Int32
 from std_srvs.srv import Trigger
 
 from aruco_ring_localization import geometry as geo
@@ -35,6 +32,7 @@ from aruco_ring_localization.simulation.calibration_run import rough_ring
 from aruco_ring_localization.simulation.params import SimulatorConfig
 from aruco_ring_localization.simulation.scene import Scene
 from aruco_ring_localization.simulation.simulator import SimulatorCore
+from sim_route import HeldWaypoints
 
 PKG = "aruco_ring_localization"
 # The lab targets of issue 13 (calib_err_mm_max / _deg_max), relative to the ring.
@@ -62,28 +60,11 @@ class MapperCalibrateTest(unittest.TestCase):
         cls.true = cls.core.true_ring
         cls.tf_buffer = tf2_ros.Buffer()
         cls.tf_listener = tf2_ros.TransformListener(cls.tf_buffer)
-        cls.lock = threading.Lock()
-        cls.held = []
-        rospy.Subscriber("/sim/at_waypoint", Int32, cls._on_waypoint, queue_size=100)
-        last = len(cls.core.waypoints()) - 1
         # The route is ~60 simulated s at twice the wall clock; a loaded machine runs it slower.
-        deadline = time.monotonic() + 300.0
-        while time.monotonic() < deadline and not rospy.is_shutdown():
-            with cls.lock:
-                if last in cls.held:
-                    break
-            rospy.rostime.wallsleep(0.1)
-        else:
-            raise AssertionError(f"the simulator did not reach the last waypoint {last}: held {cls.held}")
+        HeldWaypoints().wait_for_waypoint(len(cls.core.waypoints()) - 1, timeout=300.0)
         rospy.rostime.wallsleep(2.0)     # the odometry lookups run each second
         rospy.wait_for_service("/mapper/save_map", timeout=30.0)
         cls.response = rospy.ServiceProxy("/mapper/save_map", Trigger)()
-
-    @classmethod
-    def _on_waypoint(cls, msg):
-        with cls.lock:
-            if not cls.held or cls.held[-1] != msg.data:
-                cls.held.append(msg.data)
 
     def test_0_the_rough_ring_is_the_generators(self):
         """ring_rough.yaml is config/ring.yaml made rough (its header says how): regenerate it if not."""

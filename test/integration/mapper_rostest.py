@@ -14,7 +14,6 @@ import os
 import re
 import shutil
 import threading
-import time
 import unittest
 
 import rospkg
@@ -22,7 +21,6 @@ import rospy
 import rostest
 import tf2_ros
 from rosgraph_msgs.msg import Log
-from std_msgs.msg import Int32
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
@@ -35,6 +33,7 @@ from aruco_ring_localization.ros.conversions import msg_to_transform, pose_msg_t
 from aruco_ring_localization.simulation.params import SimulatorConfig
 from aruco_ring_localization.simulation.scene import Scene
 from aruco_ring_localization.simulation.simulator import SimulatorCore
+from sim_route import HeldWaypoints
 
 PKG = "aruco_ring_localization"
 TOL_FIT_MAX_MM = 10.0        # best-fit (the map's geometry): measured ~1-2 mm
@@ -57,30 +56,14 @@ class MapperSimTest(unittest.TestCase):
         cls.stations = cls.core.waypoints()
         cls.lock = threading.Lock()
         cls.marker_arrays = []
-        cls.held = []
         cls.progress = []   # the mapper's progress lines (/rosout)
         rospy.Subscriber("/rosout", Log, cls._on_log, queue_size=100)
         rospy.Subscriber("/mapper/markers", MarkerArray, cls._on_markers, queue_size=5)
-        rospy.Subscriber("/sim/at_waypoint", Int32, cls._on_waypoint, queue_size=100)
-        last = len(cls.stations) - 1
-        deadline = time.monotonic() + 90.0
-        while time.monotonic() < deadline and not rospy.is_shutdown():
-            with cls.lock:
-                if cls.held[-2:] == [last, -1]:   # held the last station, then finished
-                    break
-            rospy.rostime.wallsleep(0.05)
-        else:
-            raise AssertionError(f"the simulator did not go through the {len(cls.stations)} stations: {cls.held}")
+        HeldWaypoints().wait_for_route_end(len(cls.stations) - 1, timeout=90.0)
         rospy.wait_for_service("/mapper/save_map", timeout=30.0)
         cls.response = rospy.ServiceProxy("/mapper/save_map", Trigger)()
         cls.tf_buffer = tf2_ros.Buffer()
         cls.tf_listener = tf2_ros.TransformListener(cls.tf_buffer)
-
-    @classmethod
-    def _on_waypoint(cls, msg):
-        with cls.lock:
-            if not cls.held or cls.held[-1] != msg.data:
-                cls.held.append(msg.data)
 
     @classmethod
     def _on_log(cls, msg):
