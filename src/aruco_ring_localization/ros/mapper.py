@@ -309,13 +309,18 @@ class MapperNode:
         (rospy.logwarn if cal.warnings else rospy.loginfo)(f"mapper: {text}")
         return text
 
-    def on_calibrate_ring(self, _req) -> TriggerResponse:
+    @staticmethod
+    def _trigger(service: str, work) -> TriggerResponse:
+        """A Trigger service's answer: ``work()``'s summary, or its error (logged) and success False."""
         try:
-            text = self.calibrate_ring()
+            text = work()
         except (ArucoRingError, OSError) as exc:
-            rospy.logerr(f"mapper: calibrate_ring failed: {exc}")
+            rospy.logerr(f"mapper: {service} failed: {exc}")
             return TriggerResponse(success=False, message=str(exc))
         return TriggerResponse(success=True, message=text)
+
+    def on_calibrate_ring(self, _req) -> TriggerResponse:
+        return self._trigger("calibrate_ring", self.calibrate_ring)
 
     def save(self) -> str:
         """Build with the configured method, write atomically; log and return the summary (a warning
@@ -333,12 +338,7 @@ class MapperNode:
         return calibrated + text
 
     def on_save_map(self, _req) -> TriggerResponse:
-        try:
-            text = self.save()
-        except (ArucoRingError, OSError) as exc:
-            rospy.logerr(f"mapper: save_map failed: {exc}")
-            return TriggerResponse(success=False, message=str(exc))
-        return TriggerResponse(success=True, message=text)
+        return self._trigger("save_map", self.save)
 
     def on_clear(self, _req) -> TriggerResponse:
         with self.ring_input.lock:
