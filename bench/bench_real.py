@@ -53,7 +53,8 @@ from aruco_ring_localization import geometry as geo  # noqa: E402
 from aruco_ring_localization.anchors import anchor_report  # noqa: E402
 from aruco_ring_localization.errors import ArucoRingError, MapSanityError  # noqa: E402
 from aruco_ring_localization.evaluation.maps import map_error  # noqa: E402
-from aruco_ring_localization.importers import read_rig, tagslam_anchors, tagslam_odometry, write_ring_files  # noqa: E402
+from aruco_ring_localization.importers import (read_rig, tagslam_anchors, tagslam_boards, tagslam_odometry,  # noqa: E402
+                                               write_ring_files)
 from aruco_ring_localization.mapping_odometry import MappingOdometryOptions  # noqa: E402
 from aruco_ring_localization.localization import LocalizationParams, RingLocalizer  # noqa: E402
 from aruco_ring_localization.mapping import MapBuilder, MappingOptions  # noqa: E402
@@ -228,7 +229,7 @@ def _odometry(test: str, src: str, rig_body: str, frames) -> Tuple[Optional[Mapp
 
 
 def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool = True,
-            odometry: bool = True) -> Dict[str, float]:
+            odometry: bool = True, boards: bool = True) -> Dict[str, float]:
     out_dir, src, tags, ref, ring, sizes, ignore, frames, truth = _load_case(test, max_frames)
     write_ring_files(ring, os.path.join(out_dir, "ring.yaml"))
     truth.save(os.path.join(out_dir, "tagslam_map.yaml"))
@@ -246,7 +247,11 @@ def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool =
         # TagSLAM's problem: its known poses' noise against its corner noise (tagslam.yaml), so that
         # the survey and the images weigh as they do in the reference.
         options = dataclasses.replace(options, ba=dataclasses.replace(options.ba, pixel_noise=tags.pixel_noise))
-    b = MapBuilder(ring, sizes, options=options, anchors=survey)
+    # TagSLAM's boards (its board / staggered_board bodies: known layouts) as rigid boards, as TagSLAM uses them.
+    layout = tagslam_boards(os.path.join(src, "tagslam.yaml"), rig_bodies=(ref.rig_body,)) if boards else None
+    res["boards"] = len(layout) if layout is not None else 0
+    b = MapBuilder(ring, sizes, options=options, anchors=survey, boards=layout if layout is not None and len(layout)
+                   else None)
     if odo:
         b.set_odometry(*odo)
     for f in frames:
@@ -767,6 +772,8 @@ if __name__ == "__main__":
     p.add_argument("--loc-only", action="store_true", help="with --only: localization on TagSLAM's map alone (no "
                                                            "mapping); with --merge its figures replace the row's "
                                                            "localization columns (the mapping columns stay)")
+    p.add_argument("--no-boards", action="store_true", help="map each tag alone, without tagslam.yaml's board "
+                                                            "layouts (the ablation of the boards)")
     a = p.parse_args()
     if a.render:
         out = render_saved()
@@ -783,7 +790,7 @@ if __name__ == "__main__":
                     json.dump(r, fh, indent=1, default=float)
     elif a.only:
         for t in a.only.split(","):
-            r = run_one(t, a.max_frames)
+            r = run_one(t, a.max_frames, boards=not a.no_boards)
             print(t, json.dumps({k: (v if not isinstance(v, float) else round(v, 3)) for k, v in r.items()}))
             if a.merge:
                 # One file per recording (several --merge runs may go side by side); --render takes them.
