@@ -153,3 +153,31 @@ def test_mapbuilder_places_a_boards_markers(monkeypatch):
     assert sorted(out.T_W_markers) == board.ids and 3 not in out.rejected and out.unlinked == []
     for m in board.ids:
         assert geo.pose_distance(out.T_W_markers[m], T_W_b @ board.layout[m])[0] < 1e-9
+
+
+def test_build_map_boards_option_reaches_the_mapper(tmp_path):
+    """``build-map --boards tagslam.yaml`` -> ``map/boards_file`` -> the pipeline's MapBuilder; a file
+    without boards is refused by name."""
+    import argparse
+
+    from aruco_ring_localization.cli import build_map
+    from aruco_ring_localization.config import with_overrides
+    from aruco_ring_localization.pipeline import MappingPipeline
+    from aruco_ring_localization.ring import CameraRing
+    from aruco_ring_localization.schemas import MapperConfig
+    from helpers import RING_YAML
+
+    parser = argparse.ArgumentParser()
+    build_map.add_arguments(parser)
+    path = str(DATA / "test_24" / "tagslam.yaml")
+    config = build_map.load_config(parser.parse_args(["x.bag", "--out", "m.yaml", "--boards", path]))
+    assert config.map.boards_file == path
+    ring = CameraRing.load(str(RING_YAML))
+    offline = {"input.use_tf": False, "input.camera_info_fallback": True}
+    pipe = MappingPipeline(with_overrides(config, offline), ring)
+    assert pipe.builder.boards is not None and len(pipe.builder.boards) == 12
+    empty = tmp_path / "tagslam.yaml"
+    empty.write_text("bodies:\n - lab:\n     is_static: true\n     default_tag_size: 0.1\n")
+    with pytest.raises(ConfigError) as err:
+        MappingPipeline(with_overrides(MapperConfig(), {**offline, "map.boards_file": str(empty)}), ring)
+    assert err.value.key == "bodies"
