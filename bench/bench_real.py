@@ -229,7 +229,7 @@ def _odometry(test: str, src: str, rig_body: str, frames) -> Tuple[Optional[Mapp
 
 
 def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool = True,
-            odometry: bool = True, boards: bool = True) -> Dict[str, float]:
+            odometry: bool = True, boards: bool = True, view_limits: bool = False) -> Dict[str, float]:
     out_dir, src, tags, ref, ring, sizes, ignore, frames, truth = _load_case(test, max_frames)
     write_ring_files(ring, os.path.join(out_dir, "ring.yaml"))
     truth.save(os.path.join(out_dir, "tagslam_map.yaml"))
@@ -247,6 +247,11 @@ def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool =
         # TagSLAM's problem: its known poses' noise against its corner noise (tagslam.yaml), so that
         # the survey and the images weigh as they do in the reference.
         options = dataclasses.replace(options, ba=dataclasses.replace(options.ba, pixel_noise=tags.pixel_noise))
+    if view_limits:
+        # The views TagSLAM drops (tagslam.yaml's minimum_viewing_angle, minimum_tag_area).
+        options = dataclasses.replace(options, min_viewing_angle_deg=tags.minimum_viewing_angle or 0.0,
+                                      min_marker_area_px=tags.minimum_tag_area or 0.0)
+    res["view_limits"] = [options.min_viewing_angle_deg, options.min_marker_area_px]
     # TagSLAM's boards (its board / staggered_board bodies: known layouts) as rigid boards, as TagSLAM uses them.
     layout = tagslam_boards(os.path.join(src, "tagslam.yaml"), rig_bodies=(ref.rig_body,)) if boards else None
     res["boards"] = len(layout) if layout is not None else 0
@@ -774,6 +779,8 @@ if __name__ == "__main__":
                                                            "localization columns (the mapping columns stay)")
     p.add_argument("--no-boards", action="store_true", help="map each tag alone, without tagslam.yaml's board "
                                                             "layouts (the ablation of the boards)")
+    p.add_argument("--view-limits", action="store_true", help="drop the views TagSLAM drops (tagslam.yaml's "
+                                                              "minimum_viewing_angle, minimum_tag_area)")
     a = p.parse_args()
     if a.render:
         out = render_saved()
@@ -790,7 +797,7 @@ if __name__ == "__main__":
                     json.dump(r, fh, indent=1, default=float)
     elif a.only:
         for t in a.only.split(","):
-            r = run_one(t, a.max_frames, boards=not a.no_boards)
+            r = run_one(t, a.max_frames, boards=not a.no_boards, view_limits=a.view_limits)
             print(t, json.dumps({k: (v if not isinstance(v, float) else round(v, 3)) for k, v in r.items()}))
             if a.merge:
                 # One file per recording (several --merge runs may go side by side); --render takes them.

@@ -99,6 +99,12 @@ class MappingOptions:
     max_reprojection_px: float = param(3.0, "detections whose best single-marker pose reprojects worse (RMS) are "
                                             "rejected as bad detections", unit="px")
     max_distance: float = param(12.0, "detections of markers farther than this are ignored", unit="m")
+    min_viewing_angle_deg: float = param(0.0, "detections whose line of sight meets the marker's plane at less "
+                                              "than this are ignored (grazing views: their corners, and the "
+                                              "marker's orientation, are the least certain; TagSLAM's "
+                                              "minimum_viewing_angle); 0 keeps all", unit="deg")
+    min_marker_area_px: float = param(0.0, "detections whose corners enclose fewer square pixels are ignored "
+                                           "(TagSLAM's minimum_tag_area); 0 keeps all", unit="px^2")
     still_px: float = param(1.5, "automatic stations: consecutive frames whose common detections moved less than "
                                  "this (median of the largest corner motion) belong to one robot placement", unit="px")
     max_frames_per_station: int = param(30, "frames kept per station (more add little and cost time)")
@@ -155,6 +161,7 @@ class MappingOptions:
                                                        "is not written, the previous file stays)")
 
     consensus_angle = in_radians("consensus_angle_deg")
+    min_viewing_angle = in_radians("min_viewing_angle_deg")
     planar_max_tilt = in_radians("planar_max_tilt_deg")
 
     def __post_init__(self) -> None:
@@ -213,6 +220,20 @@ def _candidates(xy: np.ndarray, size: float, focal: np.ndarray) -> MarkerPoseCan
     refined from the IPPE poses and their mirrors, errors in undistorted px (see
     :func:`pnp.solve_marker_ippe_undistorted`)."""
     return solve_marker_ippe_undistorted(xy, size, focal, mirror=True, min_separation=_MIN_SEPARATION)
+
+
+def _area_px(corners: np.ndarray) -> float:
+    """Area (px^2) of the quadrilateral of a detection's 4 raw corners (shoelace)."""
+    c = np.asarray(corners, dtype=float).reshape(4, 2)
+    x, y = c[:, 0], c[:, 1]
+    return 0.5 * abs(float(x @ np.roll(y, -1) - y @ np.roll(x, -1)))
+
+
+def _viewing_angle(T_cam_marker: np.ndarray) -> float:
+    """Angle (rad) between the line of sight to a marker's centre and its plane (90 deg: face-on).
+    The same for both poses of the planar ambiguity (they mirror the normal about that line)."""
+    t = T_cam_marker[:3, 3]
+    return float(np.arcsin(min(1.0, abs(float(T_cam_marker[:3, 2] @ t)) / float(np.linalg.norm(t)))))
 
 
 def _robust_fit(fit, P: np.ndarray, Q: np.ndarray) -> np.ndarray:
@@ -405,6 +426,12 @@ class MapBuilder:
                 continue
             if distance > opts.max_distance:
                 self._reject("too far", name)
+                continue
+            if opts.min_marker_area_px > 0 and _area_px(o.corners) < opts.min_marker_area_px:
+                self._reject("too small", name)
+                continue
+            if opts.min_viewing_angle_deg > 0 and _viewing_angle(cand.T_cam_marker) < opts.min_viewing_angle:
+                self._reject("grazing view", name)
                 continue
             self._obs.append(_Obs(st, name, int(o.marker_id), o.corners, xy, focal, np.array(T_base_cam), model,
                                   model.pixel_jacobian(xy)))

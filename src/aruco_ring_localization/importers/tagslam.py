@@ -62,6 +62,10 @@ class TagslamTags:
     #: ``tagslam_parameters.pixel_noise``: the corner noise (px) TagSLAM weighs the images with
     #: against the known poses' noise (None when the file does not give it).
     pixel_noise: Optional[float] = None
+    #: ``tagslam_parameters.minimum_viewing_angle`` (deg) and ``minimum_tag_area`` (px^2): the views
+    #: TagSLAM drops (None when the file does not give them).
+    minimum_viewing_angle: Optional[float] = None
+    minimum_tag_area: Optional[float] = None
 
     def remap(self, marker_id: int, stamp: float) -> int:
         """The id a detection of ``marker_id`` at ``stamp`` (s) stands for (``tag_id_remap``)."""
@@ -99,6 +103,12 @@ def _ranges(values: Mapping[int, float], with_value: bool = True) -> str:
 def _positive(value: Any, path: str, key: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
         raise ConfigError(f"expected a positive length in metres, got {value!r}", path=path, key=key)
+    return float(value)
+
+
+def _number(value: Any, path: str, key: str, what: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value < 0:
+        raise ConfigError(f"expected {what} (>= 0), got {value!r}", path=path, key=key)
     return float(value)
 
 
@@ -331,6 +341,12 @@ def read_tagslam_tags(path: str, rig_bodies: Tuple[str, ...] = ()) -> TagslamTag
     params = data.get("tagslam_parameters")
     if isinstance(params, Mapping) and params.get("pixel_noise") is not None:
         out.pixel_noise = _positive(params["pixel_noise"], path, "tagslam_parameters.pixel_noise")
+    if isinstance(params, Mapping) and params.get("minimum_viewing_angle") is not None:
+        out.minimum_viewing_angle = _number(params["minimum_viewing_angle"], path,
+                                            "tagslam_parameters.minimum_viewing_angle", "an angle in degrees")
+    if isinstance(params, Mapping) and params.get("minimum_tag_area") is not None:
+        out.minimum_tag_area = _number(params["minimum_tag_area"], path, "tagslam_parameters.minimum_tag_area",
+                                       "an area in square pixels")
     return out
 
 
