@@ -181,3 +181,34 @@ def test_build_map_boards_option_reaches_the_mapper(tmp_path):
     with pytest.raises(ConfigError) as err:
         MappingPipeline(with_overrides(MapperConfig(), {**offline, "map.boards_file": str(empty)}), ring)
     assert err.value.key == "bodies"
+
+
+def test_grazing_and_small_views_are_dropped_only_when_asked():
+    """TagSLAM's minimum_viewing_angle / minimum_tag_area as mapping options (off by default)."""
+    from aruco_ring_localization.camera import CameraModel  # noqa: F401  (the ring's model projects)
+    from aruco_ring_localization.detections import CameraFrame, MarkerObservation, RingFrame
+    from aruco_ring_localization.mapping import MapBuilder, MappingOptions, _area_px, _viewing_angle
+    from aruco_ring_localization.markers import MarkerSizes
+    from aruco_ring_localization.ring import CameraRing
+    from helpers import RING_YAML
+
+    assert _area_px(np.array([[0, 0], [10, 0], [10, 20], [0, 20]])) == pytest.approx(200.0)
+    face_on = geo.make_transform(geo.rotation_from_rvec([np.pi, 0, 0]), [0.0, 0.0, 2.0])
+    assert np.degrees(_viewing_angle(face_on)) == pytest.approx(90.0)
+    tilted = face_on @ geo.make_transform(geo.rotation_from_rvec([0, np.radians(80), 0]), [0, 0, 0])
+    assert np.degrees(_viewing_angle(tilted)) == pytest.approx(10.0, abs=1e-6)
+    # its mirror about the line of sight meets it at the same angle
+    ring = CameraRing.load(str(RING_YAML))
+    cam = ring[ring.names[0]]
+    poses = {1: face_on, 2: geo.make_transform(np.eye(3), [0.6, 0, 0]) @ tilted,
+             3: geo.make_transform(geo.rotation_from_rvec([np.pi, 0, 0]), [-0.5, 0.0, 6.0])}
+    obs = [MarkerObservation(i, cam.model.project(geo.transform_points(T, marker_corners(0.2))))
+           for i, T in poses.items()]
+    areas = {o.marker_id: _area_px(o.corners) for o in obs}
+    assert areas[3] < areas[1] and areas[2] < areas[1]
+    frame = RingFrame(0.0, {cam.name: CameraFrame(cam.name, 0.0, obs)})
+    for opts, kept in ((MappingOptions(), {1, 2, 3}), (MappingOptions(min_viewing_angle_deg=12.0), {1, 3}),
+                       (MappingOptions(min_marker_area_px=0.9 * areas[1]), {1})):
+        b = MapBuilder(ring, MarkerSizes(0.2), method="paper", options=opts)
+        b.add_frame(frame)
+        assert {o.marker_id for o in b._obs} == kept
