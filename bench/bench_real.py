@@ -90,9 +90,13 @@ LIMITS = {
                "visual-inertial odometry in the bag (/fla/vio/odom); the package maps with the same anchors and "
                "the same odometry as links between stations (its own noise model, docs/mapping.md)",
     "test_12": "as test_11 with one surveyed tag (tag 6, full pose): the odometry links the walk",
-    "test_13": "tags on rigid boards: TagSLAM maps each board with its known layout, the package each tag alone",
-    "test_24": "staggered boards of 5 cm tags seen at grazing angles: TagSLAM uses the boards' layout and drops "
-               "views under 15 deg or 2000 px^2; the package maps each tag alone, some with the mirrored IPPE pose",
+    "test_13": "16 rigid boards of 6 tags: both map them with tagslam.yaml's layouts (the package's boards exact, "
+               "TagSLAM's tags 1 mm / 1 mrad loose on theirs); what remains is a scale: our map is 0.23 % larger "
+               "than TagSLAM's (a similarity fit leaves 2.3 mm RMS)",
+    "test_24": "staggered boards of 5 cm tags seen at grazing angles: both use the boards' layouts; TagSLAM also "
+               "drops views under 15 deg or 2000 px^2 and ties the boards to one plane and one measured distance "
+               "(plane_measurements, distance_measurements: not read by the package); tags 2090-2094 and "
+               "2100-2104 are on no declared board and not in TagSLAM's map",
 }
 QUICK = ("test_1", "test_8", "test_22", "test_17")
 QUICK_FRAMES = 600
