@@ -16,7 +16,11 @@ For every recording the package can handle (the others are listed with the reaso
    many of those the bag never detects: TagSLAM has them only from tagslam.yaml). As TagSLAM does,
    the tags tagslam.yaml fixes are anchors, and where its rig body has an ``odom_topic`` (test_11,
    test_12) that odometry, read from the detections' bag, links consecutive stations
-   (``mapping.odometry``, ``base_to_odom`` = its ``T_body_odom``; the package's noise model).
+   (``mapping.odometry``, ``base_to_odom`` = its ``T_body_odom``; the package's noise model). Its
+   static ``board`` / ``staggered_board`` bodies are given as rigid boards (:func:`importers.tagslam_boards`,
+   test_13, test_24; ``--no-boards``: each tag alone). ``--view-limits``: the views TagSLAM drops
+   (``minimum_viewing_angle``, ``minimum_tag_area``) are dropped too (not the default: the rows are
+   measured without).
 4. **Localization** (:class:`pipeline.LocalizationPipeline`, ``joint`` fusion) of every ring frame, on
    TagSLAM's map with TagSLAM's extrinsics, and on the package's map with its refined extrinsics
    (expressed in TagSLAM's frame by the map's best-fit alignment, nothing fitted to the
