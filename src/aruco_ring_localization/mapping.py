@@ -64,6 +64,7 @@ import numpy as np
 
 from . import geometry as geo
 from .anchors import AnchorSet, anchor_report, fit_frame, frame_definition, frame_kind
+from .boards import BoardSet, collapse, expand_covariances, expand_poses, fit_board_pose, solve_board_view
 from .bundle_adjustment import (BAOptions, BAProblem, BAResult, MarkerPriors, RelativePoseFactors, bundle_adjust,
                                 camera_cov_in_optical_frames, marker_std_in_frame, observation_rms_px)
 from .config import in_radians, param, section
@@ -98,6 +99,12 @@ class MappingOptions:
     max_reprojection_px: float = param(3.0, "detections whose best single-marker pose reprojects worse (RMS) are "
                                             "rejected as bad detections", unit="px")
     max_distance: float = param(12.0, "detections of markers farther than this are ignored", unit="m")
+    min_viewing_angle_deg: float = param(0.0, "detections whose line of sight meets the marker's plane at less "
+                                              "than this are ignored (grazing views: their corners, and the "
+                                              "marker's orientation, are the least certain; TagSLAM's "
+                                              "minimum_viewing_angle); 0 keeps all", unit="deg")
+    min_marker_area_px: float = param(0.0, "detections whose corners enclose fewer square pixels are ignored "
+                                           "(TagSLAM's minimum_tag_area); 0 keeps all", unit="px^2")
     still_px: float = param(1.5, "automatic stations: consecutive frames whose common detections moved less than "
                                  "this (median of the largest corner motion) belong to one robot placement", unit="px")
     max_frames_per_station: int = param(30, "frames kept per station (more add little and cost time)")
@@ -154,6 +161,7 @@ class MappingOptions:
                                                        "is not written, the previous file stays)")
 
     consensus_angle = in_radians("consensus_angle_deg")
+    min_viewing_angle = in_radians("min_viewing_angle_deg")
     planar_max_tilt = in_radians("planar_max_tilt_deg")
 
     def __post_init__(self) -> None:
@@ -212,6 +220,20 @@ def _candidates(xy: np.ndarray, size: float, focal: np.ndarray) -> MarkerPoseCan
     refined from the IPPE poses and their mirrors, errors in undistorted px (see
     :func:`pnp.solve_marker_ippe_undistorted`)."""
     return solve_marker_ippe_undistorted(xy, size, focal, mirror=True, min_separation=_MIN_SEPARATION)
+
+
+def _area_px(corners: np.ndarray) -> float:
+    """Area (px^2) of the quadrilateral of a detection's 4 raw corners (shoelace)."""
+    c = np.asarray(corners, dtype=float).reshape(4, 2)
+    x, y = c[:, 0], c[:, 1]
+    return 0.5 * abs(float(x @ np.roll(y, -1) - y @ np.roll(x, -1)))
+
+
+def _viewing_angle(T_cam_marker: np.ndarray) -> float:
+    """Angle (rad) between the line of sight to a marker's centre and its plane (90 deg: face-on).
+    The same for both poses of the planar ambiguity (they mirror the normal about that line)."""
+    t = T_cam_marker[:3, 3]
+    return float(np.arcsin(min(1.0, abs(float(T_cam_marker[:3, 2] @ t)) / float(np.linalg.norm(t)))))
 
 
 def _robust_fit(fit, P: np.ndarray, Q: np.ndarray) -> np.ndarray:
@@ -287,7 +309,7 @@ class MapBuilder:
 
     def __init__(self, ring: CameraRing, sizes: MarkerSizes, method: str = "refined",
                  reference_marker: Optional[int] = None, options: Optional[MappingOptions] = None,
-                 frame_id: str = "map", anchors: Optional[AnchorSet] = None):
+                 frame_id: str = "map", anchors: Optional[AnchorSet] = None, boards: Optional[BoardSet] = None):
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         self.ring = ring
@@ -297,6 +319,7 @@ class MapBuilder:
         self.options = options or MappingOptions()
         self.frame_id = frame_id
         self.anchors = anchors
+        self.boards = boards
         self.clear()
 
     def set_ring(self, ring: CameraRing) -> None:
@@ -403,6 +426,12 @@ class MapBuilder:
                 continue
             if distance > opts.max_distance:
                 self._reject("too far", name)
+                continue
+            if opts.min_marker_area_px > 0 and _area_px(o.corners) < opts.min_marker_area_px:
+                self._reject("too small", name)
+                continue
+            if opts.min_viewing_angle_deg > 0 and _viewing_angle(cand.T_cam_marker) < opts.min_viewing_angle:
+                self._reject("grazing view", name)
                 continue
             self._obs.append(_Obs(st, name, int(o.marker_id), o.corners, xy, focal, np.array(T_base_cam), model,
                                   model.pixel_jacobian(xy)))
@@ -531,7 +560,48 @@ class MapBuilder:
             lens = np.mean([self._obs[i].lens for i in idxs], axis=0)
             out.append(_Group(st, cam, mid, idxs, cand.poses, cand.errors, cand.ambiguity, dist, cosf,
                               first.T_base_cam, xy, first.focal, lens))
+        if self.boards is not None and len(self.boards):
+            self._board_views(out, self.boards)
         return out
+
+    def _board_views(self, groups: List[_Group], boards: BoardSet) -> None:
+        """Markers of one board seen together by one camera at one station: each one's pose from
+        the board's (:func:`boards.solve_board_view`, all their corners at once), unambiguous (in
+        place). A marker that does not fit its board's view (over ``max_reprojection_px``) keeps its
+        own single-marker solution; a view that does not fit at all is left alone."""
+        views: Dict[Tuple[int, str, int], List[_Group]] = defaultdict(list)
+        for g in groups:
+            b = boards.board_of(g.marker_id)
+            if b is not None:
+                views[(g.station, g.camera, b)].append(g)
+        lim = self.options.max_reprojection_px
+        for (_, _, b), gs in views.items():
+            if len(gs) < 2:
+                continue
+            board = boards.boards[b]
+            for _ in range(2):
+                try:
+                    T_cb, rms, per = solve_board_view(board, [(g.marker_id, g.xy, self.sizes(g.marker_id), g.candidates)
+                                                             for g in gs], gs[0].focal)
+                except GeometryError:
+                    break
+                fit = [g for g in gs if per[g.marker_id] <= lim]
+                if len(fit) == len(gs) or len(fit) < 2:
+                    break
+                gs = fit
+            else:
+                continue
+            if len([g for g in gs if per[g.marker_id] <= lim]) < 2:
+                continue
+            for g in gs:
+                if per[g.marker_id] > lim:
+                    continue
+                T = T_cb @ board.layout[g.marker_id]
+                g.candidates = [T]
+                g.errors = [per[g.marker_id]]
+                g.ambiguity = 0.0
+                g.distance = float(np.linalg.norm(T[:3, 3]))
+                g.cos_facing = float(-T[:3, 2] @ (T[:3, 3] / g.distance))
 
     def _unambiguous(self, g: _Group) -> bool:
         return g.ambiguity <= self.options.max_ambiguity
@@ -1483,9 +1553,15 @@ class MapBuilder:
         if opts.refine_extrinsics and not self._refines_extrinsics:
             opts = dataclasses.replace(opts, refine_extrinsics=False)
         rejected: Dict[int, str] = {}
-        for attempt in range(3):
+        boards = self._active_boards()
+        if boards is not None:
+            init = self._place_boards(init, boards)
+        n_rejections = 0
+        # Rejections at most twice; with boards, dropping the views that do not fit their board does
+        # not count (at most twice as well).
+        for attempt in range(3 if boards is None else 5):
             mids = sorted(init.T_W_markers)
-            res = bundle_adjust(self._problem(init, mids), opts)
+            res = self._adjust(self._problem(init, mids), mids, opts, boards)
             obs_k = np.array([k for k, m in enumerate(mids) for _ in init.marker_obs.get(m, [])], dtype=int)
             n_k = np.maximum(np.bincount(obs_k, minlength=len(mids)), 1)
             rms = np.sqrt(np.bincount(obs_k, weights=np.square(res.per_obs_rms_px), minlength=len(mids)) / n_k)
@@ -1494,8 +1570,22 @@ class MapBuilder:
             surveyed = set(self.anchors.ids) if self.anchors is not None else set()
             bad = [m for k, m in enumerate(mids) if rms[k] > self.options.max_marker_rms_px and m != init.reference
                    and m not in surveyed]
-            if not bad or attempt == 2 or len(bad) >= len(mids) - 1:
+            if not bad or n_rejections == 2 or attempt == (2 if boards is None else 4) or len(bad) >= len(mids) - 1:
                 break
+            if boards is not None:
+                # A board's marker whose views do not fit stays where its board puts it (its views
+                # dropped, as TagSLAM drops grazing ones) while other markers of the board are seen.
+                held = self._held_by_board(bad, init, boards)
+                if held:
+                    logger.warning("mapping: the views of markers %s do not fit their boards (over %g px RMS): "
+                                   "dropped, the markers placed by their boards' layout", held,
+                                   self.options.max_marker_rms_px)
+                    init = dataclasses.replace(init, marker_obs={m: ([] if m in held else v)
+                                                                 for m, v in init.marker_obs.items()})
+                    bad = [m for m in bad if m not in held]
+                    if not bad:
+                        continue
+            n_rejections += 1
             for m in bad:
                 rejected[m] = (f"reprojects at {rms[mids.index(m)]:.1f} px RMS after the adjustment (limit "
                                f"{self.options.max_marker_rms_px:g} px): a flipped pose, a tag too small or seen "
@@ -1511,6 +1601,88 @@ class MapBuilder:
         self.last_ba = res
         self._refine_rejected = (self._version, dict(rejected))
         return res, mids, init
+
+    def _active_boards(self) -> Optional[BoardSet]:
+        """The boards the adjustment merges: all but those holding a surveyed marker (an anchor is a
+        prior on its own marker's pose, which a board's unknown does not have); None without any."""
+        if self.boards is None or not len(self.boards):
+            return None
+        if self.anchors is None:
+            return self.boards
+        surveyed = set(self.anchors.ids)
+        skip = [b.name for b in self.boards.boards if surveyed & set(b.layout)]
+        if skip:
+            logger.info("mapping: boards %s hold surveyed markers: their markers are mapped one by one", skip)
+        out = self.boards.without(skip)
+        return out if len(out) else None
+
+    def _place_boards(self, init: _Init, boards: BoardSet) -> _Init:
+        """Every marker of a board with a mapped, observed marker, placed by the board's layout.
+
+        The board's pose is fitted to its mapped markers (:func:`boards.fit_board_pose`: a mirrored
+        or ambiguous single-marker pose is outvoted); its markers the initialisation rejected or
+        never reached get their views at the initialised stations back (the adjustment weighs them
+        through the board), and its markers never detected are placed from the layout alone.
+        """
+        T_W = dict(init.T_W_markers)
+        obs = {m: list(v) for m, v in init.marker_obs.items()}
+        amb = dict(init.ambiguous)
+        rejected = dict(init.rejected)
+        stations = set(init.T_W_stations)
+        views: Dict[int, List[int]] = {}
+        for i, o in enumerate(self._obs):
+            if o.station in stations and boards.board_of(o.marker_id) is not None:
+                views.setdefault(o.marker_id, []).append(i)
+        for board in boards.boards:
+            have = [m for m in board.ids if m in T_W and obs.get(m)]
+            if not have:
+                continue
+            weights = {m: len(obs[m]) * (0.01 if m in amb else 1.0) for m in have}
+            T_b, agree = fit_board_pose(board, {m: T_W[m] for m in have}, weights)
+            added = [m for m in board.ids if m not in T_W]
+            for m in board.ids:
+                T_W[m] = T_b @ board.layout[m]
+                if not obs.get(m):
+                    obs[m] = list(views.get(m, []))
+                rejected.pop(m, None)
+                if len(agree) >= 2:
+                    amb.pop(m, None)
+            if added:
+                logger.info("mapping: board %s (%d of its markers mapped, %d agreeing) places markers %s",
+                            board.name, len(have), len(agree), added)
+        return dataclasses.replace(init, T_W_markers=T_W, marker_obs=obs, ambiguous=amb, rejected=rejected,
+                                   unlinked=[m for m in init.unlinked if m not in T_W],
+                                   unplaced={m: v for m, v in init.unplaced.items() if m not in T_W})
+
+    @staticmethod
+    def _held_by_board(bad: List[int], init: _Init, boards: BoardSet) -> List[int]:
+        """The markers of ``bad`` whose board keeps other observed markers that are not bad."""
+        out = []
+        for m in bad:
+            b = boards.board_of(m)
+            if b is None:
+                continue
+            others = [n for n in boards.boards[b].layout if n != m and n not in bad and init.marker_obs.get(n)]
+            if others:
+                out.append(m)
+        return out
+
+    @staticmethod
+    def _adjust(prob: BAProblem, mids: List[int], opts, boards: Optional[BoardSet]) -> BAResult:
+        """:func:`bundle_adjust` of ``prob`` (markers ``mids``), each board one unknown when there
+        are boards (:func:`boards.collapse`), the result given back per marker."""
+        if boards is None:
+            return bundle_adjust(prob, opts)
+        T_u, sizes_u, X, c = collapse(mids, prob.T_W_markers, prob.sizes, prob.obs_marker, boards)
+        priors = prob.priors
+        if priors is not None:
+            priors = dataclasses.replace(priors, position_marker=c.unit[priors.position_marker],
+                                         rotation_marker=c.unit[priors.rotation_marker])
+        sub = dataclasses.replace(prob, T_W_markers=T_u, sizes=sizes_u, obs_marker=c.unit[prob.obs_marker],
+                                  obs_object=X, priors=priors)
+        res = bundle_adjust(sub, opts)
+        cov = expand_covariances(res.marker_cov, res.T_W_markers, c) if res.marker_cov is not None else None
+        return dataclasses.replace(res, T_W_markers=expand_poses(res.T_W_markers, c), marker_cov=cov)
 
     @property
     def _refines_extrinsics(self) -> bool:

@@ -1056,9 +1056,16 @@ class MappingPipeline(_RingPipeline):
         # A surveyed frame: read once here, so a bad anchors file stops the node (or build-map) at
         # start, naming the file and the key.
         anchors = load_anchors(config.map.anchors_file) if config.map.anchors_file else None
+        boards = None
+        if config.map.boards_file:
+            from .importers import tagslam_boards
+            boards = tagslam_boards(config.map.boards_file)
+            if not len(boards):
+                raise ConfigError("no static board or staggered_board body: nothing to use as boards",
+                                  path=config.map.boards_file, key="bodies")
         self.builder = MapBuilder(self.input.ring, config.markers.sizes(), method=config.map.method,
                                   reference_marker=config.map.reference, options=config.mapping,
-                                  frame_id=config.map.map_frame, anchors=anchors)
+                                  frame_id=config.map.map_frame, anchors=anchors, boards=boards)
         self.frames_missing = 0  # ring frames added without every camera
         self._last_stamp: Optional[float] = None   # stamp of the latest frame the builder placed
 

@@ -49,6 +49,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--reference-marker", type=int, help="map/reference_marker: id fixing the map frame")
     parser.add_argument("--anchors", metavar="FILE",
                         help="map/anchors_file: surveyed markers (YAML, docs/formats.md) that define the map frame")
+    parser.add_argument("--boards", metavar="TAGSLAM_YAML",
+                        help="map/boards_file: rigid boards of markers with known layouts (a tagslam.yaml's board / "
+                             "staggered_board bodies): each board's markers are mapped together")
     parser.add_argument("--fiducial-len", type=float, help="markers/fiducial_len: marker side, m")
     parser.add_argument("--fiducial-len-override", help='markers/fiducial_len_override: "1-10: 0.05, 12: 0.06"')
     parser.add_argument("--ignore-fiducials", help='input/ignore_fiducials: ids to ignore "1,4,9-12"')
@@ -75,7 +78,7 @@ def load_config(args: argparse.Namespace) -> MapperConfig:
         "map.method": args.method, "map.reference_marker": args.reference_marker,
         "markers.fiducial_len": args.fiducial_len, "markers.fiducial_len_override": args.fiducial_len_override,
         "input.ignore_fiducials": args.ignore_fiducials, "input.slop": args.slop, "map.map_frame": args.map_frame,
-        "map.anchors_file": args.anchors,
+        "map.anchors_file": args.anchors, "map.boards_file": getattr(args, "boards", None),
         "mapping.frame": args.frame, "mapping.odometry.topic": getattr(args, "odom_topic", None),
         "mapping.odometry.base_to_odom": _six_numbers(getattr(args, "odom_extrinsics", None), "--odom-extrinsics")})
 

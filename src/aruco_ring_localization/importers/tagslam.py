@@ -24,7 +24,8 @@ import numpy as np
 
 from .. import geometry as geo
 from ..camera import load_yaml_file
-from ..errors import ConfigError
+from ..boards import Board, BoardSet, grid_board
+from ..errors import ConfigError, GeometryError
 from ..markers import MarkerSizes, parse_size_overrides
 
 logger = logging.getLogger(__name__)
@@ -61,6 +62,10 @@ class TagslamTags:
     #: ``tagslam_parameters.pixel_noise``: the corner noise (px) TagSLAM weighs the images with
     #: against the known poses' noise (None when the file does not give it).
     pixel_noise: Optional[float] = None
+    #: ``tagslam_parameters.minimum_viewing_angle`` (deg) and ``minimum_tag_area`` (px^2): the views
+    #: TagSLAM drops (None when the file does not give them).
+    minimum_viewing_angle: Optional[float] = None
+    minimum_tag_area: Optional[float] = None
 
     def remap(self, marker_id: int, stamp: float) -> int:
         """The id a detection of ``marker_id`` at ``stamp`` (s) stands for (``tag_id_remap``)."""
@@ -98,6 +103,12 @@ def _ranges(values: Mapping[int, float], with_value: bool = True) -> str:
 def _positive(value: Any, path: str, key: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
         raise ConfigError(f"expected a positive length in metres, got {value!r}", path=path, key=key)
+    return float(value)
+
+
+def _number(value: Any, path: str, key: str, what: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value < 0:
+        raise ConfigError(f"expected {what} (>= 0), got {value!r}", path=path, key=key)
     return float(value)
 
 
@@ -214,6 +225,50 @@ def _bodies(data: Mapping[str, Any], path: str) -> List[Tuple[str, Mapping[str, 
     return out
 
 
+def _board(name: str, kind: str, grid: Mapping[str, Any], size: float, path: str, key: str) -> Board:
+    """The layout of a ``board`` / ``staggered_board`` body (TagSLAM's): :func:`boards.grid_board`."""
+    try:
+        start, rows, cols = (int(grid[k]) for k in ("tag_start_id", "tag_rows", "tag_columns"))
+    except (KeyError, TypeError, ValueError):
+        raise ConfigError("expected tag_start_id, tag_rows, tag_columns", path=path, key=f"{key}.{kind}") from None
+    spacing = grid.get("tag_spacing")
+    if isinstance(spacing, bool) or not isinstance(spacing, (int, float)) or not spacing >= 0:
+        raise ConfigError(f"expected the gap between tags over their side (>= 0), got {spacing!r}", path=path,
+                          key=f"{key}.{kind}.tag_spacing")
+    if rows < 1 or cols < 1:
+        raise ConfigError(f"expected tag_rows and tag_columns >= 1, got {rows} and {cols}", path=path,
+                          key=f"{key}.{kind}")
+    T_board_body = _pose(grid["pose"], path, f"{key}.{kind}.pose") if grid.get("pose") is not None else None
+    return grid_board(name, start, rows, cols, size, float(spacing), staggered=kind == "staggered_board",
+                      T_board_body=T_board_body)
+
+
+def tagslam_boards(path: str, rig_bodies: Tuple[str, ...] = ()) -> BoardSet:
+    """The static ``board`` and ``staggered_board`` bodies of a ``tagslam.yaml`` as rigid boards
+    (:mod:`~aruco_ring_localization.boards`): tags ``tag_size * (1 + tag_spacing)`` apart, row by row
+    from ``tag_start_id`` (a staggered board: every other cell). TagSLAM's ``tag_position_noise`` /
+    ``tag_rotation_noise`` (the play between a tag and its board) are not used: the layout is taken
+    as exact. ConfigError names the file and key of a bad entry."""
+    data = load_yaml_file(path)
+    if not isinstance(data, Mapping):
+        raise ConfigError("expected a mapping", path=path)
+    out: List[Board] = []
+    for i, (name, body) in enumerate(_bodies(data, path)):
+        kind = str(body.get("type", "simple"))
+        if kind not in ("board", "staggered_board") or not body.get("is_static", False) or name in rig_bodies:
+            continue
+        key = f"bodies[{i}].{name}"
+        grid = body.get(kind)
+        if not isinstance(grid, Mapping):
+            raise ConfigError(f"expected the {kind} description", path=path, key=f"{key}.{kind}")
+        size = _positive(grid.get("tag_size", body.get("default_tag_size")), path, f"{key}.{kind}.tag_size")
+        out.append(_board(name, kind, grid, size, path, key))
+    try:
+        return BoardSet(out, source=path)
+    except GeometryError as e:
+        raise ConfigError(str(e), path=path, key="bodies") from None
+
+
 def read_tagslam_tags(path: str, rig_bodies: Tuple[str, ...] = ()) -> TagslamTags:
     """Read the tags of a ``tagslam.yaml``; ConfigError names the file and key of a bad entry.
 
@@ -266,8 +321,8 @@ def read_tagslam_tags(path: str, rig_bodies: Tuple[str, ...] = ()) -> TagslamTag
             except (KeyError, TypeError, ValueError):
                 raise ConfigError("expected tag_start_id, tag_rows, tag_columns", path=path, key=f"{key}.{kind}") from None
             bsize = _positive(grid.get("tag_size", size), path, f"{key}.{kind}.tag_size")
-            for k in range(rows * cols):
-                ids[start + k] = bsize
+            for m in _board(name, kind, grid, bsize, path, key).layout:
+                ids[m] = bsize
         out.sizes.update(ids)
         if not static:
             out.moving |= set(ids)
@@ -286,6 +341,12 @@ def read_tagslam_tags(path: str, rig_bodies: Tuple[str, ...] = ()) -> TagslamTag
     params = data.get("tagslam_parameters")
     if isinstance(params, Mapping) and params.get("pixel_noise") is not None:
         out.pixel_noise = _positive(params["pixel_noise"], path, "tagslam_parameters.pixel_noise")
+    if isinstance(params, Mapping) and params.get("minimum_viewing_angle") is not None:
+        out.minimum_viewing_angle = _number(params["minimum_viewing_angle"], path,
+                                            "tagslam_parameters.minimum_viewing_angle", "an angle in degrees")
+    if isinstance(params, Mapping) and params.get("minimum_tag_area") is not None:
+        out.minimum_tag_area = _number(params["minimum_tag_area"], path, "tagslam_parameters.minimum_tag_area",
+                                       "an area in square pixels")
     return out
 
 
