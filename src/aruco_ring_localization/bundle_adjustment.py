@@ -34,8 +34,9 @@ Each pose is a perturbation of its initial value, ``R = exp(w) R0``, ``t = t0 + 
 parent frame), so the parameters stay near zero. The Jacobian is analytic (left Jacobian of
 SO(3) included) and sparse; the solver is Levenberg-Marquardt on the sparse normal equations
 (``solver: lm``, :func:`_solve_lm`): ``H = J^T W J`` assembled from each observation's 8 x 18
-block (:meth:`_Model.normal_equations`), the markers eliminated block by block (Schur complement)
-and the reduced system over stations and cameras solved directly (:meth:`_Model.solve_damped`),
+block (:meth:`_Model.normal_equations`), the markers (or, for a few markers seen in many frames
+without odometry, the stations: :meth:`_Model._choose_elimination`) eliminated block by block (Schur
+complement) and the reduced system over the rest solved directly (:meth:`_Model.solve_damped`),
 the robust loss by reweighting; or :func:`scipy.optimize.least_squares` (``solver: trf``:
 ``lsmr`` on the sparse Jacobian, ``x_scale='jac'``, a robust loss).
 
@@ -804,7 +805,7 @@ def _solve_lm(model: _Model, x0: np.ndarray, f_scale: float, opts: BAOptions, ma
     Each iteration: the normal equations at ``x`` with weights ``rho'((r/f_scale)^2)`` on the
     corner residuals (the priors stay quadratic), assembled from the per-observation blocks
     (:meth:`_Model.normal_equations`), then ``(H + lambda diag(H)) dx = -g`` solved directly
-    through the Schur complement on the markers (:meth:`_Model.solve_damped`: LSMR's
+    through the Schur complement on the markers or stations (:meth:`_Model.solve_damped`: LSMR's
     unpreconditioned iterations crawl along the long, weakly constrained directions of a chain of
     stations). A step is kept when the robust cost decreases.
     Stops on ``ftol`` (relative cost decrease), ``xtol`` (step), ``gtol`` (gradient) or ``max_nfev``.
