@@ -34,8 +34,9 @@ Each pose is a perturbation of its initial value, ``R = exp(w) R0``, ``t = t0 + 
 parent frame), so the parameters stay near zero. The Jacobian is analytic (left Jacobian of
 SO(3) included) and sparse; the solver is Levenberg-Marquardt on the sparse normal equations
 (``solver: lm``, :func:`_solve_lm`): ``H = J^T W J`` assembled from each observation's 8 x 18
-block (:meth:`_Model.normal_equations`), the markers eliminated block by block (Schur complement)
-and the reduced system over stations and cameras solved directly (:meth:`_Model.solve_damped`),
+block (:meth:`_Model.normal_equations`), the markers (or, for a few markers seen in many frames
+without odometry, the stations: :meth:`_Model._choose_elimination`) eliminated block by block (Schur
+complement) and the reduced system over the rest solved directly (:meth:`_Model.solve_damped`),
 the robust loss by reweighting; or :func:`scipy.optimize.least_squares` (``solver: trf``:
 ``lsmr`` on the sparse Jacobian, ``x_scale='jac'``, a robust loss).
 
@@ -629,10 +630,53 @@ class _Model:
         self._h_indices = (uniq % n).astype(np.int32)
         self._h_indptr = np.searchsorted(uniq // n, np.arange(n + 1)).astype(np.int32)
         self._h_diag = np.searchsorted(uniq, np.arange(n, dtype=np.int64) * (n + 1))
-        cm = self.col_m[self.col_m >= 0].astype(np.int64)
+        self._choose_elimination()
+        cm = self._elim_starts
         mb = cm[:, None, None] + np.arange(6)
-        self._h_marker_blocks = np.searchsorted(uniq, np.broadcast_to(mb, (len(cm), 6, 6)) * n
-                                                + np.broadcast_to(np.transpose(mb, (0, 2, 1)), (len(cm), 6, 6)))
+        self._h_elim_blocks = np.searchsorted(uniq, np.broadcast_to(mb, (len(cm), 6, 6)) * n
+                                              + np.broadcast_to(np.transpose(mb, (0, 2, 1)), (len(cm), 6, 6)))
+
+    def _choose_elimination(self) -> None:
+        """Which poses :meth:`solve_damped` eliminates first (block by block): the markers or the stations.
+
+        Both are block diagonal in ``H`` (a marker touches stations and cameras, never another
+        marker; a station the same, unless odometry links it to another). Eliminating one set fills
+        the reduced system over the other with one 6x6 block per pair of them seen together: by
+        the markers, one per pair of stations that see a common marker; by the stations, one per
+        pair of markers seen in a common frame. A mapping run (many markers, each seen from a few
+        of many stations) eliminates the markers; a calibration recording (a board of a few dozen
+        markers filmed in 1,500 frames: 1,500 stations all seeing the same markers) eliminates the
+        stations -- the other way its reduced system was a dense 9,000 x 9,000 matrix stored as
+        sparse (MemoryError in SuperLU). Sets ``_elim_range`` (the set's contiguous columns),
+        ``_elim_starts`` (each free pose's first column) and ``_keep_cols`` (the others).
+        """
+        n, nm = self.n_params, self.n_marker_params
+        ns = int(np.count_nonzero(self.col_s >= 0)) * 6
+        free_m = self.col_m[self.p.obs_marker] >= 0
+        free_s = self.col_s[self.p.obs_station] >= 0
+
+        def pair_blocks(group: np.ndarray, member: np.ndarray) -> int:
+            # Blocks of the reduced system over ``member`` after eliminating ``group``: per group
+            # element, (its distinct members)^2.
+            if len(group) == 0:
+                return 0
+            key = np.unique(group.astype(np.int64) * (int(member.max(initial=0)) + 1) + member)
+            counts = np.bincount(key // (int(member.max(initial=0)) + 1))
+            return int(np.sum(counts.astype(np.int64) ** 2))
+
+        by_markers = pair_blocks(self.p.obs_marker[free_m & free_s], self.p.obs_station[free_m & free_s])
+        by_stations = pair_blocks(self.p.obs_station[free_m & free_s], self.p.obs_marker[free_m & free_s])
+        stations = (self.n_odo_res == 0 and ns > 0 and (nm == 0 or by_stations < by_markers))
+        if stations:
+            self.eliminated = "stations"
+            self._elim_range = (nm, nm + ns)
+            self._elim_starts = self.col_s[self.col_s >= 0].astype(np.int64)
+        else:
+            self.eliminated = "markers"
+            self._elim_range = (0, nm)
+            self._elim_starts = self.col_m[self.col_m >= 0].astype(np.int64)
+        e0, e1 = self._elim_range
+        self._keep_cols = np.r_[np.arange(0, e0), np.arange(e1, n)].astype(np.int64)
 
     def normal_equations(self, x: np.ndarray, r: np.ndarray, w: np.ndarray) -> Tuple[sp.csr_matrix, np.ndarray]:
         """``H = J^T diag(w) J`` (CSR, :meth:`_build_normal_pattern`'s structure) and ``g = J^T diag(w) r``
@@ -658,39 +702,77 @@ class _Model:
         return sp.csr_matrix((data, self._h_indices, self._h_indptr), shape=(n, n)), g
 
     def solve_damped(self, H: sp.csr_matrix, b: np.ndarray, damping: np.ndarray) -> np.ndarray:
-        """``(H + diag(damping)) dx = b`` by the Schur complement on the markers.
+        """``(H + diag(damping)) dx = b`` by the Schur complement on the markers or the stations.
 
-        Markers only couple to stations and cameras: the markers' part ``A`` of H is block
-        diagonal (6x6 each), inverted block by block; the reduced system ``S = C - B^T A^-1 B``
-        over the stations and cameras (a band along a chain of stations, plus the cameras) is
-        small and sparse (SuperLU). A direct solve of the whole H (as before) factorised the
-        markers' columns too: 0.8 s per step for the 1,000-marker hall, against ~0.05 s here.
+        The eliminated set (:meth:`_choose_elimination`: the markers, or the stations when there are
+        far more of them than markers and no odometry links them) is block diagonal in ``H`` (6x6
+        each), inverted block by block; the reduced system ``S = C - B^T A^-1 B`` over the rest (a
+        band along a chain of stations plus the cameras; or the markers plus the cameras) is small
+        and sparse (SuperLU). A direct solve of the whole H (as before) factorised the markers'
+        columns too: 0.8 s per step for the 1,000-marker hall, against ~0.05 s here.
 
         Raises:
             RuntimeError: a singular block or reduced system (the caller damps harder).
         """
         from scipy.sparse.linalg import splu
 
-        n, nm = self.n_params, self.n_marker_params
         Hd = H.copy()
         Hd.data[self._h_diag] += damping
-        if nm == 0:
-            return splu(Hd.tocsc()).solve(b)
-        A = Hd.data[self._h_marker_blocks]                               # (Mf, 6, 6)
+        if not hasattr(self, "_elim_range"):
+            self._build_normal_pattern()
+        S, B, AB, y, keep = self._reduce(Hd, b)
+        if S is None:
+            return y
+        e0, e1 = self._elim_range
+        xc = splu(S.tocsc()).solve(b[keep] - B.T @ y)
+        out = np.empty(self.n_params)
+        out[e0:e1] = y - AB @ xc
+        out[keep] = xc
+        return out
+
+    def _reduce(self, H: sp.csr_matrix, b: Optional[np.ndarray] = None):
+        """The Schur complement of ``H`` (CSR, :meth:`_build_normal_pattern`'s structure) on the
+        eliminated set: ``(S, B, A^-1 B, A^-1 b_e, keep)`` with ``S`` (CSR) over the columns
+        ``keep``; ``S`` None when nothing is kept.
+
+        Raises:
+            RuntimeError: a singular block.
+        """
+        e0, e1 = self._elim_range
+        keep = self._keep_cols
+        A = H.data[self._h_elim_blocks]                                  # (E, 6, 6)
         try:
             Ainv = np.linalg.inv(A)
         except np.linalg.LinAlgError as e:
-            raise RuntimeError("singular marker block") from e
-        Mf = len(A)
-        Ainv_sp = sp.bsr_matrix((Ainv, np.arange(Mf), np.arange(Mf + 1)), shape=(nm, nm)).tocsr()
-        y = (Ainv @ b[:nm].reshape(Mf, 6, 1)).ravel()
-        if nm == n:
-            return y
-        B = Hd[:nm, nm:]
+            raise RuntimeError("singular block") from e
+        E = len(A)
+        y = (Ainv @ b[e0:e1].reshape(E, 6, 1)).ravel() if b is not None else None
+        if len(keep) == 0:
+            return None, None, None, y, keep
+        Ainv_sp = sp.bsr_matrix((Ainv, np.arange(E), np.arange(E + 1)), shape=(e1 - e0, e1 - e0)).tocsr()
+        B = H[e0:e1][:, keep].tocsr()
         AB = (Ainv_sp @ B).tocsr()
-        S = (Hd[nm:, nm:] - B.T @ AB).tocsc()
-        xc = splu(S).solve(b[nm:] - B.T @ y)
-        return np.concatenate([y - AB @ xc, xc])
+        S = (H[keep][:, keep] - B.T @ AB).tocsr()
+        return S, B, AB, y, keep
+
+    def marginal_information(self, H: sp.csr_matrix, cols: np.ndarray) -> np.ndarray:
+        """The information of the parameters ``cols`` with every other one marginalised: the Schur
+        complement of ``H`` (:meth:`normal_equations`' structure) on them, dense. Its inverse is
+        their block of ``H^-1`` without ever forming ``H`` densely (1,500 stations: 9,000 columns).
+        ``cols`` must not be in the eliminated set (:meth:`_choose_elimination`), e.g. the cameras."""
+        if not hasattr(self, "_elim_range"):
+            self._build_normal_pattern()
+        S, _, _, _, keep = self._reduce(H.tocsr())
+        pos = np.searchsorted(keep, cols)
+        if S is None or np.any(pos >= len(keep)) or np.any(keep[np.minimum(pos, len(keep) - 1)] != cols):
+            raise GeometryError("marginal_information: the columns asked for are eliminated")
+        Sd = S.toarray()
+        rest = np.setdiff1d(np.arange(len(keep)), pos)
+        if len(rest) == 0:
+            return Sd[np.ix_(pos, pos)]
+        Srr = Sd[np.ix_(rest, rest)]
+        Srt = Sd[np.ix_(rest, pos)]
+        return Sd[np.ix_(pos, pos)] - Srt.T @ np.linalg.solve(Srr, Srt)
 
 
 def _loss_weights(z: np.ndarray, loss: str) -> np.ndarray:
@@ -730,7 +812,7 @@ def _solve_lm(model: _Model, x0: np.ndarray, f_scale: float, opts: BAOptions, ma
     Each iteration: the normal equations at ``x`` with weights ``rho'((r/f_scale)^2)`` on the
     corner residuals (the priors stay quadratic), assembled from the per-observation blocks
     (:meth:`_Model.normal_equations`), then ``(H + lambda diag(H)) dx = -g`` solved directly
-    through the Schur complement on the markers (:meth:`_Model.solve_damped`: LSMR's
+    through the Schur complement on the markers or stations (:meth:`_Model.solve_damped`: LSMR's
     unpreconditioned iterations crawl along the long, weakly constrained directions of a chain of
     stations). A step is kept when the robust cost decreases.
     Stops on ``ftol`` (relative cost decrease), ``xtol`` (step), ``gtol`` (gradient) or ``max_nfev``.

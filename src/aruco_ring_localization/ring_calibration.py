@@ -641,24 +641,33 @@ def _camera_std(res: BAResult, prob: BAProblem, names: List[str], calibrated: Li
                    obs_camera=prob.obs_camera, obs_xy=prob.obs_xy, obs_focal=prob.obs_focal,
                    fixed_marker=prob.fixed_marker, fixed_station=prob.fixed_station, obs_lens=prob.obs_lens)
     model = _Model(at, BAOptions(pixel_noise=1.0, refine_extrinsics=True))
-    J = model.jacobian(np.zeros(model.n_params))[: model.n_obs_res]
-    H = (J.T @ J).toarray()
+    x0 = np.zeros(model.n_params)
+    r_all = model.residuals(x0)
+    w = np.zeros(model.n_res)
+    w[: model.n_obs_res] = 1.0                      # the corners only (the priors left out)
+    H = model.normal_equations(x0, r_all, w)[0]
     C = len(names)
-    K = np.zeros((6, model.n_params))
+    cols = np.concatenate([model.col_c[k] + np.arange(6) for k in range(C)])
+    # The cameras' information with the markers and robot poses marginalised (a Schur complement:
+    # H itself, 6 x 1,500 stations wide, is never dense), then the gauge constraint on the cameras.
+    try:
+        Hc = model.marginal_information(H, cols)
+    except (RuntimeError, np.linalg.LinAlgError):
+        return out
+    K = np.zeros((6, 6 * C))
     for k in range(C):
         t = res.T_base_cams[k][:3, 3]
-        c0 = model.col_c[k]
-        K[:3, c0:c0 + 3] = -np.eye(3) / C
-        K[3:, c0:c0 + 3] = -geo.skew(t) / C
-        K[3:, c0 + 3:c0 + 6] = -np.eye(3) / C
-    scale = float(np.max(np.diag(H)))
+        K[:3, 6 * k:6 * k + 3] = -np.eye(3) / C
+        K[3:, 6 * k:6 * k + 3] = -geo.skew(t) / C
+        K[3:, 6 * k + 3:6 * k + 6] = -np.eye(3) / C
+    scale = float(np.max(H.diagonal()))
     try:
-        cov_all = np.linalg.inv(H + scale * (K.T @ K))
+        cov_cams = np.linalg.inv(Hc + scale * (K.T @ K))
     except np.linalg.LinAlgError:
         return out
     # Corner residuals in px (pixel_noise 1): the measured corner variance.
     n = model.n_obs_res
-    r = model.residuals(np.zeros(model.n_params))[:n]
+    r = r_all[:n]
     s2 = float(r @ r) / max(n - model.n_params, 1)
     # The covariance above assumes every frame's corner errors independent. A detector's are not:
     # the same marker seen again from nearly the same place errs nearly the same way (the rendered
@@ -668,8 +677,7 @@ def _camera_std(res: BAResult, prob: BAProblem, names: List[str], calibrated: Li
     inflation = (1.0 + rho) / (1.0 - rho)
     res.extra["residual_lag1_correlation"] = rho
     res.extra["std_inflation"] = float(np.sqrt(inflation))
-    cols = np.concatenate([model.col_c[k] + np.arange(6) for k in range(C)])
-    cov = camera_cov_in_optical_frames(inflation * s2 * cov_all[np.ix_(cols, cols)], res.T_base_cams)
+    cov = camera_cov_in_optical_frames(inflation * s2 * cov_cams, res.T_base_cams)
     for k, c in enumerate(names):
         if c in calibrated:
             out[c] = np.sqrt(np.clip(np.diag(cov[6 * k:6 * k + 6, 6 * k:6 * k + 6]), 0.0, None))

@@ -65,12 +65,16 @@ def _anchored_problem(seed=3):
     return prob
 
 
-@pytest.mark.parametrize("case", ["fixed_station", "fixed_marker", "priors"])
+@pytest.mark.parametrize("case", ["fixed_station", "fixed_marker", "priors", "many_stations"])
 def test_normal_equations_match_the_jacobian(case):
     """H and g assembled from the per-observation blocks equal J^T W J and J^T W r of the sparse
-    Jacobian (itself checked against finite differences above), with arbitrary row weights."""
+    Jacobian (itself checked against finite differences above), with arbitrary row weights; the
+    damped solve through the Schur complement (on the markers, or on the stations when they
+    outnumber the markers: a calibration recording) equals a dense solve."""
     if case == "priors":
         prob = _anchored_problem()
+    elif case == "many_stations":
+        prob, _ = _problem(seed=3, M=3, S=12, C=2, per=120)
     else:
         prob, _ = _problem(seed=3, M=5, S=3, C=2, per=40)
         if case == "fixed_marker":
@@ -81,6 +85,7 @@ def test_normal_equations_match_the_jacobian(case):
     r = model.residuals(x)
     w = rng.uniform(0.1, 2.0, model.n_res)
     H, g = model.normal_equations(x, r, w)
+    assert model.eliminated == ("stations" if case == "many_stations" else "markers")
     J = model.jacobian(x).toarray()
     H_ref, g_ref = J.T @ (w[:, None] * J), J.T @ (w * r)
     assert np.max(np.abs(H.toarray() - H_ref)) <= 1e-9 * np.max(np.abs(H_ref))
@@ -90,6 +95,13 @@ def test_normal_equations_match_the_jacobian(case):
     dx = model.solve_damped(H, -g, d)
     dx_ref = np.linalg.solve(H_ref + np.diag(d), -g_ref)
     assert np.max(np.abs(dx - dx_ref)) <= 1e-7 * np.max(np.abs(dx_ref))
+    # The cameras' marginal information is the inverse of their block of the (damped) H's inverse.
+    cols = np.concatenate([model.col_c[k] + np.arange(6) for k in range(model.C)])
+    Hd = H.copy()
+    Hd.data[model._h_diag] += d
+    cov_ref = np.linalg.inv(H_ref + np.diag(d))[np.ix_(cols, cols)]
+    cov = np.linalg.inv(model.marginal_information(Hd, cols))
+    assert np.max(np.abs(cov - cov_ref)) <= 1e-7 * np.max(np.abs(cov_ref))
 
 
 def test_solvers_agree_on_the_solution():
