@@ -63,14 +63,18 @@ from .config import in_radians, param, require_positive
 from .errors import ConfigError, MeasurementError
 from .detections import RingFrame
 from .marker_map import MarkerMap
-from .odometry import body_covariance_to_perturbation, displacement_to_transform
+from .odometry import body_covariance_to_perturbation, body_factor_to_perturbation, displacement_to_transform
 from .pnp import solve_marker_ippe, solve_points
 from .ring import CameraRing
 
 logger = logging.getLogger(__name__)
 
-#: ``motion(t_ref, t_c) -> (d (3,), cov_d (3, 3))`` or None: the robot's displacement between two stamps.
-MotionModel = Callable[[float, float], Optional[Tuple[np.ndarray, np.ndarray]]]
+#: ``motion(t_ref, t_c) -> (d (3,), cov_d (3, 3))`` or ``(d, cov_d, shared (3, k))``, or None: the
+#: robot's displacement between two stamps. ``shared``: the part ``shared · z`` of the displacement's
+#: error that every camera of the ring frame has in common, ``z ~ N(0, I_k)`` one draw for all of them
+#: (e.g. ``dt`` times the error of the one velocity they are all moved with); ``cov_d`` is the whole
+#: covariance (``shared shared^T`` included). Without it the cameras' errors are independent.
+MotionModel = Callable[[float, float], Optional[Tuple[np.ndarray, ...]]]
 
 FUSION_METHODS = ("paper", "joint", "joint_exact_extrinsics")
 
@@ -367,6 +371,10 @@ class CameraView:
             extrinsics_factor: ``L`` with ``L L^T = extrinsics_cov`` (computed when not given).
         map_factor: (4k, 3, 6) per corner ``F`` with ``F F^T`` the covariance of its map position
             from its marker's pose uncertainty (:func:`marker_map_factor`), or None (exact map).
+        shared_factor: (6, k) the part ``shared_factor · z`` of eta (the extrinsics' error, as in
+            ``extrinsics_cov``, which includes it) that all views of the frame have in common,
+            ``z ~ N(0, I_k)`` one draw for them all (a free-running camera moved with the robot's
+            velocity: :meth:`RingLocalizer._moved_extrinsics`), or None (independent of the others).
         xy: (4k, 2) undistorted normalised observations.
         pixel_jacobian: (4k, 2, 2) d pixels / d xy at the observations for a fisheye lens, else None.
     """
@@ -381,6 +389,7 @@ class CameraView:
     extrinsics_cov: Optional[np.ndarray] = None
     extrinsics_factor: Optional[np.ndarray] = None
     map_factor: Optional[np.ndarray] = None
+    shared_factor: Optional[np.ndarray] = None
     xy: np.ndarray = field(init=False)
     pixel_jacobian: Optional[np.ndarray] = field(init=False, default=None)
 
@@ -394,7 +403,7 @@ class CameraView:
         """The same view with its extrinsics (and the map) taken as exact."""
         v = object.__new__(CameraView)
         v.__dict__.update(self.__dict__)
-        v.extrinsics_cov = v.extrinsics_factor = v.map_factor = None
+        v.extrinsics_cov = v.extrinsics_factor = v.map_factor = v.shared_factor = None
         return v
 
     def subset(self, keep: Sequence[int]) -> "CameraView":
@@ -403,6 +412,7 @@ class CameraView:
         v = object.__new__(CameraView)
         v.name, v.T_cam_base, v.model, v.T_base_cam = self.name, self.T_cam_base, self.model, self.T_base_cam
         v.extrinsics_cov, v.extrinsics_factor = self.extrinsics_cov, self.extrinsics_factor
+        v.shared_factor = self.shared_factor
         v.map_factor = None if self.map_factor is None else self.map_factor[sel]
         v.ids = [self.ids[j] for j in keep]
         v.px, v.X, v.xy = self.px[sel], self.X[sel], self.xy[sel]
@@ -493,7 +503,8 @@ class JointProblem:
         cross_covariance: optional (6C, 6C) covariance between *different* cameras' eta (the
             diagonal blocks are ignored: they are the views' own ``extrinsics_cov``), e.g. the
             common part a bundle adjustment leaves; it does not change the estimate, only its
-            covariance (:meth:`covariance`).
+            covariance (:meth:`covariance`). The views' ``shared_factor`` (free-running cameras
+            moved with one velocity) add their cross terms ``F_c F_d^T`` to it the same way.
     """
 
     def __init__(self, views: Sequence[CameraView], sigma: float = 1.0,
@@ -527,6 +538,17 @@ class JointProblem:
                 v.extrinsics_factor if v.extrinsics_factor is not None else _psd_factor(c)
                 for v, c in zip(self.views, self.extrinsics_cov)])
         self.cross_covariance = cross_covariance
+        # The part of the cameras' eta they have in common (free-running cameras moved with one
+        # velocity): (C, 6, k) factors, zero for a view without one.
+        self.shared_factor: Optional[np.ndarray] = None
+        shared = [v.shared_factor for v in self.views]
+        if self.extrinsics_cov is not None and any(f is not None for f in shared):
+            k = max(np.shape(f)[1] for f in shared if f is not None)
+            self.shared_factor = np.zeros((len(self.views), 6, k))
+            for c, f in enumerate(shared):
+                if f is not None:
+                    f = np.asarray(f, dtype=np.float64)
+                    self.shared_factor[c, :, :f.shape[1]] = f
         # The map's uncertainty (per corner 3x6 factors), only with a calibration model.
         self.map_factor: Optional[np.ndarray] = None
         if self.extrinsics_cov is not None and any(v.map_factor is not None for v in self.views):
@@ -776,12 +798,35 @@ class JointProblem:
         ``H^-1``, plus, with a ``cross_covariance`` C between cameras' extrinsic errors, the
         sandwich term ``H^-1 (sum_{c != d} H_c C_cd H_d) H^-1`` (the estimate is linear in the
         extrinsic errors: ``H^-1 sum_c H_c eta_c``, since J_c carries eta_c like a pose motion).
+
+        The views' common error (``shared_factor`` F_c: free-running cameras moved to the frame's
+        stamp with one velocity estimate, whose error moves camera c by ``dt_c`` times it) is such
+        a cross covariance, ``C_cd = F_c F_d^T``: its term is
+        ``H^-1 (P P^T - sum_c P_c P_c^T) H^-1`` with ``P_c = H_c F_c``, ``P = sum_c P_c``. The
+        weights take each camera's whole displacement error as its own (``extrinsics_cov``
+        includes ``F_c F_c^T``), which is what the diagonal ``H^-1`` accounts for; without the
+        cross terms the estimate's covariance would count the one velocity error as C
+        independent ones, averaged away.
         """
         C = _spd_inverse(0.5 * (fit.H + fit.H.T))
-        if self.cross_covariance is not None and fit.H_cam is not None:
-            K = C @ np.concatenate(list(fit.H_cam), axis=1)  # (6, 6C)
-            C = C + K @ self.cross_covariance @ K.T
+        if fit.H_cam is not None and (self.cross_covariance is not None or self.shared_factor is not None):
+            S = np.zeros((6, 6))
+            if self.cross_covariance is not None:
+                Hc = np.concatenate(list(fit.H_cam), axis=1)  # (6, 6C)
+                S = S + Hc @ self.cross_covariance @ Hc.T
+            if self.shared_factor is not None:
+                P = fit.H_cam @ self.shared_factor             # (C, 6, k)
+                Ps = P.sum(axis=0)
+                S = S + Ps @ Ps.T - np.einsum("cak,cbk->ab", P, P)
+            C = C + C @ S @ C
         return 0.5 * (C + C.T)
+
+    def shared_gain(self, fit: JointFit) -> Optional[np.ndarray]:
+        """(6, k) ``K = H^-1 sum_c H_c F_c``: the estimate's error from the views' common error z
+        (``shared_factor``), whose part of :meth:`covariance` is ``K K^T``; None without one."""
+        if self.shared_factor is None or fit.H_cam is None:
+            return None
+        return _spd_inverse(0.5 * (fit.H + fit.H.T)) @ np.einsum("cab,cbk->ak", fit.H_cam, self.shared_factor)
 
 
 def marker_map_factor(T_map_marker: np.ndarray, corners: np.ndarray, position_std: np.ndarray,
@@ -912,6 +957,9 @@ class _JointSolution:
     covariance: np.ndarray    # (6, 6) of the left perturbation of T_base_map
     outliers: int = 0
     pixel_noise: float = float("nan")   # measured from the residuals (estimate_pixel_noise), px
+    #: (6, k) the pose error's response to the views' common error z (``covariance`` holds
+    #: ``shared_gain shared_gain^T``), or None: :meth:`JointProblem.shared_gain`.
+    shared_gain: Optional[np.ndarray] = None
 
     @property
     def r(self) -> np.ndarray:
@@ -1084,16 +1132,19 @@ class RingLocalizer:
             T_cam_base, T_base_cam = self._T_cam_base[name], self._T_base_cam[name]
             ext_cov, ext_factor = self._ext_cov[name], self._ext_factor[name]
             moved = None if motion is None or cf.stamp == t_ref else motion(t_ref, float(cf.stamp))
+            shared = None
             if moved is not None:
-                T_cam_base, T_base_cam, ext_cov = self._moved_extrinsics(T_base_cam, ext_cov, *moved)
+                T_cam_base, T_base_cam, ext_cov = self._moved_extrinsics(T_base_cam, ext_cov, moved[0], moved[1])
                 ext_factor = None
+                if len(moved) > 2 and moved[2] is not None and ext_cov is not None:
+                    shared = body_factor_to_perturbation(moved[2])
             map_factor = self._map_factor(ids)
             views[name] = CameraView(name=name, T_cam_base=T_cam_base,
                                      model=cf.model if cf.model is not None else self.ring[name].model, ids=ids,
                                      px=np.concatenate([np.asarray(o.corners, dtype=np.float64) for o in obs]),
                                      X=np.concatenate([mm.corners(i) for i in ids]),
                                      T_base_cam=T_base_cam, extrinsics_cov=ext_cov,
-                                     extrinsics_factor=ext_factor, map_factor=map_factor)
+                                     extrinsics_factor=ext_factor, map_factor=map_factor, shared_factor=shared)
         return views
 
     def _map_factor(self, ids: Sequence[int]) -> Optional[np.ndarray]:
@@ -1425,10 +1476,14 @@ class RingLocalizer:
         sigma = float("nan")
         try:
             if p.estimate_pixel_noise and problem.extrinsics_factor is not None:
-                T_bm, fit, iters, rms, cov, cov_map, sigma = self._at_measured_noise(problem, T_bm, fit, iters, rms)
+                T_bm, fit, iters, rms, cov, cov_map, sigma, gain = self._at_measured_noise(problem, T_bm, fit, iters,
+                                                                                           rms)
             else:
                 # Variance factor: the whitened residuals' own when they say the noise is larger.
-                cov = problem.covariance(fit) * max(1.0, fit.chi2 / max(2 * problem.n - 6, 1))
+                factor = max(1.0, fit.chi2 / max(2 * problem.n - 6, 1))
+                cov = problem.covariance(fit) * factor
+                gain = problem.shared_gain(fit)
+                gain = None if gain is None else gain * np.sqrt(factor)
                 cov_map = problem.map_covariance(fit, T_bm)   # the map's error, carried to the pose
             if cov_map is not None:
                 cov = cov + cov_map
@@ -1436,7 +1491,7 @@ class RingLocalizer:
             return None
         if not np.isfinite(rms) or rms > p.joint_outlier_threshold:
             return None
-        return _JointSolution(problem, T_bm, fit, iters, rms, cov, outliers, sigma)
+        return _JointSolution(problem, T_bm, fit, iters, rms, cov, outliers, sigma, gain)
 
     def _solver(self, problem: JointProblem) -> JointProblem:
         """``problem`` at the pixel noise the solver weighs the pixels with: with
@@ -1468,7 +1523,7 @@ class RingLocalizer:
         twice.
 
         Returns (T_base_map, fit, iterations, rms, covariance, map covariance or None, the
-        measured pixel noise)."""
+        measured pixel noise, :meth:`JointProblem.shared_gain` or None)."""
         p = self.params
         solved_at = self.pixel_noise_guess
         sigma = problem.pixel_noise_estimate(fit, p.min_pixel_noise, 100.0 * p.pixel_noise)
@@ -1487,7 +1542,7 @@ class RingLocalizer:
             T_bm, fit_s = at.linear_step(T_bm, fit_s, delta)
             fit_s = at.refit(fit_s)
         return (T_bm, problem.refit(fit_s), iters, rms, at.covariance(fit_s), at.map_covariance(fit_s, T_bm),
-                sigma)
+                sigma, at.shared_gain(fit_s))
 
     def _exact_if_consistent(self, sol: _JointSolution) -> _JointSolution:
         """``sol`` (calibration-aware), or the exact-extrinsics solution of the same views when the
@@ -1503,7 +1558,13 @@ class RingLocalizer:
         exact (the maximum-likelihood pose under pixel noise; what the calibration-aware model
         gives up there is efficiency: on TagSLAM's rigs, whose extrinsics are its optimum on the
         same data, it moved the pose by 2-4 mm). The covariance stays the calibration-aware one
-        (it carries the extrinsics' and the map's uncertainty; a larger one is the safe side)."""
+        (it carries the extrinsics' and the map's uncertainty; a larger one is the safe side),
+        except for the views' common error (free-running cameras moved with one velocity): the
+        test cannot see it (it moves all cameras alike but for their ``dt``), and the
+        exact-extrinsics pose responds to it with its own gain ``K_x = G^-1 sum_c G_c F_c``
+        (``G_c = J_c^T D_c J_c``), so its part ``K K^T`` of the covariance is replaced by
+        ``K_x K_x^T`` (what is left, ``P - K K^T``, is the covariance of the pixel noise and the
+        independent errors)."""
         p = self.params
         problem = sol.problem
         if (not p.exact_when_consistent or p.fusion != "joint" or problem.extrinsics_factor is None
@@ -1523,7 +1584,18 @@ class RingLocalizer:
         rms = float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
         if not rms <= p.joint_outlier_threshold:
             return sol
-        return _JointSolution(exact, T_bm, fit, sol.iterations + iters, rms, sol.covariance, sol.outliers)
+        cov, gain = sol.covariance, None
+        if sol.shared_gain is not None:
+            G = np.add.reduceat(np.einsum("nia,nib->nab", fit.J * fit.w[:, None, None], fit.J), exact.offsets[:-1],
+                                axis=0)
+            try:
+                gain = _spd_inverse(0.5 * (fit.H + fit.H.T)) @ np.einsum("cab,cbk->ak", G, problem.shared_factor) \
+                    / exact.sigma ** 2
+            except (np.linalg.LinAlgError, MeasurementError):
+                return sol
+            cov = cov - sol.shared_gain @ sol.shared_gain.T + gain @ gain.T
+            cov = 0.5 * (cov + cov.T)
+        return _JointSolution(exact, T_bm, fit, sol.iterations + iters, rms, cov, sol.outliers, shared_gain=gain)
 
     def _finish_joint(self, result: LocalizationResult, sol: _JointSolution, per_camera: bool) -> None:
         problem = sol.problem

@@ -143,6 +143,24 @@ def body_covariance_to_perturbation(cov3: np.ndarray) -> np.ndarray:
     return C
 
 
+def body_factor_to_perturbation(F3: np.ndarray) -> np.ndarray:
+    """(6, k) factor over a left perturbation (w, v) from a (3, k) one over (x, y, yaw), as
+    :func:`body_covariance_to_perturbation` (``F F^T`` maps to that of the covariance)."""
+    F3 = np.asarray(F3, dtype=np.float64)
+    if F3.ndim != 2 or F3.shape[0] != 3:
+        raise ValueError(f"a displacement error factor must be (3, k), got shape {F3.shape}")
+    F = np.zeros((6, F3.shape[1]))
+    F[[3, 4, 2]] = F3
+    return F
+
+
+def psd_factor(S: np.ndarray) -> np.ndarray:
+    """``L`` with ``L L^T = S`` for a symmetric positive semi-definite ``S`` (negative eigenvalues,
+    rounding, clipped to zero)."""
+    lam, U = np.linalg.eigh(0.5 * (np.asarray(S, dtype=np.float64) + np.asarray(S, dtype=np.float64).T))
+    return U * np.sqrt(np.clip(lam, 0.0, None))
+
+
 # --- the odometry history -----------------------------------------------------------------------
 
 class OdometryHistory:
@@ -260,4 +278,5 @@ class OdometryHistory:
 
 
 __all__ = ["MotionParams", "OdometryHistory", "se2_compose", "se2_compose_jacobians", "propagate_se2", "se2_between", "se2_inverse",
-           "constant_velocity_displacement", "displacement_to_transform", "body_covariance_to_perturbation"]
+           "constant_velocity_displacement", "displacement_to_transform", "body_covariance_to_perturbation",
+           "body_factor_to_perturbation", "psd_factor"]

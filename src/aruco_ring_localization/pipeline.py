@@ -55,7 +55,7 @@ from .localization import LocalizationResult, RingLocalizer
 from .mapping import MapBuilder
 from .marker_check import MarkerCheck
 from .marker_map import MarkerMap
-from .odometry import OdometryHistory, constant_velocity_displacement, propagate_se2, se2_between
+from .odometry import OdometryHistory, constant_velocity_displacement, propagate_se2, psd_factor, se2_between
 from .ring import CameraRing, apply_refined_extrinsics
 from .ring_calibration import CalibrationOptions, RingCalibration, calibrate_ring
 from .schemas import LocalizerConfig, MapperConfig, RingInputParams
@@ -602,11 +602,16 @@ class LocalizationPipeline(_RingPipeline):
                 return propagate_se2(f.pose, f.covariance, *inc)
         return f.predicted(stamp), f.predicted_covariance(stamp)
 
-    def _motion_model(self, t_ref: float, t_c: float) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+    def _motion_model(self, t_ref: float, t_c: float) -> Optional[Tuple[np.ndarray, ...]]:
         """The robot's displacement from ``t_ref`` to ``t_c`` (body frame at ``t_ref``) and its
         covariance, for a free-running camera: odometry when it covers both stamps, else the
         filter's body velocity held constant (covariance ``dt^2`` times the velocity's); None
-        before the track starts."""
+        before the track starts.
+
+        With the filter's velocity the error is the velocity's, one error for every camera of the
+        ring frame: the third element ``dt · L`` (``L L^T`` the velocity's covariance, signed
+        ``dt``) tells the estimator so (:data:`localization.MotionModel`), and its covariance
+        does not average it away over the cameras (issue 12: ``nees_joint_moving``)."""
         if self._odometry_on:
             inc = self.odometry.increment(t_ref, t_c)
             if inc is not None:
@@ -618,7 +623,7 @@ class LocalizationPipeline(_RingPipeline):
         c, s = np.cos(self.filter.pose[2]), np.sin(self.filter.pose[2])
         R = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])   # map -> body
         V = R @ self.filter.velocity_covariance @ R.T
-        return constant_velocity_displacement(twist, dt), dt * dt * V
+        return constant_velocity_displacement(twist, dt), dt * dt * V, dt * psd_factor(V)
 
     def on_initial_pose(self, pose, now: float) -> List[PoseOutput]:
         """Restart the track at ``pose`` (4x4 ``T_map_base`` or (x, y, yaw)): rviz's initialpose.

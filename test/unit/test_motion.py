@@ -158,6 +158,43 @@ def test_free_running_cameras_are_compensated(lab, fusion):
         assert med["exact"] < 0.002, med
 
 
+def _velocity_error_nees(lab, shared: bool, trials: int = 60) -> float:
+    """Mean NEES (x, y, yaw; /3) of the joint estimate over frames of free-running cameras moved to
+    the frame's stamp with a velocity that is off by one error drawn per frame (the filter's), its
+    covariance declared per camera (``dt^2 V``) and, with ``shared``, declared common to them."""
+    scene, ring, sim = lab
+    params = LocalizationParams(fusion="joint", extrinsic_jitter_deg=0.0, extrinsic_jitter_m=0.0)
+    loc = RingLocalizer(ring, scene.truth_map(), params)
+    phases = np.linspace(0.0, 0.09, len(ring.names))
+    V = np.diag([0.02, 0.02, 0.01]) ** 2          # the velocity's covariance (m/s, m/s, rad/s)
+    rng = np.random.default_rng(21)
+    nees = []
+    for k in range(trials):
+        t0 = 0.1 * k
+        e = rng.multivariate_normal(np.zeros(3), V)
+
+        def motion(t_ref, t_c):
+            dt = t_c - t_ref
+            d = constant_velocity_displacement(TWIST + e, dt)
+            return (d, dt * dt * V, dt * np.sqrt(V)) if shared else (d, dt * dt * V)
+
+        r = loc.process(_free_frame(sim, t0, phases, rng, noise=0.1), None, motion)
+        assert r.ok and r.method == "joint"
+        err = r.se2 - _true_pose(t0)
+        err[2] = geo.wrap_angle(err[2])
+        nees.append(float(err @ np.linalg.solve(r.covariance_se2, err)) / 3.0)
+    return float(np.mean(nees))
+
+
+def test_a_shared_velocity_error_is_in_the_joint_covariance(lab):
+    # Every camera is moved with the same wrong velocity: the joint estimate's error is their
+    # (information-weighted) mean displacement error, which does not average away over cameras.
+    honest = _velocity_error_nees(lab, shared=True)
+    assert 0.5 <= honest <= 2.0, honest
+    # Declared independent per camera (the estimator before issue 12's fix): overconfident.
+    assert _velocity_error_nees(lab, shared=False) > 2.0 * honest
+
+
 def test_synchronized_cameras_are_left_alone(lab):
     scene, ring, sim = lab
     frame = _free_frame(sim, 1.0, np.zeros(len(ring.names)), np.random.default_rng(5))

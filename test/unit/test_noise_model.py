@@ -337,3 +337,44 @@ def test_solved_at_the_last_frames_noise_once_and_at_its_own(lab, monkeypatch):
         assert geo.rotation_angle(got[:3, :3] @ ref[:3, :3].T) < 1e-4
         assert np.abs(at_05[:3, 3] - ref[:3, 3]).max() > 5e-4
     assert per_frame == [2, 1, 1, 1], per_frame   # the first at 0.5 px and again at its own; then once
+
+
+def test_a_shared_displacement_error_is_the_cross_covariance_of_its_factors(lab):
+    """Free-running cameras moved to the frame's stamp with one velocity: the covariance's shared
+    term (views' shared_factor F_c) is the cross-covariance term with blocks F_c F_d^T (c != d),
+    computed densely; without it the covariance is smaller (the one error averaged away)."""
+    scene, ring, truth = lab
+    T = scene.T_world_base(scene.test_positions[2])
+    frame = RingSimulator(scene, ring, SIGMA, seed=5).observe(T)
+    for k, cf in enumerate(frame.cameras.values()):
+        cf.stamp = frame.stamp + 0.0125 * k
+    L = np.diag([0.02, 0.03, 0.01]) @ np.array([[1.0, 0.2, 0.0], [0.0, 1.0, 0.3], [0.0, 0.0, 1.0]])
+
+    def motion(t_ref, t_c):
+        dt = t_c - t_ref
+        return np.zeros(3), dt * dt * L @ L.T, dt * L
+
+    # The rig declared exact and rigid: the displacement is the extrinsics' only error.
+    loc = RingLocalizer(ring.with_extrinsics_std(0.0, 0.0), truth,
+                        LocalizationParams(pixel_noise=SIGMA, extrinsic_jitter_deg=0.0, extrinsic_jitter_m=0.0))
+    views = list(loc._gather(frame, {}, motion).values())
+    assert len(views) >= 4 and sum(v.shared_factor is not None for v in views) >= 3
+    prob = JointProblem(views, sigma=SIGMA)
+    fit = prob.fit(geo.inverse(T), scale=2.0)
+    F = [np.zeros((6, 3)) if v.shared_factor is None else v.shared_factor for v in views]
+    n = len(views)
+    cross = np.zeros((6 * n, 6 * n))
+    for c in range(n):
+        for d in range(n):
+            if c != d:
+                cross[6 * c:6 * c + 6, 6 * d:6 * d + 6] = F[c] @ F[d].T
+    for v in views:
+        v.shared_factor = None
+    dense = JointProblem(views, sigma=SIGMA, cross_covariance=cross)
+    alone = JointProblem(views, sigma=SIGMA)
+    C, C_dense, C_alone = prob.covariance(fit), dense.covariance(fit), alone.covariance(fit)
+    assert np.allclose(C, C_dense, rtol=1e-9, atol=1e-9 * np.abs(C_dense).max())
+    K = prob.shared_gain(fit)
+    assert np.allclose(C - C_alone, K @ K.T - np.linalg.inv(fit.H) @ np.einsum(
+        "cab,cbk,cdk,ced->ae", fit.H_cam, np.stack(F), np.stack(F), fit.H_cam) @ np.linalg.inv(fit.H), atol=1e-12)
+    assert np.trace(C[3:5, 3:5]) > 1.5 * np.trace(C_alone[3:5, 3:5]), (np.diag(C), np.diag(C_alone))
