@@ -1552,6 +1552,7 @@ class RingLocalizer:
                 or len(problem.views) < 2):
             return sol
         exact = problem.exact()
+        fit1 = test = None
         try:
             start = sol.T_base_map
             if sol.fit.G_cam is not None and np.isfinite(sol.fit.r).all():
@@ -1571,12 +1572,14 @@ class RingLocalizer:
                 T_bm, fit, iters = T1, fit1, 1
             else:
                 T_bm, fit, iters = exact.solve(start, p.robust_scale, p.max_iterations)
+                test = None
         except MeasurementError:
             return sol
         r = fit.r
         if not np.isfinite(r).all():
             return sol
-        test = extrinsics_consistency(exact, fit)
+        if fit is not fit1:
+            test = extrinsics_consistency(exact, fit)
         if test is None or test[0] > _f_quantile(1.0 - p.consistency_alpha, test[1], test[2]):
             return sol
         rms = float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
