@@ -101,6 +101,11 @@ class MarkerCheckParams:
                              unit="m/s")
     max_yaw_rate: float = param(0.02, "and turns this slowly (the same sources)", unit="rad/s")
     min_move: float = param(0.02, "and its estimated displacement |d| must exceed this", unit="m")
+    rate: float = param(5.0, "such frames are checked at most this often (stamps; one within 0.9 / rate of the last "
+                             "checked is skipped at no cost): the check's CPU per ring frame scales with rate / the "
+                             "ring's frame rate; at least min_observations / window (a marker is judged on that many); 0: every "
+                             "frame",
+                        unit="Hz")
     remap_window: float = param(30.0, "~remap_marker uses a marker's observations of the last this many "
                                       "seconds", unit="s")
     remap_min_observations: int = param(10, "~remap_marker refuses with fewer observations than this")
@@ -116,6 +121,8 @@ class MarkerCheckParams:
                 raise ConfigError(f"must be > 0, got {getattr(self, name)!r}", key=f"marker_check.{name}")
         if not self.min_move >= 0:
             raise ConfigError(f"must be >= 0, got {self.min_move!r}", key="marker_check.min_move")
+        if not float(self.rate) >= 0:
+            raise ConfigError(f"must be >= 0, got {self.rate!r}", key="marker_check.rate")
         for name in ("min_observations", "min_other_markers", "remap_min_observations", "backups"):
             if int(getattr(self, name)) < 1:
                 raise ConfigError(f"must be >= 1, got {getattr(self, name)!r}", key=f"marker_check.{name}")
@@ -283,6 +290,9 @@ class MarkerCheck:
         self.frames_checked = 0
         #: frames not checked because the robot drove or turned (``max_speed``, ``max_yaw_rate``).
         self.frames_moving = 0
+        #: frames not checked because one was checked less than 0.9 / ``rate`` s before (``rate``).
+        self.frames_skipped = 0
+        self._last_checked: Optional[float] = None
         self.declarations = 0
         #: id -> (latest d, T, frames) of every marker judged, for diagnostics and tests.
         self.latest: Dict[int, Tuple[np.ndarray, float, int]] = {}
@@ -349,10 +359,17 @@ class MarkerCheck:
         if speed[0] > p.max_speed or speed[1] > p.max_yaw_rate:
             self.frames_moving += 1
             return []
+        stamp = float(frame.stamp)
+        rate = max(float(p.rate), p.min_observations / p.window) if p.rate > 0 else 0.0
+        if rate > 0 and self._last_checked is not None and 0.0 <= stamp - self._last_checked < 0.9 / rate:
+            # At most ``rate`` checks per second (0.9: a ring at 2 x rate, its stamps jittering, is
+            # checked every other frame, not every third).
+            self.frames_skipped += 1
+            return []
+        self._last_checked = stamp
         views = self._views(frame, ring, T_map_base, motion)
         if not views:
             return []
-        stamp = float(frame.stamp)
         drop = self.dropped
         T_base_map = geo.inverse(T_map_base)
         # Blocks: one (camera, marker) pair, its 8 rows.
@@ -632,6 +649,7 @@ class MarkerCheck:
         """Forget the evidence (the track restarted); declared markers stay dropped."""
         for ev in self._evidence.values():
             ev.clear()
+        self._last_checked = None
 
 
 def estimate_marker_pose(records: Sequence[MarkerObservationRecord], size: float,

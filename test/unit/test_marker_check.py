@@ -28,6 +28,7 @@ from aruco_ring_localization.simulation.simulator import SimulatorCore
 
 RING = os.path.join(os.path.dirname(__file__), "..", "..", "config", "ring.yaml")
 OFFLINE = {"input.use_tf": False, "input.camera_info_fallback": True}
+EVERY_FRAME = {"marker_check.rate": 0.0}
 
 
 def _setup(seed: int, rig=(0.002, 0.2), **overrides):
@@ -115,7 +116,8 @@ def test_no_false_alarm_parked_and_driving(seed):
         t = round(t + 0.1, 6)
         feed_ring_frame(pipe, sim.observe(pose, stamp=t))
     mc = pipe.marker_check
-    assert mc.frames_checked > 800
+    # 10 Hz frames, checked at marker_check/rate (5 Hz): every other one of the slow frames.
+    assert mc.frames_checked + mc.frames_skipped > 800 and mc.frames_checked > 400
     assert mc.declarations == 0, f"false alarms: {[(m.marker_id, m.distance, m.since) for m in mc.moved.values()]}"
 
 
@@ -244,11 +246,14 @@ def test_no_false_alarm_on_the_harsh_lab_with_vibration_modelled():
     cameras "triangulate" a 13 cm move of marker 126 at 34 s when the check weighted corners by the
     pixel noise alone (the second run shows it: the test can fail); with the estimator's
     extrinsic_jitter_deg in each block's weight, nothing is declared."""
-    pipe, _, _ = _harsh_run(4, 36.0)
+    # Every slow frame checked (marker_check/rate 0): the most evidence per window, where the
+    # unmodelled jitter shows (at the default 5 Hz the second run's window holds half the frames).
+    pipe, _, _ = _harsh_run(4, 36.0, **EVERY_FRAME)
     mc = pipe.marker_check
     assert mc.frames_checked > 100 and mc.frames_moving > 100
     assert mc.declarations == 0, f"false alarms: {[(m.marker_id, m.distance, m.since) for m in mc.moved.values()]}"
-    pipe2, _, _ = _harsh_run(4, 36.0, **{"estimator.extrinsic_jitter_deg": 0.0, "estimator.extrinsic_jitter_m": 0.0})
+    pipe2, _, _ = _harsh_run(4, 36.0, **{**EVERY_FRAME, "estimator.extrinsic_jitter_deg": 0.0,
+                                         "estimator.extrinsic_jitter_m": 0.0})
     assert pipe2.marker_check.declarations >= 1, "without the jitter in its noise model the check stayed quiet: " \
                                                  "this test no longer shows what it guards"
 
@@ -271,6 +276,27 @@ def test_frames_are_not_checked_while_the_robot_drives():
     assert mc.frames_moving == 2 and mc.frames_checked == 0 and not mc._evidence and not mc._baselines
     mc.update(frame, T, pipe.localizer.ring, 1.0, speed=(0.04, 0.01))
     assert mc.frames_checked == 1
+
+
+def test_parked_frames_are_checked_at_the_rate():
+    """marker_check/rate: 10 Hz frames checked at 5 Hz (every other one), every frame with 0, and
+    never below min_observations / window (a marker is judged on that many frames of a window)."""
+    scene, sim, pipe = _setup(1)
+    T = Scene.T_world_base(scene.test_positions[0])
+    ring = pipe.localizer.ring
+    frames = [sim.observe(scene.test_positions[0], stamp=round(1.0 + 0.1 * k, 6)) for k in range(10)]
+    for params, checked in [(MarkerCheckParams(), 5), (MarkerCheckParams(rate=0.0), 10),
+                            (MarkerCheckParams(rate=1.0, window=1.0, min_observations=4), 4),
+                            (MarkerCheckParams(rate=1.0, window=0.25, min_observations=4), 10)]:
+        mc = MarkerCheck(scene.truth_map(), params)
+        for f in frames:
+            mc.update(f, T, ring, f.stamp)
+        assert (mc.frames_checked, mc.frames_skipped) == (checked, 10 - checked), params
+        mc.reset()   # a new track: its first frame is checked
+        mc.update(frames[-1], T, ring, 3.0)
+        assert mc.frames_checked == checked + 1
+    with pytest.raises(ConfigError, match="rate"):
+        MarkerCheckParams(rate=-1.0)
 
 
 def test_window_sums_follow_the_items():
