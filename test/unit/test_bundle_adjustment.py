@@ -192,3 +192,27 @@ def test_camera_covariance_keeps_the_prior_only_direction_at_its_prior():
         # measured 1.0016 and 1.0000 (the linearisation point); the variance factor alone would give 1/vf = 25.
         assert turn == pytest.approx(1.0, rel=0.02), f"information on the turn / the priors' = {turn:.4f} (vf {vf:.3f})"
     assert rel_lo < 0.2 * rel_hi, f"the data-fixed relative turn did not shrink: {rel_lo:.3e} vs {rel_hi:.3e}"
+
+
+@pytest.mark.parametrize("shape", [dict(M=3, S=8, C=3), dict(M=12, S=2, C=2)])
+def test_dense_and_sparse_reduced_system_agree(monkeypatch, shape):
+    """The dense reduced system (Cholesky) and the sparse one (SuperLU) take the same steps, and the
+    covariances through the Cholesky factor (triangular solves with fewer markers' columns than
+    stations', its inverse with more) equal those of the pseudo-inverse of the reduced system."""
+    from aruco_ring_localization import bundle_adjustment as ba
+
+    prob, _ = _problem(seed=2, noise=0.5, per=120, **shape)
+    rng = np.random.default_rng(6)
+    prob.obs_xy = prob.obs_xy + rng.normal(0, 0.5 / 800.0, prob.obs_xy.shape)
+    opts = BAOptions(refine_extrinsics=True)
+    model = _Model(prob, opts)
+    assert model._reduced_is_dense()
+    fast = bundle_adjust(prob, opts)
+    monkeypatch.setattr(ba, "DENSE_REDUCED_FILL", 2.0)       # never dense
+    monkeypatch.setattr(ba, "_cholesky", lambda S: None)      # the pseudo-inverse
+    assert not _Model(prob, opts)._reduced_is_dense()
+    ref = bundle_adjust(prob, opts)
+    assert fast.nfev == ref.nfev
+    assert np.max(np.abs(fast.T_W_markers - ref.T_W_markers)) < 1e-9
+    assert np.max(np.abs(fast.marker_cov - ref.marker_cov)) <= 1e-6 * np.max(np.abs(ref.marker_cov))
+    assert np.max(np.abs(fast.camera_cov - ref.camera_cov)) <= 1e-6 * np.max(np.abs(ref.camera_cov))
