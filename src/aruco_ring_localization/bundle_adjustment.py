@@ -667,6 +667,19 @@ class _Model:
         n, nm = self.n_params, self.n_marker_params
         Hd = H.copy()
         Hd.data[self._h_diag] += damping
+        if self._station_elimination():
+            blocks, Bd, C, keep, elim = self._reduce_on_stations(Hd)
+            try:
+                Ainv = np.linalg.inv(blocks)
+            except np.linalg.LinAlgError as e:
+                raise RuntimeError("singular station block") from e
+            AB = (Ainv @ Bd.reshape(len(blocks), 6, len(keep))).reshape(len(elim), len(keep))
+            y = (Ainv @ b[elim].reshape(len(blocks), 6, 1)).ravel()
+            xk = _dense_spd_solve(C - Bd.T @ AB, b[keep] - Bd.T @ y)
+            x = np.empty(n)
+            x[keep] = xk
+            x[elim] = y - AB @ xk
+            return x
         if nm == 0:
             return splu(Hd.tocsc()).solve(b)
         A = Hd.data[self._h_marker_blocks]                               # (Mf, 6, 6)
@@ -693,6 +706,35 @@ class _Model:
         xc = splu(S).solve(b[nm:] - B.T @ y)
         return np.concatenate([y - AB @ xc, xc])
 
+    def _station_elimination(self) -> bool:
+        """Whether the steps and the covariances eliminate the stations (block diagonal too when no
+        odometry links them) instead of the markers: when there are more stations' unknowns than
+        markers' (a handheld rig walking about one scene: 1,000 stations, 35 markers), the
+        reduced system over the markers and cameras is a few hundred unknowns instead of
+        thousands (dense either way: every station sees the same markers)."""
+        if not hasattr(self, "_elim_stations"):
+            ns = 6 * int(np.sum(self.col_s >= 0))
+            nk = self.n_params - ns
+            self._elim_stations = bool(self.odo is None and ns > self.n_marker_params
+                                       and 0 < nk <= STATION_ELIMINATION_MAX_KEPT and ns * nk <= DENSE_REDUCED_MAX ** 2)
+        return self._elim_stations
+
+    def _reduce_on_stations(self, H: sp.csr_matrix):
+        """The parts of ``H`` (CSR) for the Schur complement on the stations: their (S, 6, 6)
+        diagonal blocks, the (6S, K) coupling to the kept unknowns (markers, cameras) dense, the kept
+        unknowns' (K, K) block dense, and the kept and eliminated columns."""
+        nm, n = self.n_marker_params, self.n_params
+        ns = 6 * int(np.sum(self.col_s >= 0))
+        elim = np.arange(nm, nm + ns)
+        keep = np.r_[np.arange(nm), np.arange(nm + ns, n)]
+        Hr = H[nm:nm + ns]
+        Ae = Hr[:, nm:nm + ns].tocoo()
+        if np.any(Ae.row // 6 != Ae.col // 6):
+            raise GeometryError("bundle adjustment: stations linked to each other cannot be eliminated block by block")
+        blocks = np.zeros((ns // 6, 6, 6))
+        np.add.at(blocks, (Ae.row // 6, Ae.row % 6, Ae.col % 6), Ae.data)
+        return blocks, Hr[:, keep].toarray(), H[keep][:, keep].toarray(), keep, elim
+
     def _reduced_is_dense(self) -> bool:
         """Whether the reduced system ``S`` (stations and cameras) is solved as a dense matrix:
         small enough (``DENSE_REDUCED_MAX`` unknowns, the markers' part of B dense in memory) and at
@@ -712,6 +754,9 @@ class _Model:
         return self._dense_reduced
 
 
+#: The stations are eliminated (:meth:`_Model._station_elimination`) when at most this many
+#: unknowns (markers and cameras) are left.
+STATION_ELIMINATION_MAX_KEPT = 3000
 #: The reduced system over stations and cameras is solved densely up to this many unknowns ...
 DENSE_REDUCED_MAX = 8000
 #: ... when at least this fraction of it is non-zero (below, sparse LU).
@@ -853,6 +898,27 @@ def _marker_covariances(model: _Model, H: sp.csr_matrix, variance_factor: float
     out = np.zeros((model.M, 6, 6))
     cam_cols = np.concatenate([model.col_c[i] + np.arange(6) for i in range(model.C)]) if model.o.refine_extrinsics \
         else None
+    if nm and model._station_elimination():
+        # The stations eliminated: the inverse of the reduced system over the markers and cameras
+        # is exactly their marginal covariance (a few hundred unknowns).
+        blocks, Bd, C, keep, elim = model._reduce_on_stations(H)
+        Ainv = np.linalg.pinv(blocks, hermitian=True)
+        Sk = C - Bd.T @ (Ainv @ Bd.reshape(len(blocks), 6, len(keep))).reshape(len(elim), len(keep))
+        L = _cholesky(Sk)
+        if L is not None:
+            from scipy.linalg import cho_solve
+
+            Skinv = cho_solve((L, True), np.eye(len(keep)), check_finite=False)
+        else:
+            Skinv = np.linalg.pinv(Sk, hermitian=True)
+        idx = np.flatnonzero(model.col_m >= 0)
+        mb = np.arange(len(idx))[:, None] * 6 + np.arange(6)
+        out[idx] = variance_factor * Skinv[mb[:, :, None], mb[:, None, :]]
+        cam_cov = None
+        if cam_cols is not None:
+            kc = cam_cols - len(elim)
+            cam_cov = variance_factor * Skinv[np.ix_(kc, kc)]
+        return 0.5 * (out + np.transpose(out, (0, 2, 1))), cam_cov
     if nm == 0:
         if cam_cols is None:
             return out, None

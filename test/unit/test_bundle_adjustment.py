@@ -52,12 +52,12 @@ def test_analytic_jacobian_matches_finite_differences(refine_extrinsics):
     assert err < 1e-6, f"relative Jacobian error {err:.2e}"
 
 
-def _anchored_problem(seed=3):
+def _anchored_problem(seed=3, S=3):
     """A problem with every kind of prior row: extrinsics refined, surveyed positions and rotations,
     a level station (no fixed pose: the priors hold the gauge)."""
     from aruco_ring_localization.bundle_adjustment import MarkerPriors
 
-    prob, (T_mk, _, _) = _problem(seed=seed, M=5, S=3, C=2, per=40)
+    prob, (T_mk, _, _) = _problem(seed=seed, M=5, S=S, C=2, per=40 * S // 3)
     prob.fixed_station = None
     prob.priors = MarkerPriors(position_marker=[0, 1, 2], position=T_mk[:3, :3, 3], position_std=np.full((3, 3), 0.01),
                                rotation_marker=[1], rotation=T_mk[1:2, :3, :3], rotation_std=[0.01],
@@ -65,12 +65,12 @@ def _anchored_problem(seed=3):
     return prob
 
 
-@pytest.mark.parametrize("case", ["fixed_station", "fixed_marker", "priors"])
+@pytest.mark.parametrize("case", ["fixed_station", "fixed_marker", "priors", "priors_many_stations"])
 def test_normal_equations_match_the_jacobian(case):
     """H and g assembled from the per-observation blocks equal J^T W J and J^T W r of the sparse
     Jacobian (itself checked against finite differences above), with arbitrary row weights."""
-    if case == "priors":
-        prob = _anchored_problem()
+    if case.startswith("priors"):
+        prob = _anchored_problem(S=12 if case == "priors_many_stations" else 3)
     else:
         prob, _ = _problem(seed=3, M=5, S=3, C=2, per=40)
         if case == "fixed_marker":
@@ -85,7 +85,9 @@ def test_normal_equations_match_the_jacobian(case):
     H_ref, g_ref = J.T @ (w[:, None] * J), J.T @ (w * r)
     assert np.max(np.abs(H.toarray() - H_ref)) <= 1e-9 * np.max(np.abs(H_ref))
     assert np.max(np.abs(g - g_ref)) <= 1e-9 * np.max(np.abs(g_ref))
-    # The Schur-complement solve of the damped system equals a dense solve.
+    # The Schur-complement solve of the damped system equals a dense solve (the stations
+    # eliminated when they outnumber the markers).
+    assert model._station_elimination() == (case == "priors_many_stations")
     d = 1e-3 * np.maximum(np.diag(H_ref), 1e-12)
     dx = model.solve_damped(H, -g, d)
     dx_ref = np.linalg.solve(H_ref + np.diag(d), -g_ref)
@@ -194,23 +196,31 @@ def test_camera_covariance_keeps_the_prior_only_direction_at_its_prior():
     assert rel_lo < 0.2 * rel_hi, f"the data-fixed relative turn did not shrink: {rel_lo:.3e} vs {rel_hi:.3e}"
 
 
-@pytest.mark.parametrize("shape", [dict(M=3, S=8, C=3), dict(M=12, S=2, C=2)])
-def test_dense_and_sparse_reduced_system_agree(monkeypatch, shape):
-    """The dense reduced system (Cholesky) and the sparse one (SuperLU) take the same steps, and the
-    covariances through the Cholesky factor (triangular solves with fewer markers' columns than
-    stations', its inverse with more) equal those of the pseudo-inverse of the reduced system."""
+@pytest.mark.parametrize("shape,mode", [(dict(M=3, S=8, C=3), "stations"), (dict(M=3, S=8, C=3), "markers"),
+                                        (dict(M=12, S=2, C=2), "markers")])
+def test_eliminations_and_dense_reduced_system_agree(monkeypatch, shape, mode):
+    """The stations eliminated (more stations than markers), or the markers with a dense reduced
+    system (Cholesky), take the same steps as the markers eliminated with a sparse reduced system
+    (SuperLU), and give the same covariances as the pseudo-inverse of that reduced system (through
+    the Cholesky factor: the reduced system's inverse with the stations eliminated; triangular
+    solves with fewer markers' unknowns than stations', its inverse with more)."""
     from aruco_ring_localization import bundle_adjustment as ba
 
     prob, _ = _problem(seed=2, noise=0.5, per=120, **shape)
     rng = np.random.default_rng(6)
     prob.obs_xy = prob.obs_xy + rng.normal(0, 0.5 / 800.0, prob.obs_xy.shape)
     opts = BAOptions(refine_extrinsics=True)
+    if mode == "markers":
+        monkeypatch.setattr(ba, "STATION_ELIMINATION_MAX_KEPT", 0)
     model = _Model(prob, opts)
+    assert model._station_elimination() == (mode == "stations")
     assert model._reduced_is_dense()
     fast = bundle_adjust(prob, opts)
+    monkeypatch.setattr(ba, "STATION_ELIMINATION_MAX_KEPT", 0)
     monkeypatch.setattr(ba, "DENSE_REDUCED_FILL", 2.0)       # never dense
     monkeypatch.setattr(ba, "_cholesky", lambda S: None)      # the pseudo-inverse
-    assert not _Model(prob, opts)._reduced_is_dense()
+    model = _Model(prob, opts)
+    assert not model._reduced_is_dense() and not model._station_elimination()
     ref = bundle_adjust(prob, opts)
     assert fast.nfev == ref.nfev
     assert np.max(np.abs(fast.T_W_markers - ref.T_W_markers)) < 1e-9
