@@ -668,13 +668,12 @@ class _Model:
         Hd = H.copy()
         Hd.data[self._h_diag] += damping
         if self._station_elimination():
-            blocks, Bd, C, keep, elim = self._reduce_on_stations(Hd)
             try:
-                Ainv = np.linalg.inv(blocks)
+                solve, Bd, C, keep, elim = self._reduce_on_stations(Hd)
             except np.linalg.LinAlgError as e:
-                raise RuntimeError("singular station block") from e
-            AB = (Ainv @ Bd.reshape(len(blocks), 6, len(keep))).reshape(len(elim), len(keep))
-            y = (Ainv @ b[elim].reshape(len(blocks), 6, 1)).ravel()
+                raise RuntimeError("singular stations' block") from e
+            Z = solve(np.column_stack([Bd, b[elim]]))
+            AB, y = Z[:, :-1], Z[:, -1]
             xk = _dense_spd_solve(C - Bd.T @ AB, b[keep] - Bd.T @ y)
             x = np.empty(n)
             x[keep] = xk
@@ -707,33 +706,60 @@ class _Model:
         return np.concatenate([y - AB @ xc, xc])
 
     def _station_elimination(self) -> bool:
-        """Whether the steps and the covariances eliminate the stations (block diagonal too when no
-        odometry links them) instead of the markers: when there are more stations' unknowns than
-        markers' (a handheld rig walking about one scene: 1,000 stations, 35 markers), the
-        reduced system over the markers and cameras is a few hundred unknowns instead of
-        thousands (dense either way: every station sees the same markers)."""
+        """Whether the steps and the covariances eliminate the stations instead of the markers: when
+        there are more stations' unknowns than markers' (a handheld rig walking about one scene:
+        1,000 stations, 35 markers), the reduced system over the markers and cameras is a few
+        hundred unknowns instead of thousands (dense either way: every station sees the same
+        markers). The stations' block is block diagonal, or banded when odometry links stations at
+        most ``STATION_ELIMINATION_MAX_BAND`` apart (consecutive ones, in time order)."""
         if not hasattr(self, "_elim_stations"):
             ns = 6 * int(np.sum(self.col_s >= 0))
             nk = self.n_params - ns
-            self._elim_stations = bool(self.odo is None and ns > self.n_marker_params
+            band = 0
+            if self.odo is not None:
+                band = int(np.max(np.abs(np.asarray(self.odo.station_i) - np.asarray(self.odo.station_j))))
+            self._station_band = 6 * band + 5 if band else 0      # half-bandwidth of the stations' block
+            self._elim_stations = bool(ns > self.n_marker_params and band <= STATION_ELIMINATION_MAX_BAND
                                        and 0 < nk <= STATION_ELIMINATION_MAX_KEPT and ns * nk <= DENSE_REDUCED_MAX ** 2)
         return self._elim_stations
 
-    def _reduce_on_stations(self, H: sp.csr_matrix):
-        """The parts of ``H`` (CSR) for the Schur complement on the stations: their (S, 6, 6)
-        diagonal blocks, the (6S, K) coupling to the kept unknowns (markers, cameras) dense, the kept
+    def _reduce_on_stations(self, H: sp.csr_matrix, pseudo_inverse: bool = False):
+        """The parts of ``H`` (CSR) for the Schur complement on the stations: ``solve(R)`` = the
+        stations' block ``A`` of H solved for the (6S, k) right-hand sides ``R`` (its 6x6 blocks
+        inverted, or pseudo-inverted; banded Cholesky with odometry: LinAlgError when not positive
+        definite), the (6S, K) coupling to the kept unknowns (markers, cameras) dense, the kept
         unknowns' (K, K) block dense, and the kept and eliminated columns."""
+        from scipy.linalg import cho_solve_banded, cholesky_banded
+
         nm, n = self.n_marker_params, self.n_params
         ns = 6 * int(np.sum(self.col_s >= 0))
         elim = np.arange(nm, nm + ns)
         keep = np.r_[np.arange(nm), np.arange(nm + ns, n)]
         Hr = H[nm:nm + ns]
         Ae = Hr[:, nm:nm + ns].tocoo()
-        if np.any(Ae.row // 6 != Ae.col // 6):
-            raise GeometryError("bundle adjustment: stations linked to each other cannot be eliminated block by block")
-        blocks = np.zeros((ns // 6, 6, 6))
-        np.add.at(blocks, (Ae.row // 6, Ae.row % 6, Ae.col % 6), Ae.data)
-        return blocks, Hr[:, keep].toarray(), H[keep][:, keep].toarray(), keep, elim
+        Ae.sum_duplicates()
+        u = self._station_band
+        if u:
+            up = (Ae.row <= Ae.col) & (Ae.col - Ae.row <= u)
+            if np.any(np.abs(Ae.col - Ae.row) > u):
+                raise GeometryError("bundle adjustment: stations linked farther apart than the band")
+            ab = np.zeros((u + 1, ns))
+            ab[u + Ae.row[up] - Ae.col[up], Ae.col[up]] = Ae.data[up]
+            c = cholesky_banded(ab, check_finite=False)
+
+            def solve(R: np.ndarray) -> np.ndarray:
+                return cho_solve_banded((c, False), R, check_finite=False)
+        else:
+            if np.any(Ae.row // 6 != Ae.col // 6):
+                raise GeometryError("bundle adjustment: stations linked to each other cannot be eliminated block "
+                                    "by block")
+            blocks = np.zeros((ns // 6, 6, 6))
+            np.add.at(blocks, (Ae.row // 6, Ae.row % 6, Ae.col % 6), Ae.data)
+            Ainv = np.linalg.pinv(blocks, hermitian=True) if pseudo_inverse else np.linalg.inv(blocks)
+
+            def solve(R: np.ndarray) -> np.ndarray:
+                return (Ainv @ R.reshape(len(Ainv), 6, -1)).reshape(R.shape)
+        return solve, Hr[:, keep].toarray(), H[keep][:, keep].toarray(), keep, elim
 
     def _reduced_is_dense(self) -> bool:
         """Whether the reduced system ``S`` (stations and cameras) is solved as a dense matrix:
@@ -755,8 +781,10 @@ class _Model:
 
 
 #: The stations are eliminated (:meth:`_Model._station_elimination`) when at most this many
-#: unknowns (markers and cameras) are left.
+#: unknowns (markers and cameras) are left ...
 STATION_ELIMINATION_MAX_KEPT = 3000
+#: ... and odometry links no two stations farther apart than this in the problem's order.
+STATION_ELIMINATION_MAX_BAND = 4
 #: The reduced system over stations and cameras is solved densely up to this many unknowns ...
 DENSE_REDUCED_MAX = 8000
 #: ... when at least this fraction of it is non-zero (below, sparse LU).
@@ -898,12 +926,16 @@ def _marker_covariances(model: _Model, H: sp.csr_matrix, variance_factor: float
     out = np.zeros((model.M, 6, 6))
     cam_cols = np.concatenate([model.col_c[i] + np.arange(6) for i in range(model.C)]) if model.o.refine_extrinsics \
         else None
+    solve = None
     if nm and model._station_elimination():
         # The stations eliminated: the inverse of the reduced system over the markers and cameras
         # is exactly their marginal covariance (a few hundred unknowns).
-        blocks, Bd, C, keep, elim = model._reduce_on_stations(H)
-        Ainv = np.linalg.pinv(blocks, hermitian=True)
-        Sk = C - Bd.T @ (Ainv @ Bd.reshape(len(blocks), 6, len(keep))).reshape(len(elim), len(keep))
+        try:
+            solve, Bd, C, keep, elim = model._reduce_on_stations(H, pseudo_inverse=True)
+        except np.linalg.LinAlgError:      # the stations' band not positive definite: as below
+            solve = None
+    if solve is not None:
+        Sk = C - Bd.T @ solve(Bd)
         L = _cholesky(Sk)
         if L is not None:
             from scipy.linalg import cho_solve

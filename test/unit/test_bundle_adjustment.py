@@ -226,3 +226,34 @@ def test_eliminations_and_dense_reduced_system_agree(monkeypatch, shape, mode):
     assert np.max(np.abs(fast.T_W_markers - ref.T_W_markers)) < 1e-9
     assert np.max(np.abs(fast.marker_cov - ref.marker_cov)) <= 1e-6 * np.max(np.abs(ref.marker_cov))
     assert np.max(np.abs(fast.camera_cov - ref.camera_cov)) <= 1e-6 * np.max(np.abs(ref.camera_cov))
+
+
+@pytest.mark.parametrize("fixed_station", [0, 4])
+def test_stations_linked_by_odometry_eliminated_through_their_band(monkeypatch, fixed_station):
+    """Odometry links consecutive stations (and some two apart): the stations' block is banded,
+    eliminated by banded Cholesky; the same steps and covariances as with the markers eliminated.
+    A link farther apart than STATION_ELIMINATION_MAX_BAND keeps the markers' elimination."""
+    from aruco_ring_localization import bundle_adjustment as ba
+    from aruco_ring_localization.bundle_adjustment import RelativePoseFactors
+
+    prob, (_, T_st, _) = _problem(seed=4, noise=0.5, per=150, M=3, S=10, C=2)
+    prob.fixed_station = fixed_station
+    rng = np.random.default_rng(7)
+    prob.obs_xy = prob.obs_xy + rng.normal(0, 0.5 / 800.0, prob.obs_xy.shape)
+    pairs = [(s, s + 1) for s in range(9)] + [(s, s + 2) for s in range(0, 8, 3)]
+    prob.odometry = RelativePoseFactors([a for a, _ in pairs], [b for _, b in pairs],
+                                        [geo.se3_perturb(geo.inverse(T_st[a]) @ T_st[b], rng.normal(0, 0.003, 6))
+                                         for a, b in pairs], np.full((len(pairs), 6), 0.01))
+    opts = BAOptions(refine_extrinsics=True)
+    model = _Model(prob, opts)
+    assert model._station_elimination() and model._station_band == 6 * 2 + 5
+    fast = bundle_adjust(prob, opts)
+    monkeypatch.setattr(ba, "STATION_ELIMINATION_MAX_KEPT", 0)
+    ref = bundle_adjust(prob, opts)
+    assert fast.nfev == ref.nfev
+    assert np.max(np.abs(fast.T_W_stations - ref.T_W_stations)) < 1e-9
+    assert np.max(np.abs(fast.marker_cov - ref.marker_cov)) <= 1e-6 * np.max(np.abs(ref.marker_cov))
+    assert np.max(np.abs(fast.camera_cov - ref.camera_cov)) <= 1e-6 * np.max(np.abs(ref.camera_cov))
+    monkeypatch.undo()
+    prob.odometry = RelativePoseFactors([0], [ba.STATION_ELIMINATION_MAX_BAND + 1], [np.eye(4)], [np.full(6, 0.01)])
+    assert not _Model(prob, opts)._station_elimination()
