@@ -34,9 +34,11 @@ Each pose is a perturbation of its initial value, ``R = exp(w) R0``, ``t = t0 + 
 parent frame), so the parameters stay near zero. The Jacobian is analytic (left Jacobian of
 SO(3) included) and sparse; the solver is Levenberg-Marquardt on the sparse normal equations
 (``solver: lm``, :func:`_solve_lm`): ``H = J^T W J`` assembled from each observation's 8 x 18
-block (:meth:`_Model.normal_equations`), the markers (or, for a few markers seen in many frames
-without odometry, the stations: :meth:`_Model._choose_elimination`) eliminated block by block (Schur
-complement) and the reduced system over the rest solved directly (:meth:`_Model.solve_damped`),
+block (:meth:`_Model.normal_equations`), the markers eliminated block by block (Schur complement)
+and the reduced system over stations and cameras solved directly (:meth:`_Model.solve_damped`) --
+or, when the stations' unknowns outnumber the markers' (a handheld walk, a calibration recording of
+1,500 frames), the stations eliminated instead (block by block, banded with odometry) and the small
+dense system over markers and cameras solved (:meth:`_Model._station_elimination`),
 the robust loss by reweighting; or :func:`scipy.optimize.least_squares` (``solver: trf``:
 ``lsmr`` on the sparse Jacobian, ``x_scale='jac'``, a robust loss).
 
@@ -172,9 +174,6 @@ class BAProblem:
         priors: optional :class:`MarkerPriors` (surveyed markers, level stations): with them no
             marker or station needs to be fixed.
         odometry: optional :class:`RelativePoseFactors` between stations (the robot's odometry).
-        obs_object: optional (N, 4, 3) corners of each observation in its marker's frame (default:
-            the square of ``sizes``): one unknown can then be a rigid board of several markers,
-            each observation's corners placed by the board's layout (:mod:`boards`).
     """
 
     T_W_markers: np.ndarray
@@ -192,7 +191,6 @@ class BAProblem:
     obs_lens: Optional[np.ndarray] = None
     priors: Optional[MarkerPriors] = None
     odometry: Optional[RelativePoseFactors] = None
-    obs_object: Optional[np.ndarray] = None
 
 
 @dataclass(frozen=True)
@@ -307,11 +305,8 @@ class _Model:
         self.R_c0 = prob.T_base_cams[:, :3, :3].copy()
         self.t_c0 = prob.T_base_cams[:, :3, 3].copy()
         # Corner coordinates in the marker frame, per observation: (N, 4, 3).
-        if prob.obs_object is not None:
-            self.X = np.asarray(prob.obs_object, dtype=float).reshape(N, 4, 3)
-        else:
-            unit = marker_corners(1.0)
-            self.X = unit[None, :, :] * np.asarray(prob.sizes, dtype=float)[prob.obs_marker][:, None, None]
+        unit = marker_corners(1.0)
+        self.X = unit[None, :, :] * np.asarray(prob.sizes, dtype=float)[prob.obs_marker][:, None, None]
         if prob.obs_lens is not None:
             self.A = np.asarray(prob.obs_lens, dtype=float) / opts.pixel_noise     # (N, 4, 2, 2)
         else:
@@ -630,53 +625,10 @@ class _Model:
         self._h_indices = (uniq % n).astype(np.int32)
         self._h_indptr = np.searchsorted(uniq // n, np.arange(n + 1)).astype(np.int32)
         self._h_diag = np.searchsorted(uniq, np.arange(n, dtype=np.int64) * (n + 1))
-        self._choose_elimination()
-        cm = self._elim_starts
+        cm = self.col_m[self.col_m >= 0].astype(np.int64)
         mb = cm[:, None, None] + np.arange(6)
-        self._h_elim_blocks = np.searchsorted(uniq, np.broadcast_to(mb, (len(cm), 6, 6)) * n
-                                              + np.broadcast_to(np.transpose(mb, (0, 2, 1)), (len(cm), 6, 6)))
-
-    def _choose_elimination(self) -> None:
-        """Which poses :meth:`solve_damped` eliminates first (block by block): the markers or the stations.
-
-        Both are block diagonal in ``H`` (a marker touches stations and cameras, never another
-        marker; a station the same, unless odometry links it to another). Eliminating one set fills
-        the reduced system over the other with one 6x6 block per pair of them seen together: by
-        the markers, one per pair of stations that see a common marker; by the stations, one per
-        pair of markers seen in a common frame. A mapping run (many markers, each seen from a few
-        of many stations) eliminates the markers; a calibration recording (a board of a few dozen
-        markers filmed in 1,500 frames: 1,500 stations all seeing the same markers) eliminates the
-        stations -- the other way its reduced system was a dense 9,000 x 9,000 matrix stored as
-        sparse (MemoryError in SuperLU). Sets ``_elim_range`` (the set's contiguous columns),
-        ``_elim_starts`` (each free pose's first column) and ``_keep_cols`` (the others).
-        """
-        n, nm = self.n_params, self.n_marker_params
-        ns = int(np.count_nonzero(self.col_s >= 0)) * 6
-        free_m = self.col_m[self.p.obs_marker] >= 0
-        free_s = self.col_s[self.p.obs_station] >= 0
-
-        def pair_blocks(group: np.ndarray, member: np.ndarray) -> int:
-            # Blocks of the reduced system over ``member`` after eliminating ``group``: per group
-            # element, (its distinct members)^2.
-            if len(group) == 0:
-                return 0
-            key = np.unique(group.astype(np.int64) * (int(member.max(initial=0)) + 1) + member)
-            counts = np.bincount(key // (int(member.max(initial=0)) + 1))
-            return int(np.sum(counts.astype(np.int64) ** 2))
-
-        by_markers = pair_blocks(self.p.obs_marker[free_m & free_s], self.p.obs_station[free_m & free_s])
-        by_stations = pair_blocks(self.p.obs_station[free_m & free_s], self.p.obs_marker[free_m & free_s])
-        stations = (self.n_odo_res == 0 and ns > 0 and (nm == 0 or by_stations < by_markers))
-        if stations:
-            self.eliminated = "stations"
-            self._elim_range = (nm, nm + ns)
-            self._elim_starts = self.col_s[self.col_s >= 0].astype(np.int64)
-        else:
-            self.eliminated = "markers"
-            self._elim_range = (0, nm)
-            self._elim_starts = self.col_m[self.col_m >= 0].astype(np.int64)
-        e0, e1 = self._elim_range
-        self._keep_cols = np.r_[np.arange(0, e0), np.arange(e1, n)].astype(np.int64)
+        self._h_marker_blocks = np.searchsorted(uniq, np.broadcast_to(mb, (len(cm), 6, 6)) * n
+                                                + np.broadcast_to(np.transpose(mb, (0, 2, 1)), (len(cm), 6, 6)))
 
     def normal_equations(self, x: np.ndarray, r: np.ndarray, w: np.ndarray) -> Tuple[sp.csr_matrix, np.ndarray]:
         """``H = J^T diag(w) J`` (CSR, :meth:`_build_normal_pattern`'s structure) and ``g = J^T diag(w) r``
@@ -702,77 +654,199 @@ class _Model:
         return sp.csr_matrix((data, self._h_indices, self._h_indptr), shape=(n, n)), g
 
     def solve_damped(self, H: sp.csr_matrix, b: np.ndarray, damping: np.ndarray) -> np.ndarray:
-        """``(H + diag(damping)) dx = b`` by the Schur complement on the markers or the stations.
+        """``(H + diag(damping)) dx = b`` by the Schur complement on the markers.
 
-        The eliminated set (:meth:`_choose_elimination`: the markers, or the stations when there are
-        far more of them than markers and no odometry links them) is block diagonal in ``H`` (6x6
-        each), inverted block by block; the reduced system ``S = C - B^T A^-1 B`` over the rest (a
-        band along a chain of stations plus the cameras; or the markers plus the cameras) is small
-        and sparse (SuperLU). A direct solve of the whole H (as before) factorised the markers'
-        columns too: 0.8 s per step for the 1,000-marker hall, against ~0.05 s here.
+        Markers only couple to stations and cameras: the markers' part ``A`` of H is block
+        diagonal (6x6 each), inverted block by block; the reduced system ``S = C - B^T A^-1 B``
+        over the stations and cameras (a band along a chain of stations, plus the cameras) is
+        small and sparse (SuperLU). A direct solve of the whole H (as before) factorised the
+        markers' columns too: 0.8 s per step for the 1,000-marker hall, against ~0.05 s here.
 
         Raises:
             RuntimeError: a singular block or reduced system (the caller damps harder).
         """
         from scipy.sparse.linalg import splu
 
+        n, nm = self.n_params, self.n_marker_params
         Hd = H.copy()
         Hd.data[self._h_diag] += damping
-        if not hasattr(self, "_elim_range"):
-            self._build_normal_pattern()
-        S, B, AB, y, keep = self._reduce(Hd, b)
-        if S is None:
-            return y
-        e0, e1 = self._elim_range
-        xc = splu(S.tocsc()).solve(b[keep] - B.T @ y)
-        out = np.empty(self.n_params)
-        out[e0:e1] = y - AB @ xc
-        out[keep] = xc
-        return out
-
-    def _reduce(self, H: sp.csr_matrix, b: Optional[np.ndarray] = None):
-        """The Schur complement of ``H`` (CSR, :meth:`_build_normal_pattern`'s structure) on the
-        eliminated set: ``(S, B, A^-1 B, A^-1 b_e, keep)`` with ``S`` (CSR) over the columns
-        ``keep``; ``S`` None when nothing is kept.
-
-        Raises:
-            RuntimeError: a singular block.
-        """
-        e0, e1 = self._elim_range
-        keep = self._keep_cols
-        A = H.data[self._h_elim_blocks]                                  # (E, 6, 6)
+        if self._station_elimination():
+            try:
+                solve, Bd, C, keep, elim = self._reduce_on_stations(Hd)
+            except np.linalg.LinAlgError as e:
+                raise RuntimeError("singular stations' block") from e
+            Z = solve(np.column_stack([Bd, b[elim]]))
+            AB, y = Z[:, :-1], Z[:, -1]
+            xk = _dense_spd_solve(C - Bd.T @ AB, b[keep] - Bd.T @ y)
+            x = np.empty(n)
+            x[keep] = xk
+            x[elim] = y - AB @ xk
+            return x
+        if nm == 0:
+            return splu(Hd.tocsc()).solve(b)
+        A = Hd.data[self._h_marker_blocks]                               # (Mf, 6, 6)
         try:
             Ainv = np.linalg.inv(A)
         except np.linalg.LinAlgError as e:
-            raise RuntimeError("singular block") from e
-        E = len(A)
-        y = (Ainv @ b[e0:e1].reshape(E, 6, 1)).ravel() if b is not None else None
-        if len(keep) == 0:
-            return None, None, None, y, keep
-        Ainv_sp = sp.bsr_matrix((Ainv, np.arange(E), np.arange(E + 1)), shape=(e1 - e0, e1 - e0)).tocsr()
-        B = H[e0:e1][:, keep].tocsr()
+            raise RuntimeError("singular marker block") from e
+        Mf = len(A)
+        y = (Ainv @ b[:nm].reshape(Mf, 6, 1)).ravel()
+        if nm == n:
+            return y
+        B = Hd[:nm, nm:]
+        if self._reduced_is_dense():
+            # Stations that all see the same few markers (a handheld walk around one scene) couple
+            # every station with every other: S is dense, and sparse products and SuperLU on it
+            # cost 10x a dense product and Cholesky (test_13: 11.7 s per step against ~1 s).
+            ABd = (Ainv @ B.toarray().reshape(Mf, 6, n - nm)).reshape(nm, n - nm)
+            S_d = Hd[nm:, nm:].toarray() - B.T @ ABd
+            xc = _dense_spd_solve(S_d, b[nm:] - B.T @ y)
+            return np.concatenate([y - ABd @ xc, xc])
+        Ainv_sp = sp.bsr_matrix((Ainv, np.arange(Mf), np.arange(Mf + 1)), shape=(nm, nm)).tocsr()
         AB = (Ainv_sp @ B).tocsr()
-        S = (H[keep][:, keep] - B.T @ AB).tocsr()
-        return S, B, AB, y, keep
+        S = (Hd[nm:, nm:] - B.T @ AB).tocsc()
+        xc = splu(S).solve(b[nm:] - B.T @ y)
+        return np.concatenate([y - AB @ xc, xc])
 
     def marginal_information(self, H: sp.csr_matrix, cols: np.ndarray) -> np.ndarray:
-        """The information of the parameters ``cols`` with every other one marginalised: the Schur
-        complement of ``H`` (:meth:`normal_equations`' structure) on them, dense. Its inverse is
-        their block of ``H^-1`` without ever forming ``H`` densely (1,500 stations: 9,000 columns).
-        ``cols`` must not be in the eliminated set (:meth:`_choose_elimination`), e.g. the cameras."""
-        if not hasattr(self, "_elim_range"):
+        """The information of the parameters ``cols`` (sorted) with every other one marginalised:
+        the Schur complement of ``H`` (:meth:`normal_equations`' structure) on them, dense. Its
+        inverse is their block of ``H^-1`` without forming ``H`` densely (a calibration recording
+        of 1,500 stations: 9,000 columns). The stations (:meth:`_station_elimination`) or else the
+        markers are eliminated block by block first, so ``cols`` must be cameras' (or markers'
+        when the stations are eliminated).
+
+        Raises:
+            GeometryError: ``cols`` holds columns of the set eliminated block by block.
+        """
+        H = H.tocsr()
+        if not hasattr(self, "_h_uniq"):
             self._build_normal_pattern()
-        S, _, _, _, keep = self._reduce(H.tocsr())
+        if self._station_elimination():
+            solve, Bd, C, keep, _ = self._reduce_on_stations(H)
+            S = C - Bd.T @ solve(Bd)
+        else:
+            nm, n = self.n_marker_params, self.n_params
+            keep = np.arange(nm, n)
+            if nm:
+                A = H.data[self._h_marker_blocks]
+                B = H[:nm, nm:].toarray()
+                AB = (np.linalg.inv(A) @ B.reshape(len(A), 6, n - nm)).reshape(nm, n - nm)
+                S = H[nm:, nm:].toarray() - B.T @ AB
+            else:
+                S = H.toarray()
+        cols = np.asarray(cols, dtype=np.int64)
         pos = np.searchsorted(keep, cols)
-        if S is None or np.any(pos >= len(keep)) or np.any(keep[np.minimum(pos, len(keep) - 1)] != cols):
-            raise GeometryError("marginal_information: the columns asked for are eliminated")
-        Sd = S.toarray()
+        if np.any(pos >= len(keep)) or np.any(keep[np.minimum(pos, len(keep) - 1)] != cols):
+            raise GeometryError("marginal_information: the columns asked for are eliminated block by block")
         rest = np.setdiff1d(np.arange(len(keep)), pos)
         if len(rest) == 0:
-            return Sd[np.ix_(pos, pos)]
-        Srr = Sd[np.ix_(rest, rest)]
-        Srt = Sd[np.ix_(rest, pos)]
-        return Sd[np.ix_(pos, pos)] - Srt.T @ np.linalg.solve(Srr, Srt)
+            return S[np.ix_(pos, pos)]
+        Srt = S[np.ix_(rest, pos)]
+        return S[np.ix_(pos, pos)] - Srt.T @ np.linalg.solve(S[np.ix_(rest, rest)], Srt)
+
+    def _station_elimination(self) -> bool:
+        """Whether the steps and the covariances eliminate the stations instead of the markers: when
+        there are more stations' unknowns than markers' (a handheld rig walking about one scene:
+        1,000 stations, 35 markers), the reduced system over the markers and cameras is a few
+        hundred unknowns instead of thousands (dense either way: every station sees the same
+        markers). The stations' block is block diagonal, or banded when odometry links stations at
+        most ``STATION_ELIMINATION_MAX_BAND`` apart (consecutive ones, in time order)."""
+        if not hasattr(self, "_elim_stations"):
+            ns = 6 * int(np.sum(self.col_s >= 0))
+            nk = self.n_params - ns
+            band = 0
+            if self.odo is not None:
+                band = int(np.max(np.abs(np.asarray(self.odo.station_i) - np.asarray(self.odo.station_j))))
+            self._station_band = 6 * band + 5 if band else 0      # half-bandwidth of the stations' block
+            self._elim_stations = bool(ns > self.n_marker_params and band <= STATION_ELIMINATION_MAX_BAND
+                                       and 0 < nk <= STATION_ELIMINATION_MAX_KEPT and ns * nk <= DENSE_REDUCED_MAX ** 2)
+        return self._elim_stations
+
+    def _reduce_on_stations(self, H: sp.csr_matrix, pseudo_inverse: bool = False):
+        """The parts of ``H`` (CSR) for the Schur complement on the stations: ``solve(R)`` = the
+        stations' block ``A`` of H solved for the (6S, k) right-hand sides ``R`` (its 6x6 blocks
+        inverted, or pseudo-inverted; banded Cholesky with odometry: LinAlgError when not positive
+        definite), the (6S, K) coupling to the kept unknowns (markers, cameras) dense, the kept
+        unknowns' (K, K) block dense, and the kept and eliminated columns."""
+        from scipy.linalg import cho_solve_banded, cholesky_banded
+
+        nm, n = self.n_marker_params, self.n_params
+        ns = 6 * int(np.sum(self.col_s >= 0))
+        elim = np.arange(nm, nm + ns)
+        keep = np.r_[np.arange(nm), np.arange(nm + ns, n)]
+        Hr = H[nm:nm + ns]
+        Ae = Hr[:, nm:nm + ns].tocoo()
+        Ae.sum_duplicates()
+        u = self._station_band
+        if u:
+            up = (Ae.row <= Ae.col) & (Ae.col - Ae.row <= u)
+            if np.any(np.abs(Ae.col - Ae.row) > u):
+                raise GeometryError("bundle adjustment: stations linked farther apart than the band")
+            ab = np.zeros((u + 1, ns))
+            ab[u + Ae.row[up] - Ae.col[up], Ae.col[up]] = Ae.data[up]
+            c = cholesky_banded(ab, check_finite=False)
+
+            def solve(R: np.ndarray) -> np.ndarray:
+                return cho_solve_banded((c, False), R, check_finite=False)
+        else:
+            if np.any(Ae.row // 6 != Ae.col // 6):
+                raise GeometryError("bundle adjustment: stations linked to each other cannot be eliminated block "
+                                    "by block")
+            blocks = np.zeros((ns // 6, 6, 6))
+            np.add.at(blocks, (Ae.row // 6, Ae.row % 6, Ae.col % 6), Ae.data)
+            Ainv = np.linalg.pinv(blocks, hermitian=True) if pseudo_inverse else np.linalg.inv(blocks)
+
+            def solve(R: np.ndarray) -> np.ndarray:
+                return (Ainv @ R.reshape(len(Ainv), 6, -1)).reshape(R.shape)
+        return solve, Hr[:, keep].toarray(), H[keep][:, keep].toarray(), keep, elim
+
+    def _reduced_is_dense(self) -> bool:
+        """Whether the reduced system ``S`` (stations and cameras) is solved as a dense matrix:
+        small enough (``DENSE_REDUCED_MAX`` unknowns, the markers' part of B dense in memory) and at
+        least ``DENSE_REDUCED_FILL`` full (its pattern, fixed by the problem, computed once)."""
+        if not hasattr(self, "_dense_reduced"):
+            if not hasattr(self, "_h_uniq"):
+                self._build_normal_pattern()
+            n, nm = self.n_params, self.n_marker_params
+            nc = n - nm
+            dense = False
+            if 0 < nc <= DENSE_REDUCED_MAX and nm * nc <= DENSE_REDUCED_MAX ** 2:
+                pat = sp.csr_matrix((np.ones(len(self._h_indices)), self._h_indices, self._h_indptr), shape=(n, n))
+                Bp = pat[:nm, nm:]
+                fill = (pat[nm:, nm:] + Bp.T @ Bp).nnz / float(nc * nc)
+                dense = fill >= DENSE_REDUCED_FILL
+            self._dense_reduced = dense
+        return self._dense_reduced
+
+
+#: The stations are eliminated (:meth:`_Model._station_elimination`) when at most this many
+#: unknowns (markers and cameras) are left ...
+STATION_ELIMINATION_MAX_KEPT = 3000
+#: ... and odometry links no two stations farther apart than this in the problem's order.
+STATION_ELIMINATION_MAX_BAND = 4
+#: The reduced system over stations and cameras is solved densely up to this many unknowns ...
+DENSE_REDUCED_MAX = 8000
+#: ... when at least this fraction of it is non-zero (below, sparse LU).
+DENSE_REDUCED_FILL = 0.1
+
+
+def _dense_spd_solve(S: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``S x = b`` for a symmetric positive definite ``S`` (Cholesky; LU when rounding makes it
+    indefinite). Raises RuntimeError when ``S`` is singular (the caller damps harder)."""
+    from scipy.linalg import LinAlgError, cho_factor, cho_solve, lu_factor, lu_solve
+
+    try:
+        return cho_solve(cho_factor(S, lower=True, check_finite=False), b, check_finite=False)
+    except LinAlgError:
+        pass
+    try:
+        lu = lu_factor(S, check_finite=False)
+    except (LinAlgError, ValueError) as e:
+        raise RuntimeError("singular reduced system") from e
+    if not np.all(np.isfinite(lu[0])) or np.min(np.abs(np.diag(lu[0]))) == 0.0:
+        raise RuntimeError("singular reduced system")
+    return lu_solve(lu, b, check_finite=False)
 
 
 def _loss_weights(z: np.ndarray, loss: str) -> np.ndarray:
@@ -812,7 +886,7 @@ def _solve_lm(model: _Model, x0: np.ndarray, f_scale: float, opts: BAOptions, ma
     Each iteration: the normal equations at ``x`` with weights ``rho'((r/f_scale)^2)`` on the
     corner residuals (the priors stay quadratic), assembled from the per-observation blocks
     (:meth:`_Model.normal_equations`), then ``(H + lambda diag(H)) dx = -g`` solved directly
-    through the Schur complement on the markers or stations (:meth:`_Model.solve_damped`: LSMR's
+    through the Schur complement on the markers (:meth:`_Model.solve_damped`: LSMR's
     unpreconditioned iterations crawl along the long, weakly constrained directions of a chain of
     stations). A step is kept when the robust cost decreases.
     Stops on ``ftol`` (relative cost decrease), ``xtol`` (step), ``gtol`` (gradient) or ``max_nfev``.
@@ -892,6 +966,31 @@ def _marker_covariances(model: _Model, H: sp.csr_matrix, variance_factor: float
     out = np.zeros((model.M, 6, 6))
     cam_cols = np.concatenate([model.col_c[i] + np.arange(6) for i in range(model.C)]) if model.o.refine_extrinsics \
         else None
+    solve = None
+    if nm and model._station_elimination():
+        # The stations eliminated: the inverse of the reduced system over the markers and cameras
+        # is exactly their marginal covariance (a few hundred unknowns).
+        try:
+            solve, Bd, C, keep, elim = model._reduce_on_stations(H, pseudo_inverse=True)
+        except np.linalg.LinAlgError:      # the stations' band not positive definite: as below
+            solve = None
+    if solve is not None:
+        Sk = C - Bd.T @ solve(Bd)
+        L = _cholesky(Sk)
+        if L is not None:
+            from scipy.linalg import cho_solve
+
+            Skinv = cho_solve((L, True), np.eye(len(keep)), check_finite=False)
+        else:
+            Skinv = np.linalg.pinv(Sk, hermitian=True)
+        idx = np.flatnonzero(model.col_m >= 0)
+        mb = np.arange(len(idx))[:, None] * 6 + np.arange(6)
+        out[idx] = variance_factor * Skinv[mb[:, :, None], mb[:, None, :]]
+        cam_cov = None
+        if cam_cols is not None:
+            kc = cam_cols - len(elim)
+            cam_cov = variance_factor * Skinv[np.ix_(kc, kc)]
+        return 0.5 * (out + np.transpose(out, (0, 2, 1))), cam_cov
     if nm == 0:
         if cam_cols is None:
             return out, None
@@ -910,8 +1009,37 @@ def _marker_covariances(model: _Model, H: sp.csr_matrix, variance_factor: float
         Ainv_sp = sp.bsr_matrix((Ainv, np.arange(Mf), np.arange(Mf + 1)), shape=(nm, nm)).tocsr()
         B = H[:nm, nm:].tocsr()
         K = (Ainv_sp @ B).tocsr()                                    # A^-1 B, (nm, nc) sparse
-        Sred = H[nm:, nm:].toarray() - (B.T @ K).toarray()
-        Sinv = np.linalg.pinv(Sred, hermitian=True)
+        nc = model.n_params - nm
+        if model._reduced_is_dense():
+            Sred = H[nm:, nm:].toarray() - B.T @ K.toarray()
+        else:
+            Sred = H[nm:, nm:].toarray() - (B.T @ K).toarray()
+        L = _cholesky(Sred)
+        if L is not None and nm <= nc:
+            # S = L L^T (the gauge is fixed: positive definite): K_i S^-1 K_i^T = X_i^T X_i with
+            # X = L^-1 K^T, a triangular solve per chunk of markers (nc^2 per marker) instead of
+            # S's pseudo-inverse (an eigendecomposition, ~10 nc^3: 60 % of test_13's build-map).
+            from scipy.linalg import solve_triangular
+
+            chunk = 256
+            for m0 in range(0, Mf, chunk):
+                m1 = min(m0 + chunk, Mf)
+                X = solve_triangular(L, K[6 * m0:6 * m1].toarray().T, lower=True, check_finite=False)
+                Xb = X.T.reshape(m1 - m0, 6, nc)
+                cov[m0:m1] += Xb @ np.transpose(Xb, (0, 2, 1))
+            if cam_cols is not None:
+                E = np.zeros((nc, len(cam_cols)))
+                E[cam_cols - nm, np.arange(len(cam_cols))] = 1.0
+                Y = solve_triangular(L, E, lower=True, check_finite=False)
+                cam_cov = variance_factor * (Y.T @ Y)
+            out[idx] = cov * variance_factor
+            return 0.5 * (out + np.transpose(out, (0, 2, 1))), cam_cov
+        if L is not None:
+            from scipy.linalg import cho_solve
+
+            Sinv = cho_solve((L, True), np.eye(nc), check_finite=False)
+        else:
+            Sinv = np.linalg.pinv(Sred, hermitian=True)
         # cov_i = A_i^-1 + K_i S^-1 K_i^T, K_i the marker's 6 rows of K (a few stations + the
         # cameras): G = K S^-1 in chunks of markers, then only K's non-zeros are visited.
         Kc = K.tocoo()
@@ -935,6 +1063,16 @@ def _marker_covariances(model: _Model, H: sp.csr_matrix, variance_factor: float
             cam_cov = variance_factor * Sinv[np.ix_(cam_cols - nm, cam_cols - nm)]
     out[idx] = cov * variance_factor
     return 0.5 * (out + np.transpose(out, (0, 2, 1))), cam_cov
+
+
+def _cholesky(S: np.ndarray) -> Optional[np.ndarray]:
+    """Lower Cholesky factor of a symmetric ``S``, or None when it is not positive definite."""
+    from scipy.linalg import LinAlgError, cholesky
+
+    try:
+        return cholesky(S, lower=True, check_finite=False)
+    except LinAlgError:
+        return None
 
 
 def bundle_adjust(prob: BAProblem, opts: Optional[BAOptions] = None) -> BAResult:

@@ -259,13 +259,14 @@ class CameraModel:
         ``xy`` (N, 2), by central differences: how far a raw pixel moves per unit of x/z and y/z
         (``diag(fx, fy)`` for a camera without distortion)."""
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        out = np.zeros((len(xy), 2, 2))
+        n = len(xy)
+        out = np.zeros((n, 2, 2))
+        # The four displaced copies through the lens model at once (one call each, not four).
+        d = np.array([[step, 0.0], [-step, 0.0], [0.0, step], [0.0, -step]])
+        px = self.pixels_from_normalized(self.distort_normalized((xy[None] + d[:, None]).reshape(-1, 2)))
+        px = px.reshape(4, n, 2)
         for j in range(2):
-            d = np.zeros(2)
-            d[j] = step
-            hi = self.pixels_from_normalized(self.distort_normalized(xy + d))
-            lo = self.pixels_from_normalized(self.distort_normalized(xy - d))
-            out[:, :, j] = (hi - lo) / (2.0 * step)
+            out[:, :, j] = (px[2 * j] - px[2 * j + 1]) / (2.0 * step)
         return out
 
     def undistort_pixels(self, pixels) -> np.ndarray:

@@ -14,7 +14,7 @@ with a message that names the argument, never returning NaN silently.
 from __future__ import annotations
 
 import logging
-from typing import Iterable, Optional, Sequence, Tuple
+from typing import Iterable, List, Optional, Sequence, Tuple
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -301,12 +301,34 @@ def average_rotations(rotations: Iterable, weights: Optional[Sequence[float]] = 
 def average_transforms(transforms: Iterable, weights: Optional[Sequence[float]] = None) -> np.ndarray:
     """Weighted mean of rigid transforms: rotation by :func:`average_rotations`, translation
     by the weighted arithmetic mean. Exact for identical inputs."""
-    Ts = [validate_transform(T, f"transforms[{i}]") for i, T in enumerate(transforms)]
-    w = _check_weights(len(Ts), weights)
+    transforms = list(transforms)
+    A = _valid_transform_stack(transforms)
+    if A is None:   # one of them is not a rigid transform (or none given): the per-item check names it
+        Ts = [validate_transform(T, f"transforms[{i}]") for i, T in enumerate(transforms)]
+        _check_weights(len(Ts), weights)
+        A = np.stack(Ts)
+    w = _check_weights(len(A), weights)
     out = np.eye(4)
-    out[:3, :3] = average_rotations([T[:3, :3] for T in Ts], w)
-    out[:3, 3] = np.sum([wi * T[:3, 3] for wi, T in zip(w, Ts)], axis=0)
+    out[:3, :3] = Rotation.from_matrix(A[:, :3, :3]).mean(weights=w).as_matrix()
+    out[:3, 3] = np.sum([wi * T[:3, 3] for wi, T in zip(w, A)], axis=0)
     return out
+
+
+def _valid_transform_stack(transforms: List) -> Optional[np.ndarray]:
+    """The (K, 4, 4) stack of ``transforms`` when every one passes :func:`validate_transform`'s
+    checks (all at once: the mapping averages thousands of small sets), else None."""
+    try:
+        A = np.asarray(transforms, dtype=np.float64)
+    except (TypeError, ValueError):
+        return None
+    if A.ndim != 3 or A.shape[1:] != (4, 4) or len(A) == 0 or not np.all(np.isfinite(A)):
+        return None
+    R = A[:, :3, :3]
+    if np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max() > _ORTHO_TOL or np.any(np.linalg.det(R) < 0.0):
+        return None
+    if np.abs(A[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > 1e-9:
+        return None
+    return A
 
 
 def rigid_fit(P, Q, weights: Optional[Sequence[float]] = None) -> np.ndarray:

@@ -360,6 +360,8 @@ class MapBuilder:
         self._version = getattr(self, "_version", 0) + 1
         self._init_cache: Optional[Tuple[int, _Init]] = None
         self._last_groups: List[_Group] = []
+        #: (station, camera, marker) -> (detections, their candidates) of the last build (_groups).
+        self._group_candidates: Dict[Tuple[int, str, int], Tuple[int, Optional[MarkerPoseCandidates]]] = {}
         self._warned: Dict[int, str] = {}      # marker -> the kind of reason last warned about
         self.last_ba: Optional[BAResult] = None
         self._refine_rejected: Tuple[int, Dict[int, str]] = (-1, {})
@@ -547,12 +549,22 @@ class MapBuilder:
         for i, o in enumerate(self._obs):
             members[(o.station, o.camera, o.marker_id)].append(i)
         out = []
-        for (st, cam, mid), idxs in sorted(members.items()):
+        for key, idxs in sorted(members.items()):
+            st, cam, mid = key
             first = self._obs[idxs[0]]
             xy = np.mean([self._obs[i].xy for i in idxs], axis=0)
-            try:
-                cand = _candidates(xy, self.sizes(mid), first.focal)
-            except (MeasurementError, GeometryError):
+            # A group's detections only grow (clear() forgets them): the same count is the same
+            # corners, solved at an earlier build (the live mapper rebuilds every few seconds).
+            cached = self._group_candidates.get(key)
+            if cached is not None and cached[0] == len(idxs):
+                cand = cached[1]
+            else:
+                try:
+                    cand = _candidates(xy, self.sizes(mid), first.focal)
+                except (MeasurementError, GeometryError):
+                    cand = None
+                self._group_candidates[key] = (len(idxs), cand)
+            if cand is None:
                 continue
             T = cand.T_cam_marker
             dist = float(np.linalg.norm(T[:3, 3]))

@@ -26,6 +26,7 @@ frame, :func:`markers.marker_corners`) or the map (corners in the map frame).
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 from typing import List, Optional, Tuple
 
@@ -120,10 +121,10 @@ def undistorted_rms(T_cam_obj: np.ndarray, object_pts: np.ndarray, xy: np.ndarra
     observations ``xy`` (N, 2): the ideal pinhole camera with focal lengths ``focal`` (fx, fy).
     Infinite when a point is at or behind the camera."""
     p = object_pts @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3]
-    if np.any(p[:, 2] <= 1e-9):
+    if p[:, 2].min() <= 1e-9:
         return float("inf")
     d = (p[:, :2] / p[:, 2:3] - xy) * focal
-    return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
+    return math.sqrt(float(np.einsum("ij,ij->", d, d)) / len(d))
 
 
 def mirror_about_ray(R: np.ndarray, t: np.ndarray) -> Optional[np.ndarray]:
@@ -132,11 +133,17 @@ def mirror_about_ray(R: np.ndarray, t: np.ndarray) -> Optional[np.ndarray]:
     u = t / np.linalg.norm(t)
     n1 = R[:, 2]
     n2 = 2.0 * (n1 @ u) * u - n1
-    axis = np.cross(n1, n2)
+    axis = np.array([n1[1] * n2[2] - n1[2] * n2[1], n1[2] * n2[0] - n1[0] * n2[2], n1[0] * n2[1] - n1[1] * n2[0]])
     s = float(np.linalg.norm(axis))
     if s < 1e-9:
         return None
-    return geo.rotation_from_rvec(axis / s * np.arctan2(s, float(n1 @ n2))) @ R
+    return _rotation(axis / s * np.arctan2(s, float(n1 @ n2))) @ R
+
+
+def _rotation(rvec: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a finite rotation vector (OpenCV's Rodrigues: the per-candidate work of
+    the mapping's thousands of IPPE solves, where scipy's Rotation costs 10x more per call)."""
+    return cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))[0]
 
 
 def _lm(obj: np.ndarray, pts: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, criteria) -> Tuple[np.ndarray, np.ndarray]:
@@ -163,9 +170,9 @@ def _marker_candidates(xy: np.ndarray, size: float, rms, refine: bool, mirror: b
         starts = []
         for r, t in solutions:
             starts.append((r, t))
-            Rm = mirror_about_ray(geo.rotation_from_rvec(r), t)
+            Rm = mirror_about_ray(_rotation(r), t)
             if Rm is not None:
-                starts.append((geo.rvec_from_rotation(Rm), t))
+                starts.append((cv2.Rodrigues(Rm)[0].reshape(3), t))
         solutions = [_lm(obj, pts, r, t, _LM_CRITERIA_MIRROR) for r, t in starts]
     elif refine:
         refined = [_lm(obj, pts, r, t, _LM_CRITERIA) for r, t in solutions]
@@ -176,10 +183,12 @@ def _marker_candidates(xy: np.ndarray, size: float, rms, refine: bool, mirror: b
             solutions = refined
     scored = []
     for rvec, tvec in solutions:
-        try:
-            T = geo.transform_from_rvec_tvec(rvec, tvec)
-        except GeometryError:
+        rvec, tvec = np.asarray(rvec, dtype=np.float64).reshape(3), np.asarray(tvec, dtype=np.float64).reshape(3)
+        if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
             continue
+        T = np.eye(4)
+        T[:3, :3] = _rotation(rvec)
+        T[:3, 3] = tvec
         if T[2, 3] <= 0.0:
             continue  # behind the camera: not a physical solution
         scored.append((rms(T), T))

@@ -52,12 +52,12 @@ def test_analytic_jacobian_matches_finite_differences(refine_extrinsics):
     assert err < 1e-6, f"relative Jacobian error {err:.2e}"
 
 
-def _anchored_problem(seed=3):
+def _anchored_problem(seed=3, S=3):
     """A problem with every kind of prior row: extrinsics refined, surveyed positions and rotations,
     a level station (no fixed pose: the priors hold the gauge)."""
     from aruco_ring_localization.bundle_adjustment import MarkerPriors
 
-    prob, (T_mk, _, _) = _problem(seed=seed, M=5, S=3, C=2, per=40)
+    prob, (T_mk, _, _) = _problem(seed=seed, M=5, S=S, C=2, per=40 * S // 3)
     prob.fixed_station = None
     prob.priors = MarkerPriors(position_marker=[0, 1, 2], position=T_mk[:3, :3, 3], position_std=np.full((3, 3), 0.01),
                                rotation_marker=[1], rotation=T_mk[1:2, :3, :3], rotation_std=[0.01],
@@ -65,14 +65,14 @@ def _anchored_problem(seed=3):
     return prob
 
 
-@pytest.mark.parametrize("case", ["fixed_station", "fixed_marker", "priors", "many_stations"])
+@pytest.mark.parametrize("case", ["fixed_station", "fixed_marker", "priors", "priors_many_stations", "many_stations"])
 def test_normal_equations_match_the_jacobian(case):
     """H and g assembled from the per-observation blocks equal J^T W J and J^T W r of the sparse
     Jacobian (itself checked against finite differences above), with arbitrary row weights; the
     damped solve through the Schur complement (on the markers, or on the stations when they
     outnumber the markers: a calibration recording) equals a dense solve."""
-    if case == "priors":
-        prob = _anchored_problem()
+    if case.startswith("priors"):
+        prob = _anchored_problem(S=12 if case == "priors_many_stations" else 3)
     elif case == "many_stations":
         prob, _ = _problem(seed=3, M=3, S=12, C=2, per=120)
     else:
@@ -85,12 +85,13 @@ def test_normal_equations_match_the_jacobian(case):
     r = model.residuals(x)
     w = rng.uniform(0.1, 2.0, model.n_res)
     H, g = model.normal_equations(x, r, w)
-    assert model.eliminated == ("stations" if case == "many_stations" else "markers")
     J = model.jacobian(x).toarray()
     H_ref, g_ref = J.T @ (w[:, None] * J), J.T @ (w * r)
     assert np.max(np.abs(H.toarray() - H_ref)) <= 1e-9 * np.max(np.abs(H_ref))
     assert np.max(np.abs(g - g_ref)) <= 1e-9 * np.max(np.abs(g_ref))
-    # The Schur-complement solve of the damped system equals a dense solve.
+    # The Schur-complement solve of the damped system equals a dense solve (the stations
+    # eliminated when they outnumber the markers).
+    assert model._station_elimination() == case.endswith("many_stations")
     d = 1e-3 * np.maximum(np.diag(H_ref), 1e-12)
     dx = model.solve_damped(H, -g, d)
     dx_ref = np.linalg.solve(H_ref + np.diag(d), -g_ref)
@@ -204,3 +205,66 @@ def test_camera_covariance_keeps_the_prior_only_direction_at_its_prior():
         # measured 1.0016 and 1.0000 (the linearisation point); the variance factor alone would give 1/vf = 25.
         assert turn == pytest.approx(1.0, rel=0.02), f"information on the turn / the priors' = {turn:.4f} (vf {vf:.3f})"
     assert rel_lo < 0.2 * rel_hi, f"the data-fixed relative turn did not shrink: {rel_lo:.3e} vs {rel_hi:.3e}"
+
+
+@pytest.mark.parametrize("shape,mode", [(dict(M=3, S=8, C=3), "stations"), (dict(M=3, S=8, C=3), "markers"),
+                                        (dict(M=12, S=2, C=2), "markers")])
+def test_eliminations_and_dense_reduced_system_agree(monkeypatch, shape, mode):
+    """The stations eliminated (more stations than markers), or the markers with a dense reduced
+    system (Cholesky), take the same steps as the markers eliminated with a sparse reduced system
+    (SuperLU), and give the same covariances as the pseudo-inverse of that reduced system (through
+    the Cholesky factor: the reduced system's inverse with the stations eliminated; triangular
+    solves with fewer markers' unknowns than stations', its inverse with more)."""
+    from aruco_ring_localization import bundle_adjustment as ba
+
+    prob, _ = _problem(seed=2, noise=0.5, per=120, **shape)
+    rng = np.random.default_rng(6)
+    prob.obs_xy = prob.obs_xy + rng.normal(0, 0.5 / 800.0, prob.obs_xy.shape)
+    opts = BAOptions(refine_extrinsics=True)
+    if mode == "markers":
+        monkeypatch.setattr(ba, "STATION_ELIMINATION_MAX_KEPT", 0)
+    model = _Model(prob, opts)
+    assert model._station_elimination() == (mode == "stations")
+    assert model._reduced_is_dense()
+    fast = bundle_adjust(prob, opts)
+    monkeypatch.setattr(ba, "STATION_ELIMINATION_MAX_KEPT", 0)
+    monkeypatch.setattr(ba, "DENSE_REDUCED_FILL", 2.0)       # never dense
+    monkeypatch.setattr(ba, "_cholesky", lambda S: None)      # the pseudo-inverse
+    model = _Model(prob, opts)
+    assert not model._reduced_is_dense() and not model._station_elimination()
+    ref = bundle_adjust(prob, opts)
+    assert fast.nfev == ref.nfev
+    assert np.max(np.abs(fast.T_W_markers - ref.T_W_markers)) < 1e-9
+    assert np.max(np.abs(fast.marker_cov - ref.marker_cov)) <= 1e-6 * np.max(np.abs(ref.marker_cov))
+    assert np.max(np.abs(fast.camera_cov - ref.camera_cov)) <= 1e-6 * np.max(np.abs(ref.camera_cov))
+
+
+@pytest.mark.parametrize("fixed_station", [0, 4])
+def test_stations_linked_by_odometry_eliminated_through_their_band(monkeypatch, fixed_station):
+    """Odometry links consecutive stations (and some two apart): the stations' block is banded,
+    eliminated by banded Cholesky; the same steps and covariances as with the markers eliminated.
+    A link farther apart than STATION_ELIMINATION_MAX_BAND keeps the markers' elimination."""
+    from aruco_ring_localization import bundle_adjustment as ba
+    from aruco_ring_localization.bundle_adjustment import RelativePoseFactors
+
+    prob, (_, T_st, _) = _problem(seed=4, noise=0.5, per=150, M=3, S=10, C=2)
+    prob.fixed_station = fixed_station
+    rng = np.random.default_rng(7)
+    prob.obs_xy = prob.obs_xy + rng.normal(0, 0.5 / 800.0, prob.obs_xy.shape)
+    pairs = [(s, s + 1) for s in range(9)] + [(s, s + 2) for s in range(0, 8, 3)]
+    prob.odometry = RelativePoseFactors([a for a, _ in pairs], [b for _, b in pairs],
+                                        [geo.se3_perturb(geo.inverse(T_st[a]) @ T_st[b], rng.normal(0, 0.003, 6))
+                                         for a, b in pairs], np.full((len(pairs), 6), 0.01))
+    opts = BAOptions(refine_extrinsics=True)
+    model = _Model(prob, opts)
+    assert model._station_elimination() and model._station_band == 6 * 2 + 5
+    fast = bundle_adjust(prob, opts)
+    monkeypatch.setattr(ba, "STATION_ELIMINATION_MAX_KEPT", 0)
+    ref = bundle_adjust(prob, opts)
+    assert fast.nfev == ref.nfev
+    assert np.max(np.abs(fast.T_W_stations - ref.T_W_stations)) < 1e-9
+    assert np.max(np.abs(fast.marker_cov - ref.marker_cov)) <= 1e-6 * np.max(np.abs(ref.marker_cov))
+    assert np.max(np.abs(fast.camera_cov - ref.camera_cov)) <= 1e-6 * np.max(np.abs(ref.camera_cov))
+    monkeypatch.undo()
+    prob.odometry = RelativePoseFactors([0], [ba.STATION_ELIMINATION_MAX_BAND + 1], [np.eye(4)], [np.full(6, 0.01)])
+    assert not _Model(prob, opts)._station_elimination()
