@@ -174,6 +174,9 @@ class BAProblem:
         priors: optional :class:`MarkerPriors` (surveyed markers, level stations): with them no
             marker or station needs to be fixed.
         odometry: optional :class:`RelativePoseFactors` between stations (the robot's odometry).
+        obs_object: optional (N, 4, 3) corners of each observation in its marker's frame (default:
+            the square of ``sizes``): one unknown can then be a rigid board of several markers,
+            each observation's corners placed by the board's layout (:mod:`boards`).
     """
 
     T_W_markers: np.ndarray
@@ -191,6 +194,7 @@ class BAProblem:
     obs_lens: Optional[np.ndarray] = None
     priors: Optional[MarkerPriors] = None
     odometry: Optional[RelativePoseFactors] = None
+    obs_object: Optional[np.ndarray] = None
 
 
 @dataclass(frozen=True)
@@ -305,8 +309,11 @@ class _Model:
         self.R_c0 = prob.T_base_cams[:, :3, :3].copy()
         self.t_c0 = prob.T_base_cams[:, :3, 3].copy()
         # Corner coordinates in the marker frame, per observation: (N, 4, 3).
-        unit = marker_corners(1.0)
-        self.X = unit[None, :, :] * np.asarray(prob.sizes, dtype=float)[prob.obs_marker][:, None, None]
+        if prob.obs_object is not None:
+            self.X = np.asarray(prob.obs_object, dtype=float).reshape(N, 4, 3)
+        else:
+            unit = marker_corners(1.0)
+            self.X = unit[None, :, :] * np.asarray(prob.sizes, dtype=float)[prob.obs_marker][:, None, None]
         if prob.obs_lens is not None:
             self.A = np.asarray(prob.obs_lens, dtype=float) / opts.pixel_noise     # (N, 4, 2, 2)
         else:
