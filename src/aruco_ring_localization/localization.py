@@ -792,7 +792,11 @@ class JointProblem:
             (T_base_map, the :class:`JointFit` at it, iterations).
         """
         T = T_base_map0
-        fit = self.fit(T, scale)
+        try:
+            fit = self.fit(T, scale)
+        except np.linalg.LinAlgError:
+            raise MeasurementError("joint estimator: the start pose cannot be evaluated (the whitening's "
+                                   "normal matrix is not positive definite)") from None
         it = 0
         for it in range(1, max_iterations + 1):
             try:
@@ -808,7 +812,14 @@ class JointProblem:
             step = 1.0
             for _ in range(8):
                 T_new = _perturb(T, step * delta)
-                fit_new = self.fit(T_new, scale)
+                try:
+                    fit_new = self.fit(T_new, scale)
+                except np.linalg.LinAlgError:
+                    # A trial pose so far off that the whitening's 6x6 systems lose positive
+                    # definiteness in floating point (seen on a real recording, test_8: eigenvalues
+                    # 0.04 .. 2e15): no descent there, a shorter step.
+                    step *= 0.5
+                    continue
                 if fit_new.cost <= fit.cost or not np.isfinite(fit.cost):
                     break
                 step *= 0.5

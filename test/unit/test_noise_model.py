@@ -378,3 +378,41 @@ def test_a_shared_displacement_error_is_the_cross_covariance_of_its_factors(lab)
     assert np.allclose(C - C_alone, K @ K.T - np.linalg.inv(fit.H) @ np.einsum(
         "cab,cbk,cdk,ced->ae", fit.H_cam, np.stack(F), np.stack(F), fit.H_cam) @ np.linalg.inv(fit.H), atol=1e-12)
     assert np.trace(C[3:5, 3:5]) > 1.5 * np.trace(C_alone[3:5, 3:5]), (np.diag(C), np.diag(C_alone))
+
+
+def test_a_trial_pose_that_cannot_be_whitened_shortens_the_step(lab, monkeypatch):
+    """A line-search trial pose whose whitening fails (LinAlgError from the 6x6 SPD solves, seen on
+    the real recording test_8) is a failed trial, not an exception out of the estimator; a start
+    that cannot be evaluated is a MeasurementError (the frame is rejected, the node lives)."""
+    from aruco_ring_localization.errors import MeasurementError
+
+    scene, ring, truth = lab
+    loc = RingLocalizer(ring, truth, LocalizationParams(fusion="joint"))
+    T = scene.T_world_base(scene.test_positions[2])
+    frame = RingSimulator(scene, ring, pixel_noise=SIGMA, seed=3).observe(T)
+    prob = JointProblem(list(loc._gather(frame, {}).values()), sigma=SIGMA)
+    off = np.eye(4)
+    off[:3, 3] = [0.03, -0.02, 0.0]
+    start = geo.inverse(T @ off)
+    real_fit = JointProblem.fit
+    calls = {"n": 0, "failed": 0}
+
+    def flaky_fit(self, T_bm, scale):
+        calls["n"] += 1
+        if calls["n"] in (2, 3):       # the first two trial poses of the line search
+            calls["failed"] += 1
+            raise np.linalg.LinAlgError("matrix is not positive definite")
+        return real_fit(self, T_bm, scale)
+
+    monkeypatch.setattr(JointProblem, "fit", flaky_fit)
+    T_bm, fit, _ = prob.solve(start, 8.0, 10)
+    assert calls["failed"] == 2
+    dt, _ = geo.pose_distance(geo.inverse(T_bm), T)
+    assert dt < 0.005, dt     # still converged, from shorter steps
+
+    def broken_fit(self, T_bm, scale):
+        raise np.linalg.LinAlgError("matrix is not positive definite")
+
+    monkeypatch.setattr(JointProblem, "fit", broken_fit)
+    with pytest.raises(MeasurementError):
+        prob.solve(start, 8.0, 10)
