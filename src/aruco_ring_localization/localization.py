@@ -873,7 +873,13 @@ class JointProblem:
         (``shared_factor``), whose part of :meth:`covariance` is ``K K^T``; None without one."""
         if self.shared_factor is None or fit.H_cam is None:
             return None
-        return _spd_inverse(0.5 * (fit.H + fit.H.T)) @ np.einsum("cab,cbk->ak", fit.H_cam, self.shared_factor)
+        return _shared_gain(fit.H, fit.H_cam, self.shared_factor)
+
+
+def _shared_gain(H: np.ndarray, H_cam: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """(6, k) ``H^-1 sum_c H_c F_c``: a pose estimate's response to the views' common error
+    (:meth:`JointProblem.shared_gain`; with the exact problem's blocks, the exact pose's)."""
+    return _spd_inverse(0.5 * (H + H.T)) @ np.einsum("cab,cbk->ak", H_cam, F)
 
 
 def marker_map_factor(T_map_marker: np.ndarray, corners: np.ndarray, position_std: np.ndarray,
@@ -1659,11 +1665,12 @@ class RingLocalizer:
             return sol
         cov, gain = sol.covariance, None
         if sol.shared_gain is not None:
-            G = np.add.reduceat(np.einsum("nia,nib->nab", fit.J * fit.w[:, None, None], fit.J), exact.offsets[:-1],
-                                axis=0)
+            G = fit.G_cam   # the one-step exact fit carries the per-camera blocks; a solved one does not
+            if G is None:
+                G = np.add.reduceat(np.einsum("nia,nib->nab", fit.J * fit.w[:, None, None], fit.J),
+                                    exact.offsets[:-1], axis=0)
             try:
-                gain = _spd_inverse(0.5 * (fit.H + fit.H.T)) @ np.einsum("cab,cbk->ak", G, problem.shared_factor) \
-                    / exact.sigma ** 2
+                gain = _shared_gain(fit.H, G / exact.sigma ** 2, problem.shared_factor)
             except (np.linalg.LinAlgError, MeasurementError):
                 return sol
             cov = cov - sol.shared_gain @ sol.shared_gain.T + gain @ gain.T
