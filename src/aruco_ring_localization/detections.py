@@ -78,6 +78,19 @@ class RingFrame:
         return sum(len(f.observations) for f in self.cameras.values())
 
 
+def simultaneous_parts(frame: RingFrame, spread: float) -> List[RingFrame]:
+    """``frame`` split into ring frames of the cameras exposed together: sorted by stamp, a part
+    holds the cameras within ``spread`` (s) of its earliest one (free-running cameras: one part per
+    phase; synchronized ones: ``frame`` itself). ``missing`` stays with the first part."""
+    order = sorted(frame.cameras.values(), key=lambda cf: (cf.stamp, cf.camera))
+    parts: List[RingFrame] = []
+    for cf in order:
+        if not parts or cf.stamp - parts[-1].stamp > spread:
+            parts.append(RingFrame(stamp=cf.stamp, missing=[] if parts else list(frame.missing)))
+        parts[-1].cameras[cf.camera] = cf
+    return parts
+
+
 #: ``slop`` value that derives the ring frame's window from the cameras' stamps (the default).
 AUTO_SLOP = "auto"
 

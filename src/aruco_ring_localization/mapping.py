@@ -69,7 +69,7 @@ from .bundle_adjustment import (BAOptions, BAProblem, BAResult, MarkerPriors, Re
                                 camera_cov_in_optical_frames, marker_std_in_frame, observation_rms_px)
 from .config import in_radians, param, section
 from .errors import ArucoRingError, ConfigError, GeometryError, MeasurementError
-from .detections import RingFrame
+from .detections import RingFrame, simultaneous_parts
 from .mapping_odometry import MappingOdometryOptions, OdometryTrack
 from .marker_map import MapSanityLimits, MarkerEntry, MarkerMap, map_frame_from_reference
 from .markers import MarkerSizes, marker_corners
@@ -108,6 +108,12 @@ class MappingOptions:
     still_px: float = param(1.5, "automatic stations: consecutive frames whose common detections moved less than "
                                  "this (median of the largest corner motion) belong to one robot placement", unit="px")
     max_frames_per_station: int = param(30, "frames kept per station (more add little and cost time)")
+    max_stamp_spread: float = param(0.005, "automatic stations: a ring frame whose cameras' stamps spread wider "
+                                           "than this (free-running cameras) and that is not still is split into "
+                                           "parts whose cameras were exposed together, each part a frame of its "
+                                           "own: a moving ring is at another pose for each part, and one station "
+                                           "pose for all of them would bend the map; a negative value keeps "
+                                           "every ring frame whole", unit="s")
     min_station_motion_px: float = param(10.0, "automatic stations of a moving ring (handheld, driving): a "
                                                "frame starts a new station only once its detections moved this "
                                                "far (median) from the current station's first frame; frames "
@@ -385,6 +391,30 @@ class MapBuilder:
                 ``min_station_motion_px``).
         """
         self.frames += 1
+        if station is None and self.options.max_stamp_spread >= 0 and len(ring_frame.cameras) > 1:
+            stamps = [cf.stamp for cf in ring_frame.cameras.values()]
+            if max(stamps) - min(stamps) > self.options.max_stamp_spread and not self._still(ring_frame):
+                kept = [self._add_part(part) for part in simultaneous_parts(ring_frame, self.options.max_stamp_spread)]
+                return max(kept)
+        return self._add_part(ring_frame, station)
+
+    def _still(self, ring_frame: RingFrame) -> bool:
+        """Whether ``ring_frame``'s detections moved at most ``still_px`` from the current station's
+        first frame (:meth:`_median_move`)."""
+        if self._last_station is None:
+            return False
+        move = self._median_move((name, o) for name, cf in ring_frame.cameras.items() for o in cf.observations)
+        return move is not None and move <= self.options.still_px
+
+    def _median_move(self, detections) -> Optional[float]:
+        """Median over ``detections`` ((camera, observation) pairs) of each one's largest corner motion
+        since the current station's first frame, px; None when none of them was seen there."""
+        moves = [float(np.max(np.linalg.norm(o.corners - prev, axis=1)))
+                 for name, o in detections for prev in [self._anchor_corners.get((name, o.marker_id))]
+                 if prev is not None]
+        return float(np.median(moves)) if moves else None
+
+    def _add_part(self, ring_frame: RingFrame, station: Optional[Hashable] = None) -> int:
         opts = self.options
         detections = []   # (camera, obs, model)
         for name, cam_frame in ring_frame.cameras.items():
@@ -524,13 +554,8 @@ class MapBuilder:
             return self._station_keys[station]
         if self._last_station is not None:
             # Motion of the detections since the first frame of the current station.
-            moves = []
-            for name, o, _, _ in detections:
-                prev = self._anchor_corners.get((name, o.marker_id))
-                if prev is not None:
-                    moves.append(float(np.max(np.linalg.norm(o.corners - prev, axis=1))))
-            if moves:
-                move = float(np.median(moves))
+            move = self._median_move((name, o) for name, o, _, _ in detections)
+            if move is not None:
                 if move <= self.options.still_px:
                     return self._last_station
                 if move < self.options.min_station_motion_px and not (self.options.keep_linking_frames

@@ -292,3 +292,16 @@ def test_a_lagging_camera_catches_up_within_the_timeout():
         out += a.add(_frame("cam7", t), now=stamps[-1] + 0.01)
     assert len(out) == 30 and all(rf.missing == [] for rf in out), [rf.missing for rf in out if rf.missing][:3]
     assert a.max_pending >= 50 * 5.0
+
+
+def test_simultaneous_parts_group_cameras_exposed_together():
+    from aruco_ring_localization.detections import CameraFrame, RingFrame, simultaneous_parts
+    f = RingFrame(stamp=1.0, missing=["cam7"])
+    for name, t in [("cam2", 1.050), ("cam0", 1.000), ("cam1", 1.004), ("cam3", 1.051), ("cam4", 1.090)]:
+        f.cameras[name] = CameraFrame(camera=name, stamp=t)
+    parts = simultaneous_parts(f, 0.005)
+    assert [sorted(p.cameras) for p in parts] == [["cam0", "cam1"], ["cam2", "cam3"], ["cam4"]]
+    assert [p.stamp for p in parts] == [1.0, 1.05, 1.09]
+    assert parts[0].missing == ["cam7"] and parts[1].missing == [] and parts[2].missing == []
+    whole = simultaneous_parts(f, 0.1)
+    assert len(whole) == 1 and sorted(whole[0].cameras) == sorted(f.cameras)

@@ -1,13 +1,15 @@
 """MapBuilder: the paper's mode, the reference rule, multi-station linking (malformed inputs: test_pipeline.py)."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from aruco_ring_localization import geometry as geo
 from aruco_ring_localization.evaluation.maps import map_error
 from aruco_ring_localization.detections import CameraFrame, MarkerObservation, RingFrame
-from aruco_ring_localization.mapping import MapBuilder
+from aruco_ring_localization.mapping import MapBuilder, MappingOptions
 from aruco_ring_localization.pnp import solve_marker_ippe_undistorted
 from aruco_ring_localization.markers import MarkerSizes, marker_corners
 from aruco_ring_localization.simulation.ring_sim import RingSimulator
@@ -236,3 +238,38 @@ def test_misread_id_is_not_mapped_and_says_why(ring, scene):
     assert b.format_unmapped(m).startswith("WARNING: 1 of 11 detected markers are NOT in the map: 999: detected in")
     assert b.format_unmapped(build(min_detection_ratio=0.0).build("paper")) == ""
     assert 999 in build(min_detection_ratio=0.0).build("paper")
+
+
+def _turning_free_running(sim, ring, pose, amplitude, frames, period=0.1):
+    """Ring frames of a ring swinging on the spot (yaw0 + ``amplitude`` sin(t / 2), rad; a steady turn
+    would only look like a constant error of each camera's yaw, which the extrinsics absorb) with
+    free-running cameras: camera k exposed k/8 of a period after the frame's first, each from the
+    pose at its own time."""
+    x, y, yaw0 = pose
+    n = len(ring.cameras)
+    for i in range(frames):
+        f = RingFrame(stamp=period * i)
+        for k, cam in enumerate(ring.cameras):
+            t = period * i + period * k / n
+            T = Scene.T_world_base((x, y, yaw0 + amplitude * np.sin(0.5 * t)))
+            f.cameras[cam.name] = CameraFrame(camera=cam.name, stamp=t, observations=sim.observe_camera(T, cam))
+        yield f
+
+
+@pytest.mark.parametrize("spread, worse", [(0.005, False), (-1.0, True)])
+def test_free_running_cameras_of_a_turning_ring_map_by_exposure(ring, scene, spread, worse):
+    """A turning ring's free-running cameras see it at 8 poses per ring frame: split into the parts
+    exposed together (``max_stamp_spread``), the map is exact; one station pose for the whole ring
+    frame (the old behaviour, a negative spread) bends it or refuses markers as inconsistent."""
+    sim = RingSimulator(scene, ring, pixel_noise=0.0, seed=0)
+    b = MapBuilder(ring, MarkerSizes(0.2), method="refined",
+                   options=dataclasses.replace(MappingOptions(), max_stamp_spread=spread))
+    for f in _turning_free_running(sim, ring, scene.mapping_pose, 1.0, 120):
+        b.add_frame(f)
+    err = map_error(b.build(), scene.truth_map(), best_fit=True)
+    if worse:   # markers refused as inconsistent between stations, or the map bent
+        assert err["n"] < len(scene.markers) or err["position_rms_mm"] > 5.0, \
+            f"whole ring frames: {err['n']} markers, {err['position_rms_mm']:.2f} mm"
+    else:
+        assert err["n"] == len(scene.markers), f"mapped {err['n']} of {len(scene.markers)}: missing {err['missing']}"
+        assert err["position_rms_mm"] < 0.5, f"ring frames split by exposure: {err['position_rms_mm']:.3f} mm"
