@@ -113,7 +113,7 @@ TAGSLAM_DEFAULT_WIGGLE = 1e-5
 
 
 def _wiggle(entry: Mapping, name: str, path: str) -> Optional[Tuple[float, float]]:
-    """(rotation rad, translation m) of TagSLAM's ``wiggle_rotation`` / ``wiggle_translation``, None without either."""
+    """(rotation rad, translation m): TagSLAM's ``wiggle_rotation`` / ``wiggle_translation``; None without either."""
     keys = ("wiggle_rotation", "wiggle_translation")
     if not any(k in entry for k in keys):
         return None
