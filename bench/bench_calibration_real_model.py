@@ -17,8 +17,9 @@ Here, per recording, on the observations of our calibration of ``FRAMES`` frames
   free; the fixed poses found by over-relaxed alternation, ``RELAX``, ``ROUNDS`` rounds). TagSLAM's
   poses are not used by the fit, only to measure where it lands:
   ``real_calib_wiggle_model_err_mm_max_<test>`` / ``_deg_max_<test>`` (a diagnostic, not a target);
-* the same from TagSLAM's poses (does its answer stay put under its own model?) and the model's
-  cost at both ends.
+* one round of the same from TagSLAM's poses, not over-relaxed: the mean of the per-frame poses
+  the model gives around them (are TagSLAM's poses that mean?), and the model's cost there:
+  ``real_calib_wiggle_mean_err_mm_max_<test>`` / ``_deg_max_<test>``.
 """
 from __future__ import annotations
 
@@ -61,21 +62,24 @@ def run(quick: bool = False) -> dict:
         ours = list(r["cal"].ba.T_base_cams)
         wig = bcr.tagslam_wiggle(test)
         from_ours = walk(r["cal"], ours, tagslam, ours, rounds, RELAX)
-        from_tagslam = walk(r["cal"], tagslam, tagslam, ours, 1, RELAX)
+        # One plain round from TagSLAM's poses: the mean of the per-frame poses its model gives around them.
+        from_tagslam = walk(r["cal"], tagslam, tagslam, ours, 1, 1.0)
         dt = time.process_time() - c0
         cpu += dt
         rigid = _worst(r["errs"].values())
         model = _worst(from_ours[-1]["vs_tagslam"])
-        stay = _worst(from_tagslam[-1]["vs_tagslam"])
+        mean = _worst(from_tagslam[-1]["vs_tagslam"])
         results[f"real_calib_wiggle_model_err_mm_max_{test}"] = model[0]
         results[f"real_calib_wiggle_model_err_deg_max_{test}"] = model[1]
+        results[f"real_calib_wiggle_mean_err_mm_max_{test}"] = mean[0]
+        results[f"real_calib_wiggle_mean_err_deg_max_{test}"] = mean[1]
         results[f"real_calib_rigid_err_mm_max_sample_{test}"] = rigid[0]
         results[f"real_calib_rigid_err_deg_max_sample_{test}"] = rigid[1]
         costs = " -> ".join(f"{s['cost']:.1f}" for s in from_ours if "cost" in s)
         rows.append(f"| {test} | {wig} | {r['used']} | {rigid[0]:.2f} / {rigid[1]:.3f} | {costs} | "
-                    f"{model[0]:.2f} / {model[1]:.3f} | {from_tagslam[0]['cost']:.1f}, {stay[0]:.2f} / {stay[1]:.3f} | "
+                    f"{model[0]:.2f} / {model[1]:.3f} | {from_tagslam[0]['cost']:.1f}, {mean[0]:.2f} / {mean[1]:.3f} | "
                     f"{r['rms'][1]:.3f} -> {from_ours[-2]['rms_px']:.3f} | {dt:.0f} |")
-        sys.stderr.write(f"[calibration_real_model] {test}: rigid {rigid}, model {model}, TagSLAM's stays {stay}, "
+        sys.stderr.write(f"[calibration_real_model] {test}: rigid {rigid}, model {model}, mean per-frame pose around TagSLAM's {mean}, "
                          f"CPU {dt:.0f} s\n")
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     lines = ["## Ring calibration, real recordings: TagSLAM's wiggle model", "",
@@ -88,13 +92,16 @@ def run(quick: bool = False) -> dict:
              f"the section above): our rigid answer; then TagSLAM's model re-enacted from it "
              f"(`bench/calibration_real_wiggle.py`: per-frame camera poses with its priors, 1 px corner noise, no "
              f"robust loss, markers and rig poses free; the fixed poses by alternation, over-relaxed x{RELAX:g}, "
-             f"{rounds} rounds; TagSLAM's poses only measure where it lands); then the same from TagSLAM's poses. "
+             f"{rounds} rounds; TagSLAM's poses only measure where it lands); then one plain round from TagSLAM's poses: "
+             f"the mean of the per-frame poses the model gives around them, against them. "
              f"Cost = corners + priors in sigmas squared. Distances: `T_cam0_camk`, worst camera, mm / deg.", "",
              "| test | TagSLAM wiggle | frames | rigid (ours) vs TagSLAM | model's cost by round, from ours | "
-             "model from ours vs TagSLAM | from TagSLAM's: cost, where it ends vs TagSLAM | corner RMS rigid -> "
+             "model from ours vs TagSLAM | from TagSLAM's: cost, mean per-frame pose vs TagSLAM | corner RMS rigid -> "
              "with wiggle (px) | CPU (s) |", "|---|---|---|---|---|---|---|---|---|", *rows, "",
              "Keys: `real_calib_wiggle_model_err_mm_max_<test>` / `_deg_max_<test>` (the model from ours, a "
-             "diagnostic, not the target), `real_calib_rigid_err_mm_max_sample_<test>` / `_deg_max_sample_<test>` "
+             "diagnostic, not the target), `real_calib_wiggle_mean_err_mm_max_<test>` / `_deg_max_<test>` (the mean "
+             "per-frame pose around TagSLAM's poses, against them), `real_calib_rigid_err_mm_max_sample_<test>` / "
+             "`_deg_max_sample_<test>` "
              "(the rigid answer on the same sample). The headline `real_calib_err_*` stays the rigid calibration "
              "(the ring is rigid).", "",
              f"CPU time (utime+stime) per test, calibration and fits; load average at the end {load:.1f} on "
