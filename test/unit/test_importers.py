@@ -66,6 +66,32 @@ def test_mixed_fisheye_and_radtan_models(tmp_path):
     assert models["cam2"].D[4] == pytest.approx(7.789391040802002)    # k3 last, as OpenCV's plumb_bob
 
 
+def test_tagslam_wiggle_is_kept_and_said(tmp_path):
+    """TagSLAM's wiggle_rotation / wiggle_translation (a camera not rigid on its rig): kept per
+    camera and named in the notes; absent: rigid (None), no note; one of the two: TagSLAM's 1e-5 for the other."""
+    path = _camchain(tmp_path, {"cam0": _cam(wiggle_rotation=0.01, wiggle_translation=0.02),
+                                "cam1": _cam(rostopic="/rig/right/image_raw", wiggle_rotation=0.003),
+                                "cam2": _cam(rostopic="/rig/back/image_raw")})
+    rig = read_rig(path)
+    w = {c.name: c.wiggle for c in rig.cameras}
+    assert w == {"cam0": (0.01, 0.02), "cam1": (0.003, 1e-5), "cam2": None}
+    note = [n for n in rig.notes if "wiggle" in n]
+    assert len(note) == 1 and "cam0, cam1" in note[0] and "0.01 rad / 0.02 m" in note[0] and "cam2" not in note[0]
+    rigid = read_rig(_camchain(tmp_path, {"cam0": _cam()}))
+    assert rigid.cameras[0].wiggle is None and not any("wiggle" in n for n in rigid.notes)
+    # TagSLAM's test 5 (the recording bench_calibration_real.py calibrates) declares 0.01 / 0.01 for all four.
+    test5 = read_rig(str(DATA / "test_5" / "cameras.yaml"))
+    assert [c.wiggle for c in test5.cameras] == [(0.01, 0.01)] * 4
+    assert any("cam0, cam1, cam2, cam3" in n for n in test5.notes)
+
+
+@pytest.mark.parametrize("value", [-0.01, 0.0, "a lot"])
+def test_a_bad_wiggle_is_refused_by_key(tmp_path, value):
+    with pytest.raises(ConfigError) as err:
+        read_rig(_camchain(tmp_path, {"cam0": _cam(wiggle_translation=value)}))
+    assert err.value.key == "cam0.wiggle_translation"
+
+
 def test_kalibr_chain_from_camera_0(tmp_path):
     T_c1_c0 = _T([0.01, -0.02, 0.03], [-0.11, 0.002, 0.001])   # p_cam1 = T_cn_cnm1 p_cam0
     T_c2_c1 = _T([0.0, 1.5, 0.0], [0.05, 0.0, -0.08])

@@ -11,6 +11,8 @@ copies)::
       resolution: [width, height]
       rostopic: /cam0/image_raw             # image topic (its namespace becomes the camera's)
       tagtopic: /cam0/tags                  # TagSLAM only: the detections' topic
+      wiggle_rotation: 0.01                 # TagSLAM only (rad): see "wiggle" below
+      wiggle_translation: 0.01              # TagSLAM only (m)
       T_cam_imu: 4x4                        # Kalibr imu-cam: p_cam = T_cam_imu p_imu
       T_cn_cnm1: 4x4                        # Kalibr: p_camN = T_cn_cnm1 p_cam(N-1)
 
@@ -36,6 +38,14 @@ fisheye model (k1..k4); ``plumb_bob``, ``rational_polynomial`` pass through; ``n
 without distortion. Kalibr's ``fov`` (ATAN) model and the ``omni``, ``ds``, ``eucm`` projections
 cannot be represented by :class:`~aruco_ring_localization.camera.CameraModel` and are refused with
 a message saying so (calibrate again with radtan or equidistant).
+
+Wiggle: TagSLAM's ``wiggle_rotation`` / ``wiggle_translation`` declare a camera that is *not*
+rigid on its rig: TagSLAM gives it its own pose in every frame, tied to the camera's fixed pose
+(the one camera_poses.yaml and TagSLAM's output hold) by an identity prior of those std (its
+camera.cpp / tag_slam.cpp; 1e-5 when not given: rigid). The fixed pose is then the mean pose
+the camera wiggles about, not a rigid rig's best fit: the two differ by more than either's
+noise on TagSLAM's tests 5 and 6 (docs/benchmarks.md). The ring is rigid; the importer keeps
+the declared values (:attr:`ImportedCamera.wiggle`) and says so (:attr:`ImportedRig.notes`).
 """
 from __future__ import annotations
 
@@ -82,6 +92,9 @@ class ImportedCamera:
         pose_source: where the pose came from (``camera_poses.yaml``, ``T_cam_imu``, ...).
         extrinsics_std: (6,) 1-sigma of the pose per axis of the camera's frame (rotation rad, then
             translation m) when the source states it (TagSLAM's ``R``), else None (the default).
+        wiggle: TagSLAM's declared per-frame freedom of the camera on its rig, (rotation rad,
+            translation m), when the file gives ``wiggle_rotation`` or ``wiggle_translation``
+            (the other 1e-5, TagSLAM's default), else None (rigid).
     """
 
     name: str
@@ -92,6 +105,29 @@ class ImportedCamera:
     topic: str = ""
     pose_source: str = ""
     extrinsics_std: Optional[Tuple[float, ...]] = None
+    wiggle: Optional[Tuple[float, float]] = None
+
+
+#: TagSLAM's wiggle when cameras.yaml does not give it (camera.cpp): a rigid camera.
+TAGSLAM_DEFAULT_WIGGLE = 1e-5
+
+
+def _wiggle(entry: Mapping, name: str, path: str) -> Optional[Tuple[float, float]]:
+    """(rotation rad, translation m): TagSLAM's ``wiggle_rotation`` / ``wiggle_translation``; None without either."""
+    keys = ("wiggle_rotation", "wiggle_translation")
+    if not any(k in entry for k in keys):
+        return None
+    out = []
+    for k in keys:
+        v = entry.get(k, TAGSLAM_DEFAULT_WIGGLE)
+        try:
+            v = float(v)
+        except (TypeError, ValueError):
+            raise ConfigError(f"expected a number, got {v!r}", path=path, key=f"{name}.{k}") from None
+        if not np.isfinite(v) or v <= 0.0:
+            raise ConfigError(f"expected a positive std, got {v!r}", path=path, key=f"{name}.{k}")
+        out.append(v)
+    return out[0], out[1]
 
 
 @dataclass
@@ -283,7 +319,8 @@ def read_rig(path: str, camera_poses: Optional[str] = None, base_frame: str = "r
         entry = data[name]
         frame = str(entry.get("frame_id") or f"{name}_optical_frame").strip("/").replace("/", "_")
         cams.append(ImportedCamera(name, _model(entry, name, path), None, _namespace(entry, name), frame,
-                                   str(entry.get("tagtopic") or entry.get("rostopic") or "")))
+                                   str(entry.get("tagtopic") or entry.get("rostopic") or ""),
+                                   wiggle=_wiggle(entry, name, path)))
     shared = {ns: [c.name for c in cams if c.namespace == ns] for ns in {c.namespace for c in cams}}
     shared = {ns: names_ for ns, names_ in shared.items() if len(names_) > 1}
     if shared:
@@ -321,6 +358,13 @@ def read_rig(path: str, camera_poses: Optional[str] = None, base_frame: str = "r
             definition = f"camera {cams[0].name}'s optical frame (z forward, x right, y down)"
             if len(cams) > 1 and any(imu[c.name] is not None for c in cams):
                 notes.append("T_cam_imu is not given for every camera: the cameras are chained with T_cn_cnm1")
+    wiggling = [c for c in cams if c.wiggle is not None and max(c.wiggle) > TAGSLAM_DEFAULT_WIGGLE]
+    if wiggling:
+        notes.append(f"{path} declares wiggle for {', '.join(c.name for c in wiggling)} (largest "
+                     f"{max(c.wiggle[0] for c in wiggling):g} rad / {max(c.wiggle[1] for c in wiggling):g} m): TagSLAM "
+                     f"lets each camera move against the rig in every frame, and its camera poses are the mean pose "
+                     f"each wiggles about; the ring is rigid, and a rigid calibration of the same recording "
+                     f"(calibrate-ring) need not agree with those poses within their noise")
     invented = [c.name for c in cams if c.T_base_cam is not None and c.extrinsics_std is None]
     if invented:
         notes.append(f"no uncertainty is given for the pose of {', '.join(invented)}: the ring file's default "
