@@ -184,6 +184,53 @@ def _localize(ring, marker_map, frames, T_ref_map: np.ndarray, model: str = "pla
     return per_frame, filtered, t1 - t0, _cpu() - t1
 
 
+#: s: a ring frame reaches the localizer this long after its stamp (the detector's latency), the
+#: odometry at its stamp: the odometry fed before a frame covers it, as on a robot.
+ODOM_LATENCY = 0.05
+#: s: ``motion.max_gap`` for the bags' odometry: poses (not twists) interpolated between messages up
+#: to this far apart (the detections' bags hold them at 3-4 Hz on test_22; the default 0.25 s is a
+#: wheel odometry's at 50 Hz).
+ODOM_MAX_GAP = 1.0
+
+
+def _localize_odom(ring, marker_map, frames, T_ref_map: np.ndarray, odo, T_base_odom: np.ndarray,
+                   model: str = "6dof") -> Dict[int, np.ndarray]:
+    """The pipeline's filtered output (4x4, reference frame, keyed by stamp in us) with the bag's
+    odometry fed as localization.launch feeds ``/odom`` (``motion.odometry: true``): every odometry
+    message at its stamp (``on_motion('odom', ...)``, base_link's pose in odom: the odometry body's
+    pose ``P`` moved to the ring's base frame, ``P · T_base_odom^-1``, tagslam.yaml's ``T_body_odom``;
+    its twist from consecutive poses), every ring frame ``ODOM_LATENCY`` s after its stamp or when the
+    odometry has reached its stamp, whichever is later."""
+    stamps, poses = odo
+    T_odom_base = [np.asarray(P, dtype=float) @ geo.inverse(T_base_odom) for P in poses]
+    # A frame is taken once the odometry has reached its stamp (a bag's odometry may be sparser
+    # than the latency: test_22's at 3-4 Hz), at most ODOM_MAX_GAP s after it.
+    stamps = np.asarray(stamps, dtype=float)
+    after = np.searchsorted(stamps, [f.stamp for f in frames])
+    ready = [min(stamps[j] if j < len(stamps) else np.inf, f.stamp + ODOM_MAX_GAP) for j, f in zip(after, frames)]
+    events = [(float(t), 0, k) for k, t in enumerate(stamps)] + [(max(f.stamp + ODOM_LATENCY, r), 1, k)
+                                                                for k, (f, r) in enumerate(zip(frames, ready))]
+    events.sort()
+    pipeline = LocalizationPipeline(with_overrides(LocalizerConfig(), dict(OFFLINE, **{"filter.model": model,
+                                                                                       "motion.odometry": True,
+                                                                                       "motion.max_gap": ODOM_MAX_GAP})),
+                                    ring, marker_map)
+    filtered: Dict[int, np.ndarray] = {}
+    for now, kind, k in events:
+        if kind == 0:
+            D = geo.inverse(T_odom_base[k - 1]) @ T_odom_base[k] if k else np.eye(4)
+            dt = float(stamps[k] - stamps[k - 1]) if k else 0.0
+            v = D[:2, 3] / dt if dt > 0 else np.zeros(2)
+            w = float(geo.rvec_from_rotation(D[:3, :3]).ravel()[2]) / dt if dt > 0 else 0.0
+            outs = pipeline.on_motion("odom", now, v, w, now, T_odom_base=T_odom_base[k])
+        else:
+            outs = feed_ring_frame(pipeline, frames[k], now=now)
+        for out in outs:
+            if out.T_map_base is not None and not out.from_odometry:
+                filtered[int(round(out.stamp * 1e6))] = T_ref_map @ out.T_map_base
+    return filtered
+
+
 def filter_model(station_model: str, requested: str = "auto") -> str:
     """The tracker for a recording: ``auto`` takes the 6-DOF tracker when the mapping's own data test
     found that the rig does not stay flat (SE(3) stations: handheld and 6-DOF rigs), the planar
@@ -360,6 +407,22 @@ def _reprojection_px(localizer: RingLocalizer, frame, T_map_base: np.ndarray) ->
     return float(np.sqrt(np.mean(np.sum(r * r, axis=1)))) if r.size else float("nan")
 
 
+def _odom_figures(test: str, src: str, ref, ring, marker_map, frames, reference, model: str) -> Dict[str, float]:
+    """The filtered output with the bag's odometry (tagslam.yaml's ``odom_topic``, ``T_body_odom``)
+    fed to the pipeline (:func:`_localize_odom`), on ``marker_map`` (TagSLAM's): ``tagslam_filt_odom_*``
+    (median / p95 / max mm, rotation median deg, flips, frames), nothing without odometry."""
+    opts, odo = _odometry(test, src, ref.rig_body, frames)
+    if opts is None:
+        return {}
+    filtered = _localize_odom(ring, marker_map, frames, np.eye(4), odo, opts.T_base_odom, model)
+    fpos, frot = _filtered_errors(filtered, reference, model)
+    med, p95, mx = _stats(fpos)
+    return {"odometry": opts.topic, "tagslam_filt_odom_median_mm": med, "tagslam_filt_odom_p95_mm": p95,
+            "tagslam_filt_odom_max_mm": mx, "tagslam_filt_odom_rot_median_deg": _stats(frot)[0],
+            "tagslam_filt_odom_flips": int(np.sum((frot > FLIP_DEG) | (fpos > FLIP_MM))),
+            "tagslam_filt_odom_filtered": len(fpos)}
+
+
 def run_loc(test: str, max_frames: int = 0, model: str = "auto") -> Dict[str, float]:
     """Localization alone on TagSLAM's map with TagSLAM's extrinsics (no mapping: seconds, not
     minutes): the ``tagslam_*`` fields of :func:`run_one`, plus what explains them -- the per-frame
@@ -368,7 +431,7 @@ def run_loc(test: str, max_frames: int = 0, model: str = "auto") -> Dict[str, fl
     the extrinsics declared exact (``fusion: joint_exact_extrinsics``: how TagSLAM's own answer
     treats them) and the RMS reprojection error of our pose and of TagSLAM's (same map and
     extrinsics). The tracker: the mapping's own data test (:func:`station_model`), as in ``run_one``."""
-    _, _, _, ref, ring, sizes, _, frames, truth = _load_case(test, max_frames)
+    _, src, _, ref, ring, sizes, _, frames, truth = _load_case(test, max_frames)
     reference = {int(round(t * 1e6)): T for t, T in zip(ref.stamps, ref.T_map_rig)}
     stations = station_model(ring, sizes, frames)
     model = filter_model(stations, model)
@@ -388,6 +451,7 @@ def run_loc(test: str, max_frames: int = 0, model: str = "auto") -> Dict[str, fl
                 "tagslam_filtered": len(fpos), "tagslam_localized": len(per_frame), "tagslam_compared": len(pos),
                 "tagslam_loc_cpu_ms_per_frame": 1000.0 * cpu / max(len(frames), 1),
                 "tagslam_tracker_cpu_ms_per_frame": 1000.0 * cpu_tracker / max(len(frames), 1)})
+    res.update(_odom_figures(test, src, ref, ring, truth, frames, reference, model))
     # What explains the figures, and issue 12's ablation: the paper's fusion, the joint estimate with
     # the extrinsics declared exact ("joint as before") and the calibration-aware joint (the default),
     # each against TagSLAM's rig poses and by its own reprojection through TagSLAM's rigid ring.
@@ -599,6 +663,11 @@ def report(rows: Dict[str, dict], failed: Dict[str, str], load, quick: bool, tes
         results[f"real_{t}_loc_median_mm"] = r["tagslam_loc_median_mm"]
         results[f"real_{t}_loc_max_mm"] = r["tagslam_loc_max_mm"]
         results[f"real_{t}_flips"] = r["tagslam_flips"]
+        if "tagslam_filt_odom_median_mm" in r:
+            # The filtered output with the bag's odometry fed to the pipeline (not the per-frame key).
+            results[f"real_{t}_loc_filtered_odom_median_mm"] = r["tagslam_filt_odom_median_mm"]
+            results[f"real_{t}_loc_filtered_odom_max_mm"] = r["tagslam_filt_odom_max_mm"]
+            results[f"real_{t}_loc_filtered_odom_flips"] = r["tagslam_filt_odom_flips"]
         results[f"real_{t}_map_cpu_ms_per_frame"] = r["map_cpu_ms_per_frame"]
         results[f"real_{t}_loc_cpu_ms_per_frame"] = r["tagslam_loc_cpu_ms_per_frame"]
     if rows:
