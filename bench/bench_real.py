@@ -243,10 +243,9 @@ def _localize_odom(ring, marker_map, frames, T_ref_map: np.ndarray, odo, T_base_
     events = [(float(t), 0, k) for k, t in enumerate(stamps)] + [(max(f.stamp + ODOM_LATENCY, r), 1, k)
                                                                 for k, (f, r) in enumerate(zip(frames, ready))]
     events.sort()
-    pipeline = LocalizationPipeline(with_overrides(LocalizerConfig(), dict(OFFLINE, **{"filter.model": model,
-                                                                                       "motion.odometry": True,
-                                                                                       "motion.max_gap": ODOM_MAX_GAP})),
-                                    ring, marker_map)
+    config = with_overrides(LocalizerConfig(), dict(OFFLINE, **{"filter.model": model, "motion.odometry": True,
+                                                                "motion.max_gap": ODOM_MAX_GAP}))
+    pipeline = LocalizationPipeline(config, ring, marker_map)
     filtered: Dict[int, np.ndarray] = {}
     for now, kind, k in events:
         if kind == 0:

@@ -102,7 +102,8 @@ def main(argv: Sequence[str] = ()) -> None:
         q = float(np.sum(fit.w * np.sum(r * r, axis=1)))
         rc, rm = _reduction(fit.J, r, fit.w, cams), _reduction(fit.J, r, fit.w, marks)
         M, C = len(marks), len(cams)
-        for name, (v, d) in (("within a marker", (q - rm, 2 * M)), ("between markers of one camera", (rm - rc, 6 * (M - C))),
+        for name, (v, d) in (("within a marker", (q - rm, 2 * M)),
+                             ("between markers of one camera", (rm - rc, 6 * (M - C))),
                              ("between cameras", (rc, 6 * (C - 1)))):
             parts[name][0] += v
             parts[name][1] += d
@@ -123,7 +124,8 @@ def main(argv: Sequence[str] = ()) -> None:
 
     # 3 and 4: the estimators.
     est: Dict[str, L.RingLocalizer] = {
-        "exact (joint_exact_extrinsics)": L.RingLocalizer(ring, truth, L.LocalizationParams(fusion="joint_exact_extrinsics")),
+        "exact (joint_exact_extrinsics)": L.RingLocalizer(ring, truth,
+                                                          L.LocalizationParams(fusion="joint_exact_extrinsics")),
         "joint (default)": joint}
     if a.variants:
         def variant(std_m: float, std_deg: float, **kw) -> L.RingLocalizer:

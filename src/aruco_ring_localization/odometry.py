@@ -354,6 +354,7 @@ class OdometryHistory6:
         return D, np.diag([var_t] * 3 + [var_r] * 3)
 
 
-__all__ = ["MotionParams", "OdometryHistory", "OdometryHistory6", "se2_compose", "se2_compose_jacobians", "propagate_se2", "se2_between", "se2_inverse",
+__all__ = ["MotionParams", "OdometryHistory", "OdometryHistory6",
+           "se2_compose", "se2_compose_jacobians", "propagate_se2", "se2_between", "se2_inverse",
            "constant_velocity_displacement", "displacement_to_transform", "body_covariance_to_perturbation",
            "body_factor_to_perturbation", "psd_factor"]

@@ -55,7 +55,8 @@ from .localization import LocalizationResult, RingLocalizer
 from .mapping import MapBuilder
 from .marker_check import MarkerCheck
 from .marker_map import MarkerMap
-from .odometry import OdometryHistory, OdometryHistory6, constant_velocity_displacement, propagate_se2, psd_factor, se2_between
+from .odometry import (OdometryHistory, OdometryHistory6, constant_velocity_displacement, propagate_se2, psd_factor,
+                       se2_between)
 from .ring import CameraRing, apply_refined_extrinsics
 from .ring_calibration import CalibrationOptions, RingCalibration, calibrate_ring
 from .schemas import LocalizerConfig, MapperConfig, RingInputParams

@@ -328,7 +328,8 @@ def test_6dof_odometry_history_interpolates_and_gives_the_increment_with_its_noi
     assert h.add_odometry(10.0, A) and h.add_odometry(10.4, A @ step)
     assert not h.add_odometry(10.2, A)                        # out of order: refused
     half = h.pose_at(10.2)
-    expected = geo.make_transform(A[:3, :3] @ geo.so3_exp([0.0, 0.0, 0.1]), A[:3, 3] + 0.5 * A[:3, :3] @ [0.4, 0.0, 0.1])
+    expected = geo.make_transform(A[:3, :3] @ geo.so3_exp([0.0, 0.0, 0.1]),
+                                  A[:3, 3] + 0.5 * A[:3, :3] @ [0.4, 0.0, 0.1])
     np.testing.assert_allclose(half, expected, atol=1e-12)
     D, cov = h.increment(10.0, 10.4)
     np.testing.assert_allclose(D, step, atol=1e-12)
