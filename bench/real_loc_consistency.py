@@ -1,6 +1,6 @@
 """Why the joint estimator's per-frame pose differs from TagSLAM's on a real recording (issue 11).
 
-``python bench/real_loc_consistency.py test_8 [--variants]``: on TagSLAM's map with TagSLAM's
+``python bench/real_loc_consistency.py test_8 [--variants] [--max-frames N]``: on TagSLAM's map with TagSLAM's
 extrinsics (bench_real's ``--loc-only`` case), every multi-camera frame with a TagSLAM rig pose:
 
 1. **The consistency test** (``estimator/exact_when_consistent``, :func:`localization.extrinsics_consistency`)
@@ -70,8 +70,9 @@ def main(argv: Sequence[str] = ()) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("test")
     p.add_argument("--variants", action="store_true")
+    p.add_argument("--max-frames", type=int, default=0, help="the first N ring frames only (0: all)")
     a = p.parse_args(list(argv) or None)
-    _, _, _, ref, ring, _, _, frames, truth = bench_real._load_case(a.test)
+    _, _, _, ref, ring, _, _, frames, truth = bench_real._load_case(a.test, a.max_frames)
     reference = {int(round(t * 1e6)): T for t, T in zip(ref.stamps, ref.T_map_rig)}
     joint = L.RingLocalizer(ring, truth, L.LocalizationParams(fusion="joint"))
     alpha = joint.params.consistency_alpha
