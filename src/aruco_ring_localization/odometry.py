@@ -47,8 +47,9 @@ class MotionParams:
                                           "frame's stamp (synchronized cameras)")
     odometry: bool = param(False, "predict the filter with the wheel-odometry increments of odom's pose between "
                                   "camera frames, publish the pose at every odom message (the odometry rate) and "
-                                  "bridge marker blackouts with it; false: the paper's filter (odom only opens the "
-                                  "gate)")
+                                  "bridge marker blackouts with it (filter/model 6dof: the 6-DOF tracker along the "
+                                  "increments of odom's full pose, e.g. a visual-inertial odometry, at the ring "
+                                  "frames); false: the paper's filter (odom only opens the gate)")
     imu: bool = param(False, "with odometry: the yaw increments from the yaw rate of sensor_msgs/Imu on `imu` "
                              "(angular_velocity.z) instead of the wheels'")
     translation_noise: float = param(0.02, "odometry's position error after 1 m driven (grows with the square "
@@ -277,6 +278,83 @@ class OdometryHistory:
         return d, np.diag([var_xy, var_xy, var_yaw])
 
 
-__all__ = ["MotionParams", "OdometryHistory", "se2_compose", "se2_compose_jacobians", "propagate_se2", "se2_between", "se2_inverse",
+class OdometryHistory6:
+    """Recent 6-DOF odometry poses (``T_odom_base``, 4x4) by stamp, for the 6-DOF tracker
+    (``filter/model: 6dof`` with ``motion.odometry``: a handheld rig's or a drone's visual-inertial
+    odometry). :meth:`increment` interpolates the pose at both stamps (translation linearly,
+    rotation by slerp, within a gap no longer than ``max_gap``) and returns base_link's
+    displacement in its frame at the first stamp with a 6x6 covariance over (translation,
+    rotation) in that frame, the same noise model as :class:`OdometryHistory` on every axis::
+
+        var(t) = translation_noise^2 * |d_t| + min_noise^2 * dt
+        var(r) = rotation_noise^2 * |d_angle| + yaw_drift^2 * |d_t| + min_noise^2 * dt
+
+    Stamps must increase; an older one is refused (returns False)."""
+
+    def __init__(self, params: MotionParams):
+        self.params = params
+        self._odom: Deque[Tuple[float, np.ndarray]] = deque()
+
+    def reset(self) -> None:
+        self._odom.clear()
+
+    @property
+    def latest_stamp(self) -> Optional[float]:
+        return self._odom[-1][0] if self._odom else None
+
+    def add_odometry(self, stamp: float, T_odom_base) -> bool:
+        stamp = float(stamp)
+        if self._odom and stamp <= self._odom[-1][0]:
+            return False
+        self._odom.append((stamp, np.array(T_odom_base, dtype=np.float64).reshape(4, 4)))
+        while len(self._odom) > 2 and self._odom[1][0] < stamp - self.params.history:
+            self._odom.popleft()
+        return True
+
+    def pose_at(self, t: float) -> Optional[np.ndarray]:
+        """(4, 4) odometry pose at ``t``, interpolated; None outside the history or in a gap."""
+        buf = self._odom
+        if not buf or t < buf[0][0] or t > buf[-1][0]:
+            return None
+        lo, hi = 0, len(buf) - 1
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            if buf[mid][0] <= t:
+                lo = mid
+            else:
+                hi = mid
+        (ta, A), (tb, B) = buf[lo], buf[hi]
+        if t == ta or tb <= ta:
+            return A.copy()
+        if t == tb:
+            return B.copy()
+        if tb - ta > self.params.max_gap:
+            return None
+        f = (t - ta) / (tb - ta)
+        D = geo.inverse(A) @ B
+        out = np.eye(4)
+        out[:3, :3] = A[:3, :3] @ geo.so3_exp(f * geo.rvec_from_rotation(D[:3, :3]).ravel())
+        out[:3, 3] = (1.0 - f) * A[:3, 3] + f * B[:3, 3]
+        return out
+
+    def increment(self, t0: float, t1: float) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+        """``(D, cov)``: base_link's displacement (4x4) from ``t0`` to ``t1`` in its frame at ``t0``
+        and its 6x6 covariance over (translation, rotation vector) in that frame; None when the
+        history does not cover both stamps."""
+        a, b = self.pose_at(t0), self.pose_at(t1)
+        if a is None or b is None:
+            return None
+        D = geo.inverse(a) @ b
+        p = self.params
+        dist = float(np.linalg.norm(D[:3, 3]))
+        angle = float(np.linalg.norm(geo.rvec_from_rotation(D[:3, :3])))
+        dt = abs(float(t1) - float(t0))
+        var_t = p.translation_noise ** 2 * dist + p.min_noise ** 2 * dt
+        var_r = p.rotation_noise ** 2 * angle + p.yaw_drift ** 2 * dist + p.min_noise ** 2 * dt
+        return D, np.diag([var_t] * 3 + [var_r] * 3)
+
+
+__all__ = ["MotionParams", "OdometryHistory", "OdometryHistory6",
+           "se2_compose", "se2_compose_jacobians", "propagate_se2", "se2_between", "se2_inverse",
            "constant_velocity_displacement", "displacement_to_transform", "body_covariance_to_perturbation",
            "body_factor_to_perturbation", "psd_factor"]

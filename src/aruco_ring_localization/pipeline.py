@@ -55,7 +55,8 @@ from .localization import LocalizationResult, RingLocalizer
 from .mapping import MapBuilder
 from .marker_check import MarkerCheck
 from .marker_map import MarkerMap
-from .odometry import OdometryHistory, constant_velocity_displacement, propagate_se2, psd_factor, se2_between
+from .odometry import (OdometryHistory, OdometryHistory6, constant_velocity_displacement, propagate_se2, psd_factor,
+                       se2_between)
 from .ring import CameraRing, apply_refined_extrinsics
 from .ring_calibration import CalibrationOptions, RingCalibration, calibrate_ring
 from .schemas import LocalizerConfig, MapperConfig, RingInputParams
@@ -413,6 +414,8 @@ class LocalizationPipeline(_RingPipeline):
         self._motion: Dict[str, _Motion] = {}
         #: Odometry poses (and IMU yaw) by stamp, with ``motion.odometry`` (issue 12).
         self.odometry = OdometryHistory(config.motion)
+        #: ... and the full 6-DOF poses for the 6-DOF tracker (``filter/model: 6dof``).
+        self.odometry6 = OdometryHistory6(config.motion)
         self.odometry_outputs = 0
         self._z = 0.0                        # height of base_link in the map (last accepted measurement)
         self._roll_pitch = (0.0, 0.0)        # ... and its roll, pitch
@@ -547,6 +550,13 @@ class LocalizationPipeline(_RingPipeline):
         if not np.all(np.isfinite(se2)):
             self.rejected_counts["odom_bad_pose"] = self.rejected_counts.get("odom_bad_pose", 0) + 1
             self.warn("odom.bad pose", "localizer: odom: pose.pose not finite: not used for prediction", now)
+            return []
+        if self.tracker6 is not None:
+            # The 6-DOF tracker: the full pose, predicted along at the next ring frame (_track6).
+            if not self.odometry6.add_odometry(t, T_odom_base):
+                self.rejected_counts["odom_out_of_order"] = self.rejected_counts.get("odom_out_of_order", 0) + 1
+                self.warn("odom.out of order", f"localizer: odom: stamp {t:.3f} s not after the previous "
+                                               f"{self.odometry6.latest_stamp:.3f} s: pose not used", now)
             return []
         last = self.odometry.latest_stamp
         if last is not None and t <= last:
@@ -806,6 +816,7 @@ class LocalizationPipeline(_RingPipeline):
             if self.tracker6 is not None:
                 self.tracker6.reset()
             self.odometry.reset()
+            self.odometry6.reset()
             logger.warning("localizer: time jumped back from %.3f to %.3f s: filter reset", last, now)
             self._clock = now
             return
@@ -979,6 +990,10 @@ class LocalizationPipeline(_RingPipeline):
             self.time_jumps += 1
             time_jump = True
             logger.warning("localizer: time jumped back to %.3f s: 6-DOF track reset", stamp)
+        if self.config.motion.odometry and tracker.initialized and stamp > tracker.stamp:
+            inc = self.odometry6.increment(tracker.stamp, stamp)   # None: the motion model
+            if inc is not None:
+                tracker.predict_increment(stamp, *inc)
         loc = self.localizer.process(ring_frame, tracker.predicted(stamp))
         for k, v in loc.rejected.items():
             self.rejected_counts[k] = self.rejected_counts.get(k, 0) + v

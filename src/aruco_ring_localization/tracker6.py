@@ -256,6 +256,44 @@ class Tracker6:
         self.P = 0.5 * (self.P + self.P.T)
         self.stamp = stamp
 
+    def predict_increment(self, stamp: float, D: np.ndarray, cov: np.ndarray) -> None:
+        """Advance to ``stamp`` along an odometry increment instead of the motion model:
+        ``D`` (4x4) is the body's displacement since the filter's stamp in its frame there
+        (``T(stamp) = T · D``), ``cov`` its 6x6 covariance over (translation, rotation vector) in
+        that frame (:meth:`odometry.OdometryHistory6.increment`). With ``T_true = (p + dp,
+        exp(dtheta) R)``: ``dp' = dp - [R t_D]x dtheta + R n_t``, ``dtheta' = dtheta + R n_r``; the
+        velocity becomes the increment's mean velocity (map frame), its covariance relaxed and
+        grown as in :meth:`predict`. A stamp not after the filter's is ignored; a track without
+        an accepted measurement for ``lost_after`` s is dropped, as in :meth:`predict`."""
+        if self.stamp is None:
+            return
+        stamp = float(stamp)
+        if self.last_accepted_stamp is not None and stamp - self.last_accepted_stamp > self.params.lost_after:
+            self.predict(stamp)   # drops the track, and says so
+            return
+        dt = stamp - self.stamp
+        if dt <= 0.0:
+            return
+        D = np.asarray(D, dtype=np.float64).reshape(4, 4)
+        Q6 = np.asarray(cov, dtype=np.float64).reshape(6, 6)
+        _, _, _, _, F, Q = self._propagate(dt)
+        F[0:6, 6:12] = 0.0                        # the pose follows the odometry, not the velocity
+        t_map = self.R @ D[:3, 3]
+        F[0:3, 3:6] = -geo.skew(t_map)
+        G = np.zeros((12, 6))
+        G[0:3, 0:3] = self.R
+        G[3:6, 3:6] = self.R
+        Q[0:6, :] = 0.0
+        Q[:, 0:6] = 0.0
+        self.P = F @ self.P @ F.T + Q + G @ Q6 @ G.T
+        self.P = 0.5 * (self.P + self.P.T)
+        R_new = self.R @ D[:3, :3]
+        self.w = geo.rvec_from_rotation(R_new @ self.R.T).ravel() / dt
+        self.v = t_map / dt
+        self.p = self.p + t_map
+        self.R = R_new
+        self.stamp = stamp
+
     def _measurement_cov(self, covariance: Optional[np.ndarray]) -> np.ndarray:
         p = self.params
         if covariance is None or not np.all(np.isfinite(covariance)):

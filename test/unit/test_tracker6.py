@@ -286,3 +286,48 @@ def test_an_ambiguous_measurement_withholds_the_prediction_only_when_every_pose_
     # Nothing of it entered the track.
     e = errors(tracker, T2)
     assert e[0] < 20.0 and e[1] < 1.0, e
+
+
+def test_an_odometry_increment_moves_the_track_along_it_and_carries_its_covariance():
+    """predict_increment: an exact increment lands on the true pose; the covariance it gives is the
+    one of the pose after the increment, checked by sampling the start's error and the increment's."""
+    rng = np.random.default_rng(11)
+    T0, T1 = handheld(2.0), handheld(2.4)
+    D = geo.inverse(T0) @ T1
+    tracker = Tracker6()
+    tracker.reset(T0, 2.0, COV)
+    # The start's rotation uncertain enough (3 deg) that its lever arm over the increment's
+    # translation dominates the position's error: the cross term is what is checked.
+    tracker.P[:6, :6] = np.diag([0.001 ** 2] * 3 + [np.radians(3.0) ** 2] * 3)
+    P0 = tracker.P[:6, :6].copy()
+    Q = np.diag([0.001 ** 2] * 3 + [np.radians(0.3) ** 2] * 3)   # (translation, rotation), body frame at t0
+    tracker.predict_increment(2.4, D, Q)
+    assert tracker.stamp == 2.4
+    dp, dr = geo.pose_distance(T1, tracker.pose)
+    assert dp < 1e-9 and dr < 1e-9
+    # Sample: T0_true = (p + dp, exp(dtheta) R), D_true = (exp(n_r) R_D, t_D + n_t); the error of
+    # T0_true · D_true against the tracker's pose in its convention (position, map-frame rotvec).
+    n = 4000
+    e0 = rng.multivariate_normal(np.zeros(6), P0, n)
+    nd = rng.multivariate_normal(np.zeros(6), Q, n)
+    err = np.empty((n, 6))
+    for k in range(n):
+        A = geo.make_transform(geo.so3_exp(e0[k, 3:]) @ T0[:3, :3], T0[:3, 3] + e0[k, :3])
+        Dk = geo.make_transform(geo.so3_exp(nd[k, 3:]) @ D[:3, :3], D[:3, 3] + nd[k, :3])
+        B = A @ Dk
+        err[k] = np.concatenate([B[:3, 3] - tracker.p, geo.rvec_from_rotation(B[:3, :3] @ tracker.R.T).ravel()])
+    C = np.cov(err.T)
+    P = tracker.P[:6, :6]
+    # Every direction's variance within 10 % (4000 samples: ~2 % sampling error), and more than the start's.
+    s = np.sqrt(np.diag(P))
+    np.testing.assert_allclose(C / np.outer(s, s), P / np.outer(s, s), atol=0.1)
+    assert np.all(np.diag(P) > np.diag(P0))
+    # The velocity is the increment's mean velocity.
+    np.testing.assert_allclose(tracker.v, (T1[:3, 3] - T0[:3, 3]) / 0.4, atol=1e-9)
+
+
+def test_an_odometry_increment_after_lost_after_drops_the_track():
+    tracker = Tracker6()
+    tracker.reset(handheld(0.0), 0.0, COV)
+    tracker.predict_increment(tracker.params.lost_after + 0.5, np.eye(4), np.eye(6) * 1e-6)
+    assert not tracker.initialized
