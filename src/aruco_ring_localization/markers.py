@@ -138,7 +138,7 @@ def quads_ok(corners_px: np.ndarray, min_area_px: float = 4.0) -> np.ndarray:
     """
     c = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
     if c.shape[0] <= _SCALAR_QUADS:
-        return np.array([_quad_ok(q, min_area_px) for q in c.tolist()], dtype=bool)
+        return np.array([quad_ok_scalar(q, min_area_px) for q in c.tolist()], dtype=bool)
     finite = np.isfinite(c).all(axis=(1, 2))
     c = np.where(np.isfinite(c), c, 0.0)
     nxt = [1, 2, 3, 0]
@@ -152,16 +152,21 @@ def quads_ok(corners_px: np.ndarray, min_area_px: float = 4.0) -> np.ndarray:
         return finite & convex & (area >= min_area_px)
 
 
-def _quad_ok(q: List[List[float]], min_area_px: float) -> bool:
+def quad_ok_scalar(q: List[List[float]], min_area_px: float) -> bool:
     """:func:`quads_ok` of one quad given as 4 [x, y] Python floats (IEEE arithmetic as numpy's:
-    an overflow gives inf, a NaN fails every comparison)."""
-    if not all(math.isfinite(v) for p in q for v in p):
-        return False
+    an overflow gives inf, a NaN fails every comparison); also
+    :func:`detections.sanitize_observations`' check of an image's few detections."""
     (x0, y0), (x1, y1), (x2, y2), (x3, y3) = q
-    ex = (x1 - x0, x2 - x1, x3 - x2, x0 - x3)
-    ey = (y1 - y0, y2 - y1, y3 - y2, y0 - y3)
-    cross = [ex[i] * ey[(i + 1) % 4] - ey[i] * ex[(i + 1) % 4] for i in range(4)]
-    if not (all(v > 0 for v in cross) or all(v < 0 for v in cross)):
+    isfinite = math.isfinite
+    if not (isfinite(x0) and isfinite(y0) and isfinite(x1) and isfinite(y1) and isfinite(x2) and isfinite(y2)
+            and isfinite(x3) and isfinite(y3)):
+        return False
+    # Unrolled (no comprehension or generator: this runs for every detection the localizer gets).
+    ex0, ex1, ex2, ex3 = x1 - x0, x2 - x1, x3 - x2, x0 - x3
+    ey0, ey1, ey2, ey3 = y1 - y0, y2 - y1, y3 - y2, y0 - y3
+    c0, c1 = ex0 * ey1 - ey0 * ex1, ex1 * ey2 - ey1 * ex2
+    c2, c3 = ex2 * ey3 - ey2 * ex3, ex3 * ey0 - ey3 * ex0
+    if not ((c0 > 0 and c1 > 0 and c2 > 0 and c3 > 0) or (c0 < 0 and c1 < 0 and c2 < 0 and c3 < 0)):
         return False
     area = 0.5 * abs((x0 * y1 - x1 * y0) + (x1 * y2 - x2 * y1) + (x2 * y3 - x3 * y2) + (x3 * y0 - x0 * y3))
     return area >= min_area_px

@@ -219,6 +219,49 @@ def test_sanitize_empty():
     assert sanitize_observations([]) == ([], {})
 
 
+@pytest.mark.parametrize("size", [(1280, 960), (None, None)])
+def test_sanitize_scalar_and_array_paths_agree(monkeypatch, size):
+    # Up to detections.SCALAR_SANITIZE detections are checked on Python floats, more with numpy:
+    # the same kept detections (the same objects) and the same counts for every kind of input,
+    # hostile ones included (NaN, inf, 1e200, zero, self-crossing, far outside, duplicates, ints).
+    import warnings
+
+    from aruco_ring_localization import detections
+
+    rng = np.random.default_rng(11)
+    kinds = [lambda c: c, lambda c: c * 1e200, lambda c: np.where(rng.random((4, 2)) < 0.3, np.nan, c),
+             lambda c: np.where(rng.random((4, 2)) < 0.3, -np.inf, c), lambda c: c * 0.02, lambda c: c[[0, 2, 1, 3]],
+             lambda c: c + rng.choice([-1, 1]) * rng.uniform(1000, 3000), lambda c: np.zeros((4, 2)),
+             lambda c: np.rint(c).astype(np.int64), lambda c: c.tolist()]
+    cases = []
+    for _ in range(400):
+        n = int(rng.integers(1, detections.SCALAR_SANITIZE + 1))
+        obs = []
+        for _ in range(n):
+            c = rng.normal(0, 15, (4, 2)) + rng.uniform(0, 1200, (1, 2))
+            c = c[[0, 3, 2, 1]] if rng.random() < 0.5 else c   # either orientation
+            obs.append(MarkerObservation(int(rng.integers(-1, 12)), kinds[int(rng.integers(len(kinds)))](c)))
+        cases.append(obs)
+    width, height = size
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")   # neither path may warn about overflow or NaN
+        scalar = [sanitize_observations(obs, ignore={3}, width=width, height=height) for obs in cases]
+        monkeypatch.setattr(detections, "SCALAR_SANITIZE", 0)
+        array = [sanitize_observations(obs, ignore={3}, width=width, height=height) for obs in cases]
+    kept_total = 0
+    for (k_s, r_s), (k_a, r_a) in zip(scalar, array):
+        assert r_s == r_a
+        assert [o.marker_id for o in k_s] == [o.marker_id for o in k_a]
+        for a, b in zip(k_s, k_a):
+            assert a.corners.dtype == b.corners.dtype == np.float64
+            np.testing.assert_array_equal(a.corners, b.corners)
+        kept_total += len(k_s)
+    reasons = set().union(*(r for _, r in scalar))
+    expected = {"ignored", "negative id", "non-finite", "degenerate", "duplicate id"}
+    expected |= {"outside image"} if width else set()
+    assert kept_total > 100 and reasons == expected, reasons
+
+
 def _run_10hz(a: RingFrameAssembler, cams, t0: float, n: int):
     """Feed ``n`` frames at 10 Hz from ``cams`` (arrival = stamp + 20 ms); return (latencies, frames)."""
     latencies, frames = [], []

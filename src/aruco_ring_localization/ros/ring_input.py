@@ -143,23 +143,27 @@ class RingSubscriber:
         argument :data:`NOW` is replaced by the node's clock at arrival. A non-empty result is
         delivered in order. Returns the result; raises what ``fn`` raised, in the caller's thread."""
         with self._inbox_lock:
-            item = _Call(fn, tuple(self.now() if a is NOW else a for a in args))
+            # ``now`` read and the call queued together, so the inbox is in the order of the clock.
+            item = _Call(fn, tuple([self.now() if a is NOW else a for a in args]))
             self._inbox.append(item)
+        inbox, queue = self._inbox, self._queue
         with self.lock:
             # Whoever holds the lock runs every call queued so far, so ours has run when we get it.
-            while True:
-                with self._inbox_lock:
-                    if not self._inbox:
-                        break
-                    c = self._inbox.popleft()
+            # Only the lock's holder pops; others append under the inbox lock (deque's append and
+            # popleft are atomic), so the inbox lock is not needed here.
+            while inbox:
+                c = inbox.popleft()
                 try:
                     c.out = c.fn(*c.args)
                 except Exception as exc:  # noqa: BLE001 - handed to the caller's thread below
                     c.error = exc
                     continue
                 if c.out:
-                    self._queue.append(c.out)
-        self._drain()
+                    queue.append(c.out)
+        if queue:
+            # (Empty: nothing to deliver from our calls, and an output queued after this check is
+            # delivered by the thread that queued it, which drains after it released the lock.)
+            self._drain()
         if item.error is not None:
             raise item.error
         return item.out
