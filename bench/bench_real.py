@@ -203,9 +203,11 @@ def _load_case(test: str, max_frames: int = 0):
                    camera_poses=write_camera_poses(ref, os.path.join(out_dir, "camera_poses_tagslam.yaml")))
     ring = rig.ring()
     sizes = tags.marker_sizes()
-    ignore = tags.ignore | tags.moving
+    # TagSLAM's ignored tags, the tags of moving bodies and, without a default_body, every tag no
+    # body lists (TagSLAM drops those: test_24's undeclared boards).
+    ignore = tags.ignored_ids()
     frames = ring_frames(cached_bag(test, "tag_detections"), ring, remap=tags.remap,
-                         ignore=",".join(str(i) for i in sorted(ignore)))
+                         ignore=tags.ignore_fiducials())
     if max_frames:
         frames = frames[:max_frames]
     truth = MarkerMap([MarkerEntry(i, T, sizes(i)) for i, T in sorted(ref.tags.items()) if i not in ignore],
@@ -303,6 +305,7 @@ def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool =
                    tags_missing=len(err["missing"]), tags_extra=len(err["extra"]),
                    map_reprojection_px=float(ours.quality.get("reprojection_rms_px", float("nan"))))
         T_truth_ours = err["T_truth_est"]
+        res.update(_similarity(ours, truth))
         res["missing_ids"] = err["missing"]
         # Tags TagSLAM has only because tagslam.yaml gives their pose: no detection of them in the
         # bag (test_11: 62 of 82), so no mapping from the detections can have them.
@@ -334,6 +337,24 @@ def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool =
                     f"{name}_loc_cpu_ms_per_frame": 1000.0 * cpu / max(len(frames), 1),
                     f"{name}_tracker_cpu_ms_per_frame": 1000.0 * cpu_tracker / max(len(frames), 1)})
     return res
+
+
+def _similarity(ours: MarkerMap, truth: MarkerMap) -> Dict[str, float]:
+    """What a scale explains of the map error: the similarity fit (Umeyama with scale) of our map's
+    tag corners onto TagSLAM's, ``map_scale`` (ours -> TagSLAM's: > 1 when TagSLAM's is larger) and
+    the position RMS left after it (mm, tag centres)."""
+    from evo.core.geometry import umeyama_alignment
+
+    ids = [i for i in ours.ids if i in truth]
+    if len(ids) < 3:
+        return {}
+    P = np.concatenate([ours.corners(i) for i in ids])
+    Q = np.concatenate([truth.corners(i) for i in ids])
+    R, t, c = umeyama_alignment(P.T, Q.T, with_scale=True)
+    centres = np.array([ours.T_map_marker(i)[:3, 3] for i in ids])
+    fitted = c * centres @ R.T + t
+    d = fitted - np.array([truth.T_map_marker(i)[:3, 3] for i in ids])
+    return {"map_scale": float(c), "map_sim_rms_mm": 1000.0 * float(np.sqrt(np.mean(np.sum(d * d, axis=1))))}
 
 
 def station_model(ring, sizes, frames) -> str:
