@@ -93,14 +93,38 @@ LIMITS = {
                "never detected in the bag: they are in its answer only from the file) and links the walk with the "
                "visual-inertial odometry in the bag (/fla/vio/odom); the package maps with the same anchors and "
                "the same odometry as links between stations (its own noise model, docs/mapping.md)",
-    "test_12": "as test_11 with one surveyed tag (tag 6, full pose): the odometry links the walk",
+    "test_12": "as test_11 with one surveyed tag (tag 6, full pose): the odometry links the walk. On tests 11 "
+               "and 12 the detections do not decide between the maps: over the 19 tags both have (every 10th "
+               "frame with a rig pose, 152 frames, 1,436 corners, poses refitted) ours reprojects at 0.320 px RMS "
+               "with its refined extrinsics (0.371 px with TagSLAM's), TagSLAM's at 0.364 px (0.373-0.383 px with "
+               "its own rig poses), frame medians 0.285 vs 0.278-0.281 px: the gap is in how the groups of tags "
+               "are placed against each other, which the odometry and tagslam.yaml's priors decide, not the images",
+    "test_22": "2 tags, anchored tag 3; TagSLAM links the stations with the bag's odometry (/camera/odom/sample, "
+               "a tracking camera; tagslam.yaml's odom_acceleration_noise 5-40 m/s^2, not read) and so does the "
+               "package (its default noise model). Without the odometry the package maps the 2 tags 0.44 mm from "
+               "TagSLAM's, and that map reprojects as well as TagSLAM's (0.125 px RMS both, poses refitted, the 58 "
+               "frames with a rig pose), the odometry-linked one at 0.178 px: the odometry is noisier than the "
+               "default model says (its motions are 7 mm median, 32 mm p90 off TagSLAM's rig motions over 93 mm "
+               "steps with each frame's nearest message, 13.4 mm interpolated at the frames' stamps as the package "
+               "does: the messages come at 4.3 Hz, 41 ms median from the frames; tagslam.yaml's T_body_odom "
+               "checked: its inverse is 139 mm off)",
     "test_13": "16 rigid boards of 6 tags: both map them with tagslam.yaml's layouts (the package's boards exact, "
-               "TagSLAM's tags 1 mm / 1 mrad loose on theirs); what remains is a scale: our map is 0.23 % larger "
-               "than TagSLAM's (a similarity fit leaves 2.3 mm RMS)",
+               "TagSLAM's tags 1 mm / 1 mrad loose on theirs); what remains is a scale: TagSLAM's map is 0.2 % larger "
+               "than ours (map_scale; the similarity fit leaves 2.3 mm RMS). Not a convention: TagSLAM's source uses "
+               "the same tag corners (+-tag_size/2), board pitch (tag_size x (1 + tag_spacing)) and radtan model "
+               "(k1, k2, p1, p2). The detections do not support its scale: through its map and its rig poses they "
+               "reproject at 0.444 px RMS (51,384 corners, 680 frames), through its map shrunk by 0.2 % (poses "
+               "refitted) at 0.418 px, through ours at 0.426 px; each tag alone (--no-boards) at 0.382 px with the "
+               "boards' pitch 0.3 % under the layout's (0.1495 m): the printed boards' scale is known to about that, "
+               "and our tags' 1-sigma (4.1 mm median) covers the difference",
     "test_24": "staggered boards of 5 cm tags seen at grazing angles: both use the boards' layouts; TagSLAM also "
                "drops views under 15 deg or 2000 px^2 and ties the boards to one plane and one measured distance "
                "(plane_measurements, distance_measurements: not read by the package); tags 2090-2094 and "
-               "2100-2104 are on no declared board and not in TagSLAM's map",
+               "2100-2104 are on boards the file does not declare and it names no default_body: TagSLAM ignores "
+               "them, the importer too. Here the gap is ours: through each map with its poses refitted TagSLAM's "
+               "reprojects better (1.96 vs 2.50 px RMS, frame median 1.44 vs 1.50 px, the 40 frames with a rig "
+               "pose), and our boards sit 5-16 mm (board 144: 2.6 deg) from its, 9 times our 1-sigma; "
+               "--view-limits: 14.83 mm, 59 tags missing",
 }
 QUICK = ("test_1", "test_8", "test_22", "test_17")
 QUICK_FRAMES = 600
@@ -787,7 +811,9 @@ def render_saved(extra_notes: Optional[List[str]] = None) -> dict:
     explained = doc_explained()
     for t, line in explained.items():     # per-frame flips of rows kept from the doc: its explained table's
         r = saved["rows"].get(t, {})
-        m = re.match(r"^\|\s*test_\d+\s*\|\s*(\d+)", line)
+        # Its 6th cell, "per frame > 10 deg (ambiguous)" (the first number of the row is the paper's median).
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        m = re.match(r"^(\d+)", cells[5]) if len(cells) == 7 else None
         if "_doc_only" in r and m:
             r["_frame_flips"] = int(m.group(1))
     return report(saved["rows"], saved["failed"], None, saved["quick"], saved["tests"], notes, explained)
