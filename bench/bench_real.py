@@ -29,7 +29,8 @@ For every recording the package can handle (the others are listed with the reaso
    in the map frame); frames more than 10 deg off.
 5. CPU seconds (process time) of mapping and of localization per ring frame.
 
-``--quick`` runs a few short recordings with at most 600 frames each.
+``--quick`` runs a few short recordings with at most 600 frames each. Which map fits the detections
+better where they differ (the reprojection figures of ``LIMITS``): ``bench/real_map_fit.py``.
 """
 from __future__ import annotations
 
