@@ -21,8 +21,9 @@ link). Nothing about the odom frame itself is used: its drift does not enter.
 link's motion, both from the odometry)::
 
     sigma_trans^2 = min_translation^2 + translation_noise^2 * d + translation_per_second^2 * dt + jumps_trans^2
+                    + interp_trans(t_i)^2 + interp_trans(t_j)^2
     sigma_rot^2   = min_rotation^2 + rotation_noise^2 * a + rotation_per_metre^2 * d
-                    + rotation_per_second^2 * dt + jumps_rot^2
+                    + rotation_per_second^2 * dt + jumps_rot^2 + interp_rot(t_i)^2 + interp_rot(t_j)^2
 
 (a random walk: the variance grows with the distance and the angle travelled, as wheel odometry
 and VIO drift, and with the time ``dt`` between the stations: TagSLAM's odometry model is that
@@ -30,7 +31,13 @@ term alone, ``acceleration * dt_msg^2`` per message of period ``dt_msg``, i.e.
 ``translation_per_second = odom_acceleration * dt_msg^1.5``). **Jumps**: an odometry message whose motion departs from the constant-velocity
 prediction of the previous one by more than ``max_acceleration * dt^2`` (``max_angular_acceleration``
 for the rotation) adds that excess to the sigma of the link that spans it (``jumps_*``: root sum of
-squares): a VIO reset or a wheel slip widens its own link instead of bending the map. On top, the
+squares): a VIO reset or a wheel slip widens its own link instead of bending the map.
+**Interpolation**: a station between two messages ``t0 < t < t1`` gets the interpolated pose, off by
+up to ``max_acceleration * (t - t0) * (t1 - t) / 2`` (``interp_trans``; ``max_angular_acceleration``
+for ``interp_rot``) when the motion changes speed in between: nothing for an odometry stamped with
+the frames or much faster than they come (tests 11, 12, 21: 20-30 Hz at the frames' stamps), tens of
+mm for one at 4 Hz beside the frames (test_22's tracking camera: 22 mm median, the links were 4x
+too tight and bent its map by 11 mm). On top, the
 bundle adjustment's Huber loss on each link's whitened norm (``robust_scale``) bounds what any link
 still off can pull.
 """
@@ -74,7 +81,9 @@ class MappingOdometryOptions:
     min_translation: float = param(0.002, "floor of a link's position error", unit="m")
     min_rotation: float = param(0.001, "floor of a link's rotation error", unit="rad")
     max_acceleration: float = param(5.0, "jumps: an odometry message departing from the previous one's constant "
-                                         "velocity by more than this x dt^2 widens its link by the excess",
+                                         "velocity by more than this x dt^2 widens its link by the excess; a "
+                                         "station between two messages widens its links by what the "
+                                         "interpolation may miss at this acceleration",
                                     unit="m/s^2")
     max_angular_acceleration: float = param(5.0, "... the same for the rotation", unit="rad/s^2")
     max_gap: float = param(0.5, "a station whose stamp is farther than this from an odometry message (before and "
@@ -158,6 +167,18 @@ class OdometryTrack:
         out[2:, 1] = np.maximum(ea, 0.0)
         return out
 
+    def interpolation_error(self, stamp: float, max_acceleration: float,
+                            max_angular_acceleration: float) -> Tuple[float, float]:
+        """(m, rad): how far the interpolated pose at ``stamp`` may be off when the motion changes speed
+        between the two messages around it, at most ``max_acceleration`` (constant acceleration
+        ``a``: ``a (t - t0)(t1 - t) / 2``); 0 at a message's stamp and outside the track."""
+        t, _, _ = self._sorted()
+        k = int(np.searchsorted(t, stamp))
+        if k == 0 or k >= len(t) or abs(t[k] - stamp) <= 1e-9:
+            return 0.0, 0.0
+        w = max(stamp - t[k - 1], 0.0) * max(t[k] - stamp, 0.0) / 2.0
+        return max_acceleration * w, max_angular_acceleration * w
+
     def pose_at(self, stamp: float, max_gap: float) -> Optional[np.ndarray]:
         """``T_odom_body`` at ``stamp`` (interpolated), or None outside the track or in a gap."""
         t, P, _ = self._sorted()
@@ -190,6 +211,8 @@ class OdometryTrack:
         jumps = self.jumps(opts.max_acceleration, opts.max_angular_acceleration)
         order = sorted(station_stamps, key=lambda s: (station_stamps[s], s))
         poses = {s: self.pose_at(station_stamps[s], opts.max_gap) for s in order}
+        interp = {s: self.interpolation_error(station_stamps[s], opts.max_acceleration, opts.max_angular_acceleration)
+                  for s in order}
         I, J, Z, sig = [], [], [], []
         prev = None
         for s in order:
@@ -204,10 +227,11 @@ class OdometryTrack:
                 inside = (t_all > ta) & (t_all <= tb)
                 jt, jr = (np.sqrt(np.sum(jumps[inside] ** 2, axis=0)) if np.any(inside) else (0.0, 0.0))
                 dt = tb - ta
+                (it_a, ir_a), (it_b, ir_b) = interp[prev], interp[s]
                 st = np.sqrt(opts.min_translation ** 2 + opts.translation_noise ** 2 * d
-                             + opts.translation_per_second ** 2 * dt + jt ** 2)
+                             + opts.translation_per_second ** 2 * dt + jt ** 2 + it_a ** 2 + it_b ** 2)
                 sr = np.sqrt(opts.min_rotation ** 2 + opts.rotation_noise ** 2 * a + opts.rotation_per_metre ** 2 * d
-                             + opts.rotation_per_second ** 2 * dt + jr ** 2)
+                             + opts.rotation_per_second ** 2 * dt + jr ** 2 + ir_a ** 2 + ir_b ** 2)
                 I.append(prev)
                 J.append(s)
                 Z.append(D)

@@ -11,6 +11,7 @@ from aruco_ring_localization import geometry as geo
 from aruco_ring_localization.cli import main
 from aruco_ring_localization.errors import ConfigError
 from aruco_ring_localization.importers import read_rig, read_tagslam_tags, write_ring_files
+from aruco_ring_localization.markers import MAX_MARKER_ID
 from aruco_ring_localization.ring import CameraRing
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "tagslam"
@@ -190,9 +191,35 @@ def test_tagslam_tags_sizes_ignored_moving_and_remaps():
     assert t12.remap(20, 1541686900.0) == 420 and t12.remap(20, 1541687200.0) == 520 and t12.remap(20, 0.0) == 20
     t18 = read_tagslam_tags(str(DATA / "test_18" / "tagslam.yaml"))
     assert t18.moving == set(range(100, 110)) and "block" in t18.moving_bodies   # the tumbling block
-    assert t18.fiducial_len_override() == "100-109: 0.05" and t18.ignore_fiducials() == "100-109"
+    # No default_body: besides the moving block's tags, every tag no body lists (TagSLAM ignores them).
+    assert t18.fiducial_len_override() == "100-109: 0.05" and t18.ignore_fiducials() == "4-4095"
     t24 = read_tagslam_tags(str(DATA / "test_24" / "tagslam.yaml"))      # staggered boards
     assert t24.marker_sizes()(2080) == 0.06 and t24.marker_sizes()(72) == 0.05
+
+
+def test_tagslam_tags_without_default_body_ignore_the_undeclared_ones(tmp_path):
+    # TagSLAM attaches a tag no body lists to the default_body; without one it ignores the tag.
+    body = ("bodies:\n - lab:\n     is_static: true\n     default_tag_size: 0.05\n     tags:\n"
+            "     - id: 7\n       size: 0.05\n - board_10:\n     is_static: true\n     type: board\n"
+            "     board: {tag_start_id: 10, tag_size: 0.06, tag_spacing: 0.5, tag_rows: 1, tag_columns: 2}\n"
+            " - rig:\n     is_static: false\n     ignore_tags: [3]\n")
+    p = tmp_path / "tagslam.yaml"
+    p.write_text(body)
+    t = read_tagslam_tags(str(p))
+    assert t.default_body is None and t.undeclared_ignored
+    ignored = t.ignored_ids()
+    assert {7, 10, 11}.isdisjoint(ignored) and {0, 3, 8, 9, 12, MAX_MARKER_ID} <= ignored
+    assert t.ignore_fiducials() == f"0-6, 8-9, 12-{MAX_MARKER_ID}"
+    # With a default_body the undeclared tags are mapped (at its default size): only ignore_tags go.
+    p.write_text("default_body: lab\n" + body)
+    t = read_tagslam_tags(str(p))
+    assert t.default_body == "lab" and not t.undeclared_ignored
+    assert t.ignored_ids() == {3} and t.ignore_fiducials() == "3" and t.marker_sizes()(8) == 0.05
+    # test_24 lists its boards only: the tags of the boards it does not declare (2090-2094, 2100-2104,
+    # whose size is not the default 0.05) are ignored, the declared boards' kept.
+    t24 = read_tagslam_tags(str(DATA / "test_24" / "tagslam.yaml"))
+    assert set(range(2090, 2095)) | set(range(2100, 2105)) <= t24.ignored_ids()
+    assert t24.ignored_ids().isdisjoint(set(range(2080, 2085)) | set(range(2105, 2110)) | set(range(0, 18)))
 
 
 def test_tagslam_tags_bad_file_names_the_key(tmp_path):

@@ -227,3 +227,30 @@ def test_odometry_links_a_station_no_marker_links(ring, scene, offset):
     err = map_error(m, big.truth_map(), best_fit=True)
     assert err["per_marker"][999][0] < 1.0, f"marker 999 {err['per_marker'][999][0]:.2f} mm off"
     assert err["position_rms_mm"] < 1.0, f"RMS {err['position_rms_mm']:.2f} mm"
+
+
+def test_a_station_between_slow_odometry_messages_widens_its_links():
+    """Odometry at 4 Hz (test_22's tracking camera) interpolated at stations between its messages
+    misses what the motion did in between: each such station widens its two links by
+    ``max_acceleration * (t - t0) * (t1 - t) / 2`` (rotation: ``max_angular_acceleration``), a
+    station at a message's stamp (tests 11, 12, 21: odometry stamped with the frames) not at all."""
+    from aruco_ring_localization.mapping_odometry import MappingOdometryOptions, OdometryTrack
+
+    stamps = np.arange(0.0, 2.01, 0.25)
+    poses = np.stack([geo.make_transform(geo.rot_z(0.1 * t), [0.3 * t, 0.0, 0.0]) for t in stamps])
+    track = OdometryTrack(stamps, poses)
+    opts = MappingOdometryOptions(topic="odom", max_acceleration=4.0, max_angular_acceleration=2.0)
+    on = track.links({0: 0.25, 1: 0.5, 2: 0.75}, opts)
+    between = track.links({0: 0.25, 1: 0.625, 2: 0.75}, opts)       # station 1 midway between messages
+    assert track.interpolation_error(0.5, 4.0, 2.0) == (0.0, 0.0)
+    et, er = track.interpolation_error(0.625, 4.0, 2.0)
+    assert et == pytest.approx(4.0 * 0.125 * 0.125 / 2) and er == pytest.approx(2.0 * 0.125 * 0.125 / 2)
+    for k in range(2):
+        # Same motion model otherwise: the variance grows by the interpolation error's square.
+        d_on = np.linalg.norm(on.T_ij[k][:3, 3])
+        d_bw = np.linalg.norm(between.T_ij[k][:3, 3])
+        base_t = np.sqrt(opts.min_translation ** 2 + opts.translation_noise ** 2 * d_bw)
+        assert between.sigma[k, 3] == pytest.approx(np.sqrt(base_t ** 2 + et ** 2), rel=1e-6)
+        assert on.sigma[k, 3] == pytest.approx(np.sqrt(opts.min_translation ** 2 + opts.translation_noise ** 2 * d_on),
+                                               rel=1e-6)
+        assert between.sigma[k, 0] > on.sigma[k, 0] + 0.5 * er

@@ -62,7 +62,8 @@ def run(args: argparse.Namespace) -> int:
         out.write(f"{args.tagslam}: fiducial_len {tags.default_size:g}\n"
                   f"  fiducial_len_override \"{tags.fiducial_len_override()}\"\n"
                   f"  ignore_fiducials \"{tags.ignore_fiducials()}\"   (TagSLAM's ignore_tags and the tags of moving "
-                  f"bodies {', '.join(tags.moving_bodies) or '-'})\n")
+                  f"bodies {', '.join(tags.moving_bodies) or '-'}"
+                  f"{'; no default_body: every tag no body lists, as TagSLAM ignores them' if tags.undeclared_ignored else ''})\n")
         if args.anchors_out:
             anchors = tagslam_anchors(tags, tags.ignore | tags.moving, source=args.tagslam)
             if anchors is None:

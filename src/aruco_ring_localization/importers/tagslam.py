@@ -6,12 +6,14 @@ body has a ``default_tag_size``, explicit ``tags`` (``id``, ``size``, optional `
 ``position`` and a rotation-vector ``rotation`` in the body's frame) and, for ``type: board`` /
 ``staggered_board``, a grid of ``tag_rows`` x ``tag_columns`` tags from ``tag_start_id`` of
 ``tag_size``. ``default_body`` names the body that newly discovered tags join (its
-``default_tag_size`` is the size of every tag not listed). ``ignore_tags`` (per body) are tags
-TagSLAM never uses.
+``default_tag_size`` is the size of every tag not listed); without a ``default_body`` TagSLAM ignores
+every tag no body lists ("no default body, ignoring tag"), so the importer does too. ``ignore_tags``
+(per body) are tags TagSLAM never uses.
 
 :func:`read_tagslam_tags` returns what mapping needs: :class:`~aruco_ring_localization.markers.MarkerSizes`
 (also as aruco_detect's ``fiducial_len`` / ``fiducial_len_override``), the ids to ignore (TagSLAM's
-ignored tags plus the tags of moving bodies other than the rig: a static map cannot hold them),
+ignored tags, the tags of moving bodies other than the rig: a static map cannot hold them, and
+without a ``default_body`` every tag no body lists: :meth:`TagslamTags.ignored_ids`),
 and the poses TagSLAM's file fixes (``known_poses``, body frame, for reference only).
 """
 from __future__ import annotations
@@ -26,7 +28,7 @@ from .. import geometry as geo
 from ..camera import load_yaml_file
 from ..boards import Board, BoardSet, grid_board
 from ..errors import ConfigError, GeometryError
-from ..markers import MarkerSizes, parse_size_overrides
+from ..markers import MAX_MARKER_ID, MarkerSizes, parse_size_overrides
 
 logger = logging.getLogger(__name__)
 
@@ -66,6 +68,24 @@ class TagslamTags:
     #: TagSLAM drops (None when the file does not give them).
     minimum_viewing_angle: Optional[float] = None
     minimum_tag_area: Optional[float] = None
+    #: ``default_body``: the body undeclared tags join; None when the file names none, and then
+    #: TagSLAM ignores every tag that no body lists (:meth:`ignored_ids`).
+    default_body: Optional[str] = None
+
+    @property
+    def undeclared_ignored(self) -> bool:
+        """True when TagSLAM ignores the tags no body lists (the file names no ``default_body``)."""
+        return self.default_body is None
+
+    def ignored_ids(self) -> Set[int]:
+        """Every id a static map of this file must leave out: TagSLAM's ``ignore_tags``, the tags of
+        moving bodies and, without a ``default_body``, every id (up to ``MAX_MARKER_ID``) that no body
+        lists -- TagSLAM drops those detections (test_24: tags 2090-2094 and 2100-2104 of boards the
+        file does not declare, whose size is not the default's)."""
+        out = set(self.ignore) | set(self.moving)
+        if self.undeclared_ignored:
+            out |= set(range(MAX_MARKER_ID + 1)) - set(self.sizes)
+        return out
 
     def remap(self, marker_id: int, stamp: float) -> int:
         """The id a detection of ``marker_id`` at ``stamp`` (s) stands for (``tag_id_remap``)."""
@@ -82,8 +102,8 @@ class TagslamTags:
         return _ranges({i: s for i, s in self.sizes.items() if s != self.default_size})
 
     def ignore_fiducials(self) -> str:
-        """aruco_detect's ``ignore_fiducials`` for the ignored and the moving tags."""
-        return _ranges({i: 0.0 for i in self.ignore | self.moving}, with_value=False)
+        """aruco_detect's ``ignore_fiducials`` for :meth:`ignored_ids` (ranges)."""
+        return _ranges({i: 0.0 for i in self.ignored_ids()}, with_value=False)
 
 
 def _ranges(values: Mapping[int, float], with_value: bool = True) -> str:
@@ -338,6 +358,7 @@ def read_tagslam_tags(path: str, rig_bodies: Tuple[str, ...] = ()) -> TagslamTag
         raise ConfigError("no default_tag_size in the default body (or in any static body)", path=path,
                           key="default_body")
     out.default_size = default_size
+    out.default_body = None if default_body is None else str(default_body)
     params = data.get("tagslam_parameters")
     if isinstance(params, Mapping) and params.get("pixel_noise") is not None:
         out.pixel_noise = _positive(params["pixel_noise"], path, "tagslam_parameters.pixel_noise")
