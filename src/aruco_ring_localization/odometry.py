@@ -136,6 +136,20 @@ def displacement_to_transform(d) -> np.ndarray:
     return geo.transform_from_se2(float(d[0]), float(d[1]), float(d[2]))
 
 
+def odometry_in_base(T_odom_child: Optional[np.ndarray], linear, angular,
+                     T_base_child: np.ndarray) -> Tuple[Optional[np.ndarray], np.ndarray, np.ndarray]:
+    """An odometry of a body rigidly mounted on the robot (nav_msgs/Odometry ``child_frame_id``, e.g.
+    a visual-inertial odometry's IMU frame) as base_link's: the pose ``T_odom_base = T_odom_child ·
+    T_base_child⁻¹`` (None stays None) and the twist, given in the child frame (nav_msgs), in
+    base_link's: ``ω_b = R ω_c``, ``v_b = R v_c - ω_b × t`` (the base origin's velocity; ``R``, ``t``:
+    ``T_base_child``'s rotation and translation)."""
+    R, t = T_base_child[:3, :3], T_base_child[:3, 3]
+    w = R @ np.asarray(angular, dtype=float)
+    v = R @ np.asarray(linear, dtype=float) - np.cross(w, t)
+    T = None if T_odom_child is None else T_odom_child @ geo.inverse(T_base_child)
+    return T, v, w
+
+
 def body_covariance_to_perturbation(cov3: np.ndarray) -> np.ndarray:
     """(6, 6) covariance over a left perturbation (w, v) from a 3x3 one over (x, y, yaw)."""
     C = np.zeros((6, 6))
@@ -357,4 +371,4 @@ class OdometryHistory6:
 __all__ = ["MotionParams", "OdometryHistory", "OdometryHistory6",
            "se2_compose", "se2_compose_jacobians", "propagate_se2", "se2_between", "se2_inverse",
            "constant_velocity_displacement", "displacement_to_transform", "body_covariance_to_perturbation",
-           "body_factor_to_perturbation", "psd_factor"]
+           "body_factor_to_perturbation", "psd_factor", "odometry_in_base"]

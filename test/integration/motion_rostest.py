@@ -13,6 +13,11 @@ Checks: the pose comes out at the odometry rate; with free-running cameras the p
 frames are within 1 cm (median) of the truth at their stamps; during a 5 s marker blackout (the
 cameras report, without markers) the pose keeps coming at the odometry rate and is within 5 cm
 at its end; the markers back, the track is the cameras' again.
+
+With ``~odom_body`` ([x, y, yaw_deg], motion_body.test) the odometry is that of a body mounted
+there on the robot (``child_frame_id`` odom_body, a static tf base_link -> odom_body in the .test
+file), as a visual-inertial odometry reports its IMU's: the same checks hold only if the localizer
+makes it base_link's through tf.
 Named ``*_rostest.py`` so pytest does not collect it (it needs rostest's master).
 """
 from __future__ import annotations
@@ -76,6 +81,8 @@ class MotionTest(unittest.TestCase):
         rospy.Subscriber("/localizer/pose", PoseWithCovarianceStamped, cls._on_pose, queue_size=200)
         rospy.Subscriber("/localizer/camera_estimates", PoseArray, cls._on_estimates, queue_size=20)
         cls.odom = np.array([-2.0, 1.0, 0.5])   # the odometry's own origin
+        body = rospy.get_param("~odom_body", [])
+        cls.body = None if not body else np.array([float(body[0]), float(body[1]), np.radians(float(body[2]))])
         cls.prev_truth = _truth(T0)
         cls.unanswered = 0
         end = time.monotonic() + 60.0
@@ -116,10 +123,18 @@ class MotionTest(unittest.TestCase):
             od = Odometry()
             od.header.stamp = rospy.Time.from_sec(t)
             od.header.frame_id = "odom"
-            od.child_frame_id = "base_link"
-            od.pose.pose = pose_to_msg(geo.transform_from_se2(*cls.odom))
-            od.twist.twist.linear.x, od.twist.twist.linear.y = float(step[0] / ODOM_PERIOD), float(step[1] / ODOM_PERIOD)
-            od.twist.twist.angular.z = float(step[2] / ODOM_PERIOD)
+            v, w = np.array([step[0], step[1], 0.0]) / ODOM_PERIOD, float(step[2] / ODOM_PERIOD)
+            if cls.body is None:
+                od.child_frame_id = "base_link"
+                od.pose.pose = pose_to_msg(geo.transform_from_se2(*cls.odom))
+            else:   # the mounted body's pose, and its twist in its own frame (nav_msgs)
+                od.child_frame_id = "odom_body"
+                od.pose.pose = pose_to_msg(geo.transform_from_se2(*se2_compose(cls.odom, cls.body)))
+                v_body = v + np.cross([0.0, 0.0, w], [cls.body[0], cls.body[1], 0.0])
+                c, s_ = np.cos(cls.body[2]), np.sin(cls.body[2])
+                v = np.array([c * v_body[0] + s_ * v_body[1], -s_ * v_body[0] + c * v_body[1], 0.0])
+            od.twist.twist.linear.x, od.twist.twist.linear.y = float(v[0]), float(v[1])
+            od.twist.twist.angular.z = w
             cls.odom_pub.publish(od)
             time.sleep(0.003)
             if k % int(round(CAMERA_PERIOD / ODOM_PERIOD)) == 0:

@@ -359,3 +359,37 @@ def test_the_6dof_track_is_predicted_along_the_odometry(lab):
     without = _track6_in_the_dark(lab, False)
     assert with_odom < 0.02, with_odom
     assert without > 5 * with_odom, (without, with_odom)
+
+
+def test_odometry_of_a_mounted_body_as_base_links():
+    """A body mounted off the base (moved and turned) driven along a seeded rigid motion: its
+    odometry, converted with the mounting, is base_link's pose, and its twist base_link's (finite
+    differences of base_link's poses)."""
+    from aruco_ring_localization.odometry import odometry_in_base
+    rng = np.random.default_rng(5)
+    T_base_child = np.eye(4)
+    T_base_child[:3, :3] = geo.matrix_from_rpy(0.1, -0.05, 0.6)
+    T_base_child[:3, 3] = (0.3, 0.1, 0.2)
+    w_true, v_true = rng.normal(0.0, 0.5, 3), rng.normal(0.0, 1.0, 3)   # base_link's twist, base frame
+    T0 = np.eye(4)
+    T0[:3, :3] = geo.matrix_from_rpy(*rng.normal(0.0, 0.3, 3))
+    T0[:3, 3] = rng.normal(0.0, 2.0, 3)
+
+    def base_at(t):   # base_link moving with the body twist (v_true, w_true) at t = 0 (first order)
+        D = np.eye(4)
+        D[:3, :3] = geo.rotation_from_rvec(w_true * t)
+        D[:3, 3] = v_true * t
+        return T0 @ D
+
+    dt = 1e-6
+    child0, child1 = base_at(0.0) @ T_base_child, base_at(dt) @ T_base_child
+    D = geo.inverse(child0) @ child1
+    w_c = geo.rvec_from_rotation(D[:3, :3]) / dt
+    v_c = D[:3, 3] / dt
+    T, v, w = odometry_in_base(child0, v_c, w_c, T_base_child)
+    np.testing.assert_allclose(T, base_at(0.0), atol=1e-12)
+    np.testing.assert_allclose(w, w_true, atol=1e-5)
+    np.testing.assert_allclose(v, v_true, atol=1e-5)
+    # Without the lever arm (the rotation alone) the velocity would be wrong: the test can fail.
+    assert np.linalg.norm(T_base_child[:3, :3] @ v_c - v_true) > 0.01
+    assert odometry_in_base(None, v_c, w_c, T_base_child)[0] is None

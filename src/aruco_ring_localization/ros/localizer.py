@@ -50,6 +50,7 @@ from ..errors import ArucoRingError, ConfigError
 from ..marker_grid import marker_grid
 from ..marker_check import parse_marker_ids
 from ..marker_map import MarkerMap
+from ..odometry import odometry_in_base
 from ..pipeline import LocalizationPipeline, PoseOutput, StatusReport
 from ..ring import CameraRing
 from ..threads import limit_threads, tune_malloc
@@ -74,6 +75,7 @@ class LocalizerNode:
         self.marker_map = marker_map
         self.map_frame = out.map_frame or marker_map.frame_id
         self.base_frame = out.base_frame or ring.base_frame
+        self._mounts: Dict[str, np.ndarray] = {}   # odom child frames: T_base_child, looked up once
         self.tf_buffer = tf2_ros.Buffer()
         self.tf_listener = tf2_ros.TransformListener(self.tf_buffer)
         self.tf_broadcaster = tf2_ros.TransformBroadcaster()
@@ -121,8 +123,32 @@ class LocalizerNode:
             T_odom_base = pose_msg_to_transform(msg.pose.pose, "odom.pose.pose")
         except ArucoRingError:
             T_odom_base = None  # the twist is what the gate uses; a bad pose is not its problem
+        linear, yaw_rate = (t.linear.x, t.linear.y), t.angular.z
+        child = msg.child_frame_id.lstrip("/")
+        if child and child != self.base_frame:   # e.g. a VIO's IMU frame: its odometry made base_link's
+            T_base_child = self._mounted(child)
+            if T_base_child is None:
+                return
+            T_odom_base, v, w = odometry_in_base(T_odom_base, (t.linear.x, t.linear.y, t.linear.z),
+                                                 (t.angular.x, t.angular.y, t.angular.z), T_base_child)
+            linear, yaw_rate = (float(v[0]), float(v[1])), float(w[2])
         self.ring_input.call(self.pipeline.on_motion, "odom", stamp_to_sec(msg.header.stamp),
-                             (t.linear.x, t.linear.y), t.angular.z, NOW, T_odom_base)
+                             linear, yaw_rate, NOW, T_odom_base)
+
+    def _mounted(self, child: str) -> Optional[np.ndarray]:
+        """``T_base_child`` of a frame rigidly mounted on the robot, from tf once (then cached); None
+        (and a throttled warning naming the topic and the field) while tf does not have it."""
+        T = self._mounts.get(child)
+        if T is None:
+            try:
+                ts = self.tf_buffer.lookup_transform(self.base_frame, child, rospy.Time(0))
+                T = self._mounts[child] = msg_to_transform(ts.transform, f"tf {self.base_frame} -> {child}")
+            except (tf2_ros.TransformException, ArucoRingError) as exc:
+                rospy.logwarn_throttle(WARN_PERIOD, f"localizer: odom: child_frame_id {child!r} is not "
+                                       f"{self.base_frame!r} and tf has no {self.base_frame} -> {child} ({exc}): "
+                                       "odometry dropped until it has (publish the mounting, e.g. a "
+                                       "static_transform_publisher)")
+        return T
 
     def on_imu(self, msg: Imu) -> None:
         self.ring_input.call(self.pipeline.on_imu, stamp_to_sec(msg.header.stamp), msg.angular_velocity.z, NOW)
