@@ -564,16 +564,15 @@ class JointProblem:
         self.offsets = np.concatenate([[0], np.cumsum(counts)])
         # Per corner, the 2x2 map from normalised to pixel errors: K2 = [[fx, s], [0, fy]], or a
         # fisheye's local lens Jacobian.
-        A = np.zeros((len(views), 2, 2))
-        A[:, 0, 0] = [v.model.K[0, 0] for v in views]
-        A[:, 0, 1] = [v.model.K[0, 1] for v in views]
-        A[:, 1, 1] = [v.model.K[1, 1] for v in views]
+        Ks = [v.model.K for v in views]
+        A = np.array([[[K[0, 0], K[0, 1]], [0.0, K[1, 1]]] for K in Ks], dtype=np.float64)
         self.A = A[self.cam_index]
         for k, v in enumerate(views):
             if v.pixel_jacobian is not None:
                 self.A[self.offsets[k]:self.offsets[k + 1]] = v.pixel_jacobian
-        self.R = np.stack([v.T_cam_base[:3, :3] for v in views])[self.cam_index]
-        self.t = np.stack([v.T_cam_base[:3, 3] for v in views])[self.cam_index]
+        T_cb = np.stack([v.T_cam_base for v in views])[self.cam_index]
+        self.R = T_cb[:, :3, :3]
+        self.t = T_cb[:, :3, 3]
         self.n = self.X.shape[0]
         covs = [v.extrinsics_cov for v in self.views]
         self.extrinsics_cov: Optional[np.ndarray] = None
@@ -1092,6 +1091,15 @@ class _JointSolution:
     shared_gain: Optional[np.ndarray] = None
 
     @property
+    def chi2(self) -> float:
+        """The whitened chi^2 at the problem's pixel noise (``pixel_noise``: the units of
+        ``ambiguity_chi2``). A solution solved at the measured noise holds its fit at that noise
+        (its blocks and residuals are what the later steps read): refitted here, when compared."""
+        if np.isfinite(self.pixel_noise) and self.fit.G_cam is not None:
+            return self.problem.refit(self.fit).chi2
+        return self.fit.chi2
+
+    @property
     def r(self) -> np.ndarray:
         return self.fit.r
 
@@ -1560,14 +1568,16 @@ class RingLocalizer:
                 sols.append(sol)
         if not sols:
             return None
-        sols.sort(key=lambda s: (s.outliers, s.fit.chi2))
+        chi2 = {id(s): s.chi2 for s in sols}
+        sols.sort(key=lambda s: (s.outliers, chi2[id(s)]))
         best = sols[0]
-        rivals = [s for s in sols[1:] if s.outliers == best.outliers and s.fit.chi2 - best.fit.chi2 < p.ambiguity_chi2]
+        rivals = [s for s in sols[1:] if s.outliers == best.outliers and chi2[id(s)] - chi2[id(best)] < p.ambiguity_chi2]
         # One marker seen by several cameras: their viewpoints resolve its two poses only when the
         # joint problem found the other one too and it lost by ambiguity_chi2 or more; a lone
         # minimum of a far marker seen along nearly one direction proves nothing (every start
         # ends there, decimetres off).
-        beaten = [s for s in sols[1:] if s.outliers == best.outliers and s.fit.chi2 - best.fit.chi2 >= p.ambiguity_chi2]
+        beaten = [s for s in sols[1:] if s.outliers == best.outliers and
+                  chi2[id(s)] - chi2[id(best)] >= p.ambiguity_chi2]
         if rivals or (len(result.marker_ids) < 2 and not beaten):
             result.ambiguous = True
             if prediction is not None:
@@ -1655,8 +1665,9 @@ class RingLocalizer:
         25 % the cameras weigh differently, so the pose is solved again with it (from the
         solution: one or two iterations); the covariance is that solution's, with that noise (its
         inverse information, the cameras' common extrinsic error and the map's error carried to
-        the pose), so estimate and covariance agree. The returned fit is at ``pixel_noise`` (what
-        the ambiguity tests compare between candidate poses, in the units of ``ambiguity_chi2``).
+        the pose), so estimate and covariance agree. The returned fit is at the measured noise (its
+        blocks, residuals and weights are what the later steps read); the ambiguity tests compare
+        candidate poses at ``pixel_noise`` (:attr:`_JointSolution.chi2` refits it there).
 
         Within 25 % the solution at the frame's own noise is one Gauss-Newton step away: that step
         is taken from the per-camera blocks already computed (:meth:`JointProblem.refit`, no new
@@ -1685,7 +1696,7 @@ class RingLocalizer:
             # The step keeps the blocks G_c (and so H, H_cam: what the covariances below read); only
             # the gradients follow it, and problem.refit below takes them from b_cam.
             T_bm, fit_s = at.linear_step(T_bm, fit_s, delta)
-        return (T_bm, problem.refit(fit_s), iters, rms, at.covariance(fit_s), at.map_covariance(fit_s, T_bm),
+        return (T_bm, fit_s, iters, rms, at.covariance(fit_s), at.map_covariance(fit_s, T_bm),
                 sigma, at.shared_gain(fit_s))
 
     def _exact_if_consistent(self, sol: _JointSolution) -> _JointSolution:
@@ -1815,32 +1826,34 @@ class RingLocalizer:
             deltas = -_solve_spd_batch(Hc, gc[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:
             return
-        r_lin = sol.r + np.einsum("nia,na->ni", sol.J, deltas[prob.cam_index])
-        errs = np.sqrt(np.add.reduceat(np.sum(r_lin * r_lin, axis=1), starts) / np.diff(prob.offsets))
+        r_lin = sol.r + np.matmul(sol.J, deltas[prob.cam_index][:, :, None])[:, :, 0]
+        counts = np.diff(prob.offsets)
+        errs = np.sqrt(np.add.reduceat(r_lin[:, 0] * r_lin[:, 0] + r_lin[:, 1] * r_lin[:, 1], starts) / counts)
         T_map_cams = _per_camera_poses(sol.T_base_map, deltas, np.stack([v.T_base_cam for v in prob.views]))
-        # Distance and angle per marker, averaged per camera (paper's Ac inputs).
-        all_ids = [i for v in prob.views for i in v.ids]
-        n_per = np.array([len(v.ids) for v in prob.views])
-        cam_of = np.repeat(np.arange(len(prob.views)), n_per)
-        centres, normals = self._marker_axes(all_ids)
-        Tc = T_map_cams
-        dists = np.linalg.norm(centres - Tc[cam_of, :3, 3], axis=1)
-        angles = np.arccos(np.clip(-np.sum(normals * Tc[cam_of, :3, 2], axis=1), -1.0, 1.0))
-        mstarts = np.concatenate([[0], np.cumsum(n_per)[:-1]])
+        # Distance and angle per marker (4 rows each, cameras' markers in order), averaged per camera
+        # (paper's Ac inputs).
+        n_per = counts // 4
+        cam_of = prob.cam_index[::4]
+        centres, normals = self._marker_axes(prob.marker_ids.tolist())
+        Tc = T_map_cams[cam_of]
+        dists = np.linalg.norm(centres - Tc[:, :3, 3], axis=1)
+        angles = np.arccos(np.clip(-np.sum(normals * Tc[:, :3, 2], axis=1), -1.0, 1.0))
+        mstarts = starts // 4
         mean_d = np.add.reduceat(dists, mstarts) / n_per
         mean_a = np.add.reduceat(angles, mstarts) / n_per
         ac_d = np.clip((p.th_distance - mean_d) / p.th_distance, 0.0, None)
         ac_or = np.clip((p.th_orientation - mean_a) / p.th_orientation, 0.0, None)
         acc = 0.5 * (ac_d + ac_or)
-        big = np.sqrt(np.sum(deltas * deltas, axis=1)) > 0.5
+        big = (np.sum(deltas * deltas, axis=1) > 0.25).tolist()
+        T_map_bases = T_map_cams @ np.stack([v.T_cam_base for v in prob.views])
+        errs_l, d_l, a_l, acc_l = errs.tolist(), mean_d.tolist(), mean_a.tolist(), acc.tolist()
         for k, view in enumerate(prob.views):
             if big[k]:
-                continue  # not a small correction: this camera alone is not well determined
-            T_map_cam = T_map_cams[k]
-            est = CameraEstimate(camera=view.name, marker_ids=list(view.ids), T_map_cam=T_map_cam,
-                                 T_map_base=T_map_cam @ view.T_cam_base, reprojection_error=float(errs[k]),
-                                 distance=float(mean_d[k]), angle=float(mean_a[k]), accuracy=float(acc[k]))
-            if not errs[k] <= p.max_reprojection_error:
+                continue  # not a small correction (above 0.5): this camera alone is not well determined
+            est = CameraEstimate(camera=view.name, marker_ids=list(view.ids), T_map_cam=T_map_cams[k],
+                                 T_map_base=T_map_bases[k], reprojection_error=errs_l[k],
+                                 distance=d_l[k], angle=a_l[k], accuracy=acc_l[k])
+            if not errs_l[k] <= p.max_reprojection_error:
                 est.valid = False
                 est.reject_reason = REJECT_REPROJECTION
             result.estimates[view.name] = est
