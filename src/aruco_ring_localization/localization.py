@@ -50,6 +50,7 @@ and 3x3 over (x, y, yaw).
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
@@ -324,10 +325,27 @@ def fuse_paper(estimates: Sequence[CameraEstimate], fusion_gap: float
 
 # --- the joint (multi-camera) least-squares problem -----------------------------------------
 
+def _rotation_from_rotvec(w: np.ndarray) -> np.ndarray:
+    """(3, 3) ``exp([w]x)`` by Rodrigues' formula on Python floats (the solver's inner loop: scipy's
+    Rotation costs ~20 us a call, this ~3); the series to second order below 1e-8 rad (exact there
+    to 1e-24)."""
+    x, y, z = float(w[0]), float(w[1]), float(w[2])
+    t2 = x * x + y * y + z * z
+    if t2 < 1e-16:
+        a, b = 1.0, 0.5
+    else:
+        t = math.sqrt(t2)
+        a, b = math.sin(t) / t, (1.0 - math.cos(t)) / t2
+    xx, yy, zz, xy, xz, yz = x * x, y * y, z * z, x * y, x * z, y * z
+    return np.array([[1.0 - b * (yy + zz), b * xy - a * z, b * xz + a * y],
+                     [b * xy + a * z, 1.0 - b * (xx + zz), b * yz - a * x],
+                     [b * xz - a * y, b * yz + a * x, 1.0 - b * (xx + yy)]])
+
+
 def _perturb(T: np.ndarray, delta: np.ndarray) -> np.ndarray:
     """``geometry.se3_perturb`` without input validation (the solver's inner loop): left-multiply
     ``T`` by (exp(w), v) with ``delta = (w, v)``."""
-    R = Rotation.from_rotvec(delta[:3]).as_matrix()
+    R = _rotation_from_rotvec(delta)
     out = np.empty((4, 4))
     out[:3, :3] = R @ T[:3, :3]
     out[:3, 3] = R @ T[:3, 3] + delta[3:6]
@@ -463,6 +481,34 @@ class JointFit:
     H_cam: Optional[np.ndarray] = None
     G_cam: Optional[np.ndarray] = None
     b_cam: Optional[np.ndarray] = None
+    #: With a calibration model: :class:`_Spectrum` of the blocks ``G_cam`` against the problem's
+    #: extrinsics factors (what whitening at any pixel noise needs; None: not computed).
+    spectrum: Optional["_Spectrum"] = None
+
+
+@dataclass
+class _Spectrum:
+    """Per camera, the eigen-decomposition ``L_c^T G_c L_c = U_c diag(lam_c) U_c^T`` of the blocks
+    of one fit (``L``: the extrinsics factors it was taken with), as ``LU = L U`` and ``P = G L U``:
+    with ``M_c = sigma^2 I + L_c^T G_c L_c = U (sigma^2 + lam) U^T`` the whitening at any pixel
+    noise is diagonal (:meth:`JointProblem._whitened`), so the pixel-noise search and every refit
+    at another sigma cost no 6x6 solve. Depends on ``G`` (the pose and Huber weights) and ``L``
+    only, not on ``b`` (a linear step keeps it)."""
+
+    L: np.ndarray       # the (C, 6, 6) factors it belongs to (identity-checked before reuse)
+    lam: np.ndarray     # (C, 6), clipped at 0
+    LU: np.ndarray      # (C, 6, 6)
+    P: np.ndarray       # (C, 6, 6)
+
+    @staticmethod
+    def of(G: np.ndarray, L: np.ndarray) -> "_Spectrum":
+        lam, U = np.linalg.eigh(np.transpose(L, (0, 2, 1)) @ G @ L)
+        LU = L @ U
+        return _Spectrum(L, np.clip(lam, 0.0, None), LU, G @ LU)
+
+    def beta(self, b: np.ndarray) -> np.ndarray:
+        """(C, 6) ``U^T L^T b`` per camera."""
+        return np.matmul(b[:, None, :], self.LU)[:, 0, :]
 
 
 class JointProblem:
@@ -518,16 +564,15 @@ class JointProblem:
         self.offsets = np.concatenate([[0], np.cumsum(counts)])
         # Per corner, the 2x2 map from normalised to pixel errors: K2 = [[fx, s], [0, fy]], or a
         # fisheye's local lens Jacobian.
-        A = np.zeros((len(views), 2, 2))
-        A[:, 0, 0] = [v.model.K[0, 0] for v in views]
-        A[:, 0, 1] = [v.model.K[0, 1] for v in views]
-        A[:, 1, 1] = [v.model.K[1, 1] for v in views]
+        Ks = [v.model.K for v in views]
+        A = np.array([[[K[0, 0], K[0, 1]], [0.0, K[1, 1]]] for K in Ks], dtype=np.float64)
         self.A = A[self.cam_index]
         for k, v in enumerate(views):
             if v.pixel_jacobian is not None:
                 self.A[self.offsets[k]:self.offsets[k + 1]] = v.pixel_jacobian
-        self.R = np.stack([v.T_cam_base[:3, :3] for v in views])[self.cam_index]
-        self.t = np.stack([v.T_cam_base[:3, 3] for v in views])[self.cam_index]
+        T_cb = np.stack([v.T_cam_base for v in views])[self.cam_index]
+        self.R = T_cb[:, :3, :3]
+        self.t = T_cb[:, :3, 3]
         self.n = self.X.shape[0]
         covs = [v.extrinsics_cov for v in self.views]
         self.extrinsics_cov: Optional[np.ndarray] = None
@@ -595,7 +640,10 @@ class JointProblem:
     @staticmethod
     def _huber(r: np.ndarray, scale: float) -> Tuple[float, np.ndarray]:
         """(Huber cost of the per-corner residual norms, IRLS weights)."""
-        e = np.sqrt(np.sum(r * r, axis=1))
+        e2 = r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1]
+        if e2.size and float(e2.max()) <= scale * scale:   # every corner within the scale (usual; NaN-safe)
+            return 0.5 * float(e2.sum()), np.ones(len(e2))
+        e = np.sqrt(e2)
         if not np.all(np.isfinite(e)):
             w = np.where(np.isfinite(e), np.where(e <= scale, 1.0, scale / np.maximum(e, 1e-12)), 0.0)
             return np.inf, w
@@ -606,7 +654,7 @@ class JointProblem:
         """Residuals, Jacobian, weights and the (whitened) normal equations at ``T_base_map``."""
         r, J = self.residuals(T_base_map)
         huber, w = self._huber(r, scale)
-        rr = np.where(np.isfinite(r), r, 0.0)
+        rr = r if np.isfinite(huber) else np.where(np.isfinite(r), r, 0.0)   # finite cost: every r finite
         s2 = self.sigma ** 2
         if self.extrinsics_cov is None:
             Jw = J * w[:, None, None]
@@ -616,40 +664,55 @@ class JointProblem:
             return JointFit(r, J, w, H, g, chi2, huber)
         # Per camera, [J_c r_c]^T D_c [J_c r_c] in one pass: J_c^T D_c J_c, J_c^T D_c r_c, r_c^T D_c r_c.
         Ja = np.concatenate([J, rr[:, :, None]], axis=2)
-        A7 = np.add.reduceat(np.einsum("nia,nib->nab", Ja * w[:, None, None], Ja), self.offsets[:-1], axis=0)
+        A7 = np.add.reduceat(np.matmul(np.transpose(Ja * w[:, None, None], (0, 2, 1)), Ja), self.offsets[:-1], axis=0)
         return self._whitened(r, J, w, A7[:, :6, :6], A7[:, :6, 6], A7[:, 6, 6], huber)
 
     def refit(self, fit: JointFit) -> JointFit:
         """``fit`` (of these cameras' rows, at any pixel noise, with a calibration model) at this
         problem's ``sigma``: the residuals, Jacobian and Huber weights do not depend on the pixel
         noise (the Huber scale is in pixels), only the marginalisation of the extrinsics does, so
-        this is the 6x6 blocks' part of :meth:`fit` without evaluating the residuals again."""
+        this is the 6x6 blocks' part of :meth:`fit` without evaluating the residuals again (and,
+        with the fit's :class:`_Spectrum`, without a decomposition)."""
         if fit.G_cam is None or self.extrinsics_factor is None:
             raise ValueError("refit needs a calibration model")
         rr = np.where(np.isfinite(fit.r), fit.r, 0.0)
         q = np.add.reduceat(fit.w * np.sum(rr * rr, axis=1), self.offsets[:-1])
         huber = 0.0 if np.isfinite(fit.r).all() else np.inf
-        return self._whitened(fit.r, fit.J, fit.w, fit.G_cam, fit.b_cam, q, huber)
+        return self._whitened(fit.r, fit.J, fit.w, fit.G_cam, fit.b_cam, q, huber, fit.spectrum)
+
+    def _spectrum(self, G: np.ndarray, spectrum: Optional[_Spectrum] = None) -> _Spectrum:
+        """``spectrum`` when it belongs to these blocks' extrinsics factors, else computed."""
+        if spectrum is not None and spectrum.L is self.extrinsics_factor:
+            return spectrum
+        return _Spectrum.of(G, self.extrinsics_factor)
 
     def _whitened(self, r: np.ndarray, J: np.ndarray, w: np.ndarray, G: np.ndarray, b: np.ndarray, q: np.ndarray,
-                  huber: float) -> JointFit:
+                  huber: float, spectrum: Optional[_Spectrum] = None) -> JointFit:
         """The fit from the per-camera blocks ``G_c = J_c^T D_c J_c``, ``b_c = J_c^T D_c r_c``,
-        ``q_c = r_c^T D_c r_c``, the extrinsics marginalised at this problem's ``sigma``."""
+        ``q_c = r_c^T D_c r_c``, the extrinsics marginalised at this problem's ``sigma``.
+
+        With Sigma_c = L_c L_c^T: ``G Sigma (s2 I + G Sigma)^-1 = G L M^-1 L^T`` with
+        ``M = s2 I + L^T G L = U (s2 + lam) U^T`` (:class:`_Spectrum`), so with ``P = G L U``,
+        ``beta = U^T L^T b`` and ``d = 1 / (s2 + lam)``: ``H_c = (G - P d P^T) / s2``,
+        ``g_c = (b - P d beta) / s2``, ``chi2 = sum_c (q_c - beta^T d beta) / s2``. Raises
+        LinAlgError when ``M`` is not numerically positive definite (its condition beyond
+        1 / machine epsilon: what the Cholesky solves this replaced refused, e.g. a trial pose far
+        off, seen on a real recording with eigenvalues 0.04 .. 2e15)."""
         s2 = self.sigma ** 2
-        # With Sigma_c = L_c L_c^T: G Sigma (s2 I + G Sigma)^-1 = G L (s2 I + L^T G L)^-1 L^T, an SPD solve.
-        L = self.extrinsics_factor
-        Lt = np.transpose(L, (0, 2, 1))
-        GL = G @ L
-        M = s2 * np.eye(6) + Lt @ GL
-        Ltb = np.einsum("cba,cb->ca", L, b)
-        X = _solve_spd_batch(M, np.concatenate([np.transpose(GL, (0, 2, 1)), Ltb[:, :, None]], axis=2))
-        H_cam = (G - GL @ X[:, :, :6]) / s2
+        sp = self._spectrum(G, spectrum)
+        m = s2 + sp.lam
+        if not m.min() > np.finfo(np.float64).eps * m.max():
+            raise np.linalg.LinAlgError("whitening: the 6x6 normal matrix is not positive definite")
+        d = 1.0 / m
+        beta = sp.beta(b)
+        Pd = sp.P * d[:, None, :]
+        H_cam = (G - Pd @ np.transpose(sp.P, (0, 2, 1))) / s2
         H_cam = 0.5 * (H_cam + np.transpose(H_cam, (0, 2, 1)))
-        g = (b - np.einsum("cab,cb->ca", GL, X[:, :, 6])) / s2
-        chi2 = float(np.sum(q - np.einsum("ca,ca->c", Ltb, X[:, :, 6]))) / s2
+        g = (b - np.matmul(Pd, beta[:, :, None])[:, :, 0]) / s2
+        chi2 = float(np.sum(q) - np.sum(d * beta * beta)) / s2
         if not np.isfinite(huber):
             chi2 = np.inf
-        return JointFit(r, J, w, H_cam.sum(axis=0), g.sum(axis=0), chi2, chi2, H_cam, G, b)
+        return JointFit(r, J, w, H_cam.sum(axis=0), g.sum(axis=0), chi2, chi2, H_cam, G, b, sp)
 
     def pixel_noise_estimate(self, fit: JointFit, lo: float, hi: float) -> float:
         """The pixel noise (px) that makes the whitened residuals of ``fit`` (a fit of this problem,
@@ -657,39 +720,52 @@ class JointProblem:
         ``[lo, hi]`` (``lo`` when they are smaller even there).
 
         ``chi2(sigma) = sum_c (q_c - b_c^T L_c (sigma^2 I + L_c^T G_c L_c)^-1 L_c^T b_c) / sigma^2``
-        falls monotonically with sigma; with the eigen-decomposition ``L_c^T G_c L_c = U Λ U^T`` it
-        is a scalar function of sigma^2 (no solve per trial), whose crossing is found on log sigma by
-        successively finer grids (each evaluated in one vectorised call)."""
+        falls monotonically with sigma; with the eigen-decomposition ``L_c^T G_c L_c = U Λ U^T`` (the
+        fit's :class:`_Spectrum`) it is a scalar function of sigma^2 (no solve per trial), whose
+        crossing is found on log sigma by a bracketed Newton iteration."""
         if fit.G_cam is None or self.extrinsics_factor is None:
             raise ValueError("pixel_noise_estimate needs a calibration model")
         rr = np.where(np.isfinite(fit.r), fit.r, 0.0)
         q = float(np.sum(fit.w * np.sum(rr * rr, axis=1)))
-        L = self.extrinsics_factor
-        lam, U = np.linalg.eigh(np.transpose(L, (0, 2, 1)) @ fit.G_cam @ L)
-        beta = np.einsum("cak,cba,cb->ck", U, L, fit.b_cam)   # U^T L^T b per camera
-        b2 = (beta ** 2).ravel()
-        lam = np.clip(lam.ravel(), 0.0, None)
+        sp = self._spectrum(fit.G_cam, fit.spectrum)
+        b2 = (sp.beta(fit.b_cam) ** 2).ravel()   # (U^T L^T b)^2 per camera
+        lam = sp.lam.ravel()
         dof = max(2 * self.n - 6, 1)
 
-        def chi2(log_sig: np.ndarray) -> np.ndarray:   # vectorised over trial values
-            s2 = np.exp(2.0 * log_sig)
-            return (q - np.sum(b2[None, :] / (s2[:, None] + lam[None, :]), axis=1)) / s2
+        def chi2(log_sig: float) -> Tuple[float, float]:   # chi2 and its derivative in log sigma
+            s2 = math.exp(2.0 * log_sig)
+            den = lam + s2
+            t = b2 / den
+            c = (q - float(t.sum())) / s2
+            return c, 2.0 * float((t / den).sum()) - 2.0 * c
 
         a, b = float(np.log(lo)), float(np.log(hi))
-        ends = chi2(np.array([a, b]))
-        if ends[0] <= dof:
+        if chi2(a)[0] <= dof:
             return float(lo)
-        if ends[1] >= dof:
+        if chi2(b)[0] >= dof:
             return float(hi)
-        # Bracket the crossing on a grid of 32 in [a, b], then on a grid of 32 in that cell, ...:
-        # 5 vectorised rounds narrow log sigma by 32^5 (to 2e-7 of the 1000:1 range), as 25
-        # sequential bisection steps would.
-        for _ in range(5):
-            grid = np.linspace(a, b, 33)
-            above = chi2(grid) > dof          # True, ..., True, False, ..., False (monotone)
-            k = int(np.count_nonzero(above))  # grid[k - 1] above, grid[k] not
-            a, b = float(grid[max(k - 1, 0)]), float(grid[min(k, 32)])
-        return float(np.exp(0.5 * (a + b)))
+        # Newton on log sigma, kept inside the bracket [a, b] (chi2(a) > dof > chi2(b), monotone):
+        # a step that would leave it bisects instead. Converges to 1e-10 in log sigma in a handful
+        # of scalar evaluations (the grids this replaced took 5 rounds of 33 for 2e-7).
+        # Start at sqrt(q / dof), where the unmarginalised chi2 crosses: an upper bound of the root
+        # (the marginalisation only lowers chi2), near it when the extrinsics' part is small.
+        x = min(max(0.5 * math.log(max(q / dof, 1e-300)), a), b)
+        if not a < x < b:
+            x = 0.5 * (a + b)
+        for _ in range(60):
+            c, dc = chi2(x)
+            if c > dof:
+                a = x
+            else:
+                b = x
+            x_new = x - (c - dof) / dc if dc < 0.0 else 0.5 * (a + b)
+            if not a < x_new < b:
+                x_new = 0.5 * (a + b)
+            if abs(x_new - x) < 1e-10 or b - a < 1e-10:
+                x = x_new
+                break
+            x = x_new
+        return float(np.exp(x))
 
     def exact(self) -> "JointProblem":
         """The same rows with the extrinsics (and the map) taken as exact: no calibration model
@@ -836,7 +912,7 @@ class JointProblem:
         b_cam = None if fit.b_cam is None else fit.b_cam + fit.G_cam @ delta
         return _perturb(T_base_map, delta), JointFit(fit.r + np.einsum("nia,a->ni", fit.J, delta), fit.J, fit.w,
                                                      fit.H, fit.g * 0.0, fit.chi2, fit.cost, fit.H_cam, fit.G_cam,
-                                                     b_cam)
+                                                     b_cam, fit.spectrum)
 
     def covariance(self, fit: JointFit) -> np.ndarray:
         """(6, 6) covariance of the left perturbation of ``T_base_map`` (whitened units: multiply
@@ -1015,6 +1091,15 @@ class _JointSolution:
     shared_gain: Optional[np.ndarray] = None
 
     @property
+    def chi2(self) -> float:
+        """The whitened chi^2 at the problem's pixel noise (``pixel_noise``: the units of
+        ``ambiguity_chi2``). A solution solved at the measured noise holds its fit at that noise
+        (its blocks and residuals are what the later steps read): refitted here, when compared."""
+        if np.isfinite(self.pixel_noise) and self.fit.G_cam is not None:
+            return self.problem.refit(self.fit).chi2
+        return self.fit.chi2
+
+    @property
     def r(self) -> np.ndarray:
         return self.fit.r
 
@@ -1048,8 +1133,12 @@ def extrinsics_consistency(problem: JointProblem, fit: JointFit) -> Optional[Tup
         A7 = np.add.reduceat(np.einsum("nia,nib->nab", Ja * fit.w[:, None, None], Ja), problem.offsets[:-1],
                              axis=0)
         G, b, q = A7[:, :6, :6], A7[:, :6, 6], A7[:, 6, 6]
-    Gp = np.linalg.pinv(G, hermitian=True)
-    D = float(np.sum(np.einsum("ca,cab,cb->c", b, Gp, b)))
+    # b^T G^+ b per camera from one batched eigh (np.linalg.pinv's rule: eigenvalues within 1e-15
+    # of the largest count as zero), without forming the pseudo-inverse.
+    lam, U = np.linalg.eigh(G)
+    ub = np.matmul(b[:, None, :], U)[:, 0, :]
+    keep = np.abs(lam) > 1e-15 * np.abs(lam).max(axis=1, keepdims=True)
+    D = float(np.sum(np.where(keep, ub * ub / np.where(keep, lam, 1.0), 0.0)))
     S = float(np.sum(q)) - D
     if not (S > 0.0 and np.isfinite(D)):
         return None
@@ -1085,7 +1174,7 @@ class RingLocalizer:
         self.params = params or LocalizationParams()
         self.marker_map = marker_map
         self._axes_cache: Dict[int, np.ndarray] = {}
-        self._map_factor_cache: Dict[int, np.ndarray] = {}
+        self._map_factor_cache: Dict[int, object] = {}   # id -> (4, 3, 6) factor, or False: exact
         #: px: the pixel noise the joint estimate is solved at (``estimate_pixel_noise``): the noise
         #: measured in the last frame posed by the joint estimator, ``pixel_noise`` before it.
         self.pixel_noise_guess = float(self.params.pixel_noise)
@@ -1217,11 +1306,14 @@ class RingLocalizer:
             F = cache.get(i)
             if F is None:
                 e = self.marker_map[i]
-                F = cache[i] = marker_map_factor(e.T_map_marker, self.marker_map.corners(i), e.position_std,
-                                                 e.rotation_std)
+                F = marker_map_factor(e.T_map_marker, self.marker_map.corners(i), e.position_std, e.rotation_std)
+                # An exact marker (zero stds) is cached as False: a frame of exact markers (a
+                # surveyed or true map) costs no array work.
+                F = cache[i] = F if np.any(F != 0.0) else False
             rows.append(F)
-        out = np.concatenate(rows)
-        return out if np.any(out != 0.0) else None
+        if not any(F is not False for F in rows):
+            return None
+        return np.concatenate([np.zeros((4, 3, 6)) if F is False else F for F in rows])
 
     @staticmethod
     def _moved_extrinsics(T_base_cam: np.ndarray, ext_cov: Optional[np.ndarray], d: np.ndarray,
@@ -1476,14 +1568,16 @@ class RingLocalizer:
                 sols.append(sol)
         if not sols:
             return None
-        sols.sort(key=lambda s: (s.outliers, s.fit.chi2))
+        chi2 = {id(s): s.chi2 for s in sols}
+        sols.sort(key=lambda s: (s.outliers, chi2[id(s)]))
         best = sols[0]
-        rivals = [s for s in sols[1:] if s.outliers == best.outliers and s.fit.chi2 - best.fit.chi2 < p.ambiguity_chi2]
+        rivals = [s for s in sols[1:] if s.outliers == best.outliers and chi2[id(s)] - chi2[id(best)] < p.ambiguity_chi2]
         # One marker seen by several cameras: their viewpoints resolve its two poses only when the
         # joint problem found the other one too and it lost by ambiguity_chi2 or more; a lone
         # minimum of a far marker seen along nearly one direction proves nothing (every start
         # ends there, decimetres off).
-        beaten = [s for s in sols[1:] if s.outliers == best.outliers and s.fit.chi2 - best.fit.chi2 >= p.ambiguity_chi2]
+        beaten = [s for s in sols[1:] if s.outliers == best.outliers and
+                  chi2[id(s)] - chi2[id(best)] >= p.ambiguity_chi2]
         if rivals or (len(result.marker_ids) < 2 and not beaten):
             result.ambiguous = True
             if prediction is not None:
@@ -1571,8 +1665,9 @@ class RingLocalizer:
         25 % the cameras weigh differently, so the pose is solved again with it (from the
         solution: one or two iterations); the covariance is that solution's, with that noise (its
         inverse information, the cameras' common extrinsic error and the map's error carried to
-        the pose), so estimate and covariance agree. The returned fit is at ``pixel_noise`` (what
-        the ambiguity tests compare between candidate poses, in the units of ``ambiguity_chi2``).
+        the pose), so estimate and covariance agree. The returned fit is at the measured noise (its
+        blocks, residuals and weights are what the later steps read); the ambiguity tests compare
+        candidate poses at ``pixel_noise`` (:attr:`_JointSolution.chi2` refits it there).
 
         Within 25 % the solution at the frame's own noise is one Gauss-Newton step away: that step
         is taken from the per-camera blocks already computed (:meth:`JointProblem.refit`, no new
@@ -1598,9 +1693,10 @@ class RingLocalizer:
                 delta = -_solve_spd_batch(fit_s.H[None], fit_s.g[None, :, None])[0, :, 0]
             except np.linalg.LinAlgError:
                 raise MeasurementError("joint estimator: singular normal equations (degenerate geometry)") from None
+            # The step keeps the blocks G_c (and so H, H_cam: what the covariances below read); only
+            # the gradients follow it, and problem.refit below takes them from b_cam.
             T_bm, fit_s = at.linear_step(T_bm, fit_s, delta)
-            fit_s = at.refit(fit_s)
-        return (T_bm, problem.refit(fit_s), iters, rms, at.covariance(fit_s), at.map_covariance(fit_s, T_bm),
+        return (T_bm, fit_s, iters, rms, at.covariance(fit_s), at.map_covariance(fit_s, T_bm),
                 sigma, at.shared_gain(fit_s))
 
     def _exact_if_consistent(self, sol: _JointSolution) -> _JointSolution:
@@ -1730,32 +1826,34 @@ class RingLocalizer:
             deltas = -_solve_spd_batch(Hc, gc[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:
             return
-        r_lin = sol.r + np.einsum("nia,na->ni", sol.J, deltas[prob.cam_index])
-        errs = np.sqrt(np.add.reduceat(np.sum(r_lin * r_lin, axis=1), starts) / np.diff(prob.offsets))
+        r_lin = sol.r + np.matmul(sol.J, deltas[prob.cam_index][:, :, None])[:, :, 0]
+        counts = np.diff(prob.offsets)
+        errs = np.sqrt(np.add.reduceat(r_lin[:, 0] * r_lin[:, 0] + r_lin[:, 1] * r_lin[:, 1], starts) / counts)
         T_map_cams = _per_camera_poses(sol.T_base_map, deltas, np.stack([v.T_base_cam for v in prob.views]))
-        # Distance and angle per marker, averaged per camera (paper's Ac inputs).
-        all_ids = [i for v in prob.views for i in v.ids]
-        n_per = np.array([len(v.ids) for v in prob.views])
-        cam_of = np.repeat(np.arange(len(prob.views)), n_per)
-        centres, normals = self._marker_axes(all_ids)
-        Tc = T_map_cams
-        dists = np.linalg.norm(centres - Tc[cam_of, :3, 3], axis=1)
-        angles = np.arccos(np.clip(-np.sum(normals * Tc[cam_of, :3, 2], axis=1), -1.0, 1.0))
-        mstarts = np.concatenate([[0], np.cumsum(n_per)[:-1]])
+        # Distance and angle per marker (4 rows each, cameras' markers in order), averaged per camera
+        # (paper's Ac inputs).
+        n_per = counts // 4
+        cam_of = prob.cam_index[::4]
+        centres, normals = self._marker_axes(prob.marker_ids.tolist())
+        Tc = T_map_cams[cam_of]
+        dists = np.linalg.norm(centres - Tc[:, :3, 3], axis=1)
+        angles = np.arccos(np.clip(-np.sum(normals * Tc[:, :3, 2], axis=1), -1.0, 1.0))
+        mstarts = starts // 4
         mean_d = np.add.reduceat(dists, mstarts) / n_per
         mean_a = np.add.reduceat(angles, mstarts) / n_per
         ac_d = np.clip((p.th_distance - mean_d) / p.th_distance, 0.0, None)
         ac_or = np.clip((p.th_orientation - mean_a) / p.th_orientation, 0.0, None)
         acc = 0.5 * (ac_d + ac_or)
-        big = np.sqrt(np.sum(deltas * deltas, axis=1)) > 0.5
+        big = (np.sum(deltas * deltas, axis=1) > 0.25).tolist()
+        T_map_bases = T_map_cams @ np.stack([v.T_cam_base for v in prob.views])
+        errs_l, d_l, a_l, acc_l = errs.tolist(), mean_d.tolist(), mean_a.tolist(), acc.tolist()
         for k, view in enumerate(prob.views):
             if big[k]:
-                continue  # not a small correction: this camera alone is not well determined
-            T_map_cam = T_map_cams[k]
-            est = CameraEstimate(camera=view.name, marker_ids=list(view.ids), T_map_cam=T_map_cam,
-                                 T_map_base=T_map_cam @ view.T_cam_base, reprojection_error=float(errs[k]),
-                                 distance=float(mean_d[k]), angle=float(mean_a[k]), accuracy=float(acc[k]))
-            if not errs[k] <= p.max_reprojection_error:
+                continue  # not a small correction (above 0.5): this camera alone is not well determined
+            est = CameraEstimate(camera=view.name, marker_ids=list(view.ids), T_map_cam=T_map_cams[k],
+                                 T_map_base=T_map_bases[k], reprojection_error=errs_l[k],
+                                 distance=d_l[k], angle=a_l[k], accuracy=acc_l[k])
+            if not errs_l[k] <= p.max_reprojection_error:
                 est.valid = False
                 est.reject_reason = REJECT_REPROJECTION
             result.estimates[view.name] = est

@@ -296,6 +296,8 @@ class MarkerCheck:
         self.declarations = 0
         #: id -> (latest d, T, frames) of every marker judged, for diagnostics and tests.
         self.latest: Dict[int, Tuple[np.ndarray, float, int]] = {}
+        #: (ring, {camera: (index, T_base_cam, T_cam_base)}) of the last ring checked (:meth:`_views`).
+        self._ring_cameras: Optional[Tuple[CameraRing, Dict[str, Tuple[int, np.ndarray, np.ndarray]]]] = None
 
     # --- the pose side -------------------------------------------------------------------------
 
@@ -321,25 +323,31 @@ class MarkerCheck:
         mm = self.marker_map
         T_base_map = geo.inverse(T_map_base)
         t_ref = float(frame.stamp)
+        if self._ring_cameras is None or self._ring_cameras[0] is not ring:
+            # Per camera of this ring: (index, T_base_cam, T_cam_base), built once per ring (the
+            # pipeline's ring changes only with new extrinsics or intrinsics).
+            self._ring_cameras = (ring, {c.name: (k, c.T_base_cam, geo.inverse(c.T_base_cam))
+                                         for k, c in enumerate(ring.cameras)})
+        cameras = self._ring_cameras[1]
         out = []
         for name, cf in frame.cameras.items():
-            if name not in ring.names:
+            known = cameras.get(name)
+            if known is None:
                 continue
             obs = [o for o in cf.observations if int(o.marker_id) in mm]
             if not obs:
                 continue
-            cam = ring[name]
-            model = cf.model if cf.model is not None else cam.model
-            T_base_cam = cam.T_base_cam
+            index, T_base_cam, T_cam_base = known
+            model = cf.model if cf.model is not None else ring[name].model
             moved = None if motion is None or cf.stamp == t_ref else motion(t_ref, float(cf.stamp))
             if moved is not None:
                 # A free-running camera saw the map from where the robot was at its own stamp
                 # (as the estimator takes it: RingLocalizer._moved_extrinsics).
                 T_base_cam = displacement_to_transform(moved[0]) @ T_base_cam
-            T_cam_base = geo.inverse(T_base_cam)
+                T_cam_base = geo.inverse(T_base_cam)
             T_cam_map = T_cam_base @ T_base_map
             px = [np.asarray(o.corners, dtype=np.float64).reshape(4, 2) for o in obs]
-            out.append(_View(name, ring.names.index(name), model, T_cam_map[:3, :3], T_cam_map[:3, 3], T_cam_base,
+            out.append(_View(name, index, model, T_cam_map[:3, :3], T_cam_map[:3, 3], T_cam_base,
                              [int(o.marker_id) for o in obs], px, model.normalize(np.concatenate(px)),
                              np.concatenate([mm.corners(int(o.marker_id)) for o in obs])))
         return out

@@ -423,6 +423,7 @@ class LocalizationPipeline(_RingPipeline):
         self._last_frame_now: Optional[float] = None
         self._clock: Optional[float] = None          # the latest ``now`` of any event (the node's clock)
         self._clock_jumped = False                   # the clock went back: the next track says time_jump
+        self._frame_velocity: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None   # _motion_model's
         xy = np.array([e.T_map_marker[:2, 3] for e in marker_map])
         #: (x_min, y_min, x_max, y_max) of the markers in the map frame: where an initialpose may lie (+ margin).
         self.extent = (*xy.min(axis=0), *xy.max(axis=0))
@@ -629,11 +630,17 @@ class LocalizationPipeline(_RingPipeline):
         if not self.filter.initialized:
             return None
         dt = float(t_c) - float(t_ref)
-        twist = self.filter.body_twist
-        c, s = np.cos(self.filter.pose[2]), np.sin(self.filter.pose[2])
-        R = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])   # map -> body
-        V = R @ self.filter.velocity_covariance @ R.T
-        return constant_velocity_displacement(twist, dt), dt * dt * V, dt * psd_factor(V)
+        if self._frame_velocity is None:
+            # The filter's velocity and its covariance in the body frame, and the factor: the same
+            # for every camera of the ring frame (the filter changes only after the frame's pose
+            # and marker check; _track clears this at each frame).
+            twist = self.filter.body_twist
+            c, s = np.cos(self.filter.pose[2]), np.sin(self.filter.pose[2])
+            R = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])   # map -> body
+            V = R @ self.filter.velocity_covariance @ R.T
+            self._frame_velocity = (twist, V, psd_factor(V))
+        twist, V, F = self._frame_velocity
+        return constant_velocity_displacement(twist, dt), dt * dt * V, dt * F
 
     def on_initial_pose(self, pose, now: float) -> List[PoseOutput]:
         """Restart the track at ``pose`` (4x4 ``T_map_base`` or (x, y, yaw)): rviz's initialpose.
@@ -914,6 +921,7 @@ class LocalizationPipeline(_RingPipeline):
         if self.tracker6 is not None:
             return self._track6(ring_frame, stamp, time_jump)
         pred = self.prediction(stamp)
+        self._frame_velocity = None   # _motion_model's per-frame part, computed at its first call
         motion = self._motion_model if self.config.motion.compensate_stamps else None
         check = self.marker_check
         loc = self.localizer.process(ring_frame if check is None else check.strip(ring_frame), pred, motion)
