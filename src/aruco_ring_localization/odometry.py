@@ -150,6 +150,21 @@ def odometry_in_base(T_odom_child: Optional[np.ndarray], linear, angular,
     return T, v, w
 
 
+def _bracket(buf, t: float):
+    """The two entries of a stamp-sorted history ``buf`` ((stamp, pose) pairs) around ``t``, by
+    binary search (short: history / odometry period entries); None outside the history."""
+    if not buf or t < buf[0][0] or t > buf[-1][0]:
+        return None
+    lo, hi = 0, len(buf) - 1
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if buf[mid][0] <= t:
+            lo = mid
+        else:
+            hi = mid
+    return buf[lo], buf[hi]
+
+
 def body_covariance_to_perturbation(cov3: np.ndarray) -> np.ndarray:
     """(6, 6) covariance over a left perturbation (w, v) from a 3x3 one over (x, y, yaw)."""
     C = np.zeros((6, 6))
@@ -231,18 +246,10 @@ class OdometryHistory:
 
     def pose_at(self, t: float) -> Optional[np.ndarray]:
         """Odometry pose (x, y, yaw) at ``t``, interpolated; None outside the history or in a gap."""
-        buf = self._odom
-        if not buf or t < buf[0][0] or t > buf[-1][0]:
+        pair = _bracket(self._odom, t)
+        if pair is None:
             return None
-        # Binary search over the deque's stamps (short: history / odom period entries).
-        lo, hi = 0, len(buf) - 1
-        while hi - lo > 1:
-            mid = (lo + hi) // 2
-            if buf[mid][0] <= t:
-                lo = mid
-            else:
-                hi = mid
-        (ta, pa), (tb, pb) = buf[lo], buf[hi]
+        (ta, pa), (tb, pb) = pair
         if tb - ta > self.params.max_gap and ta != t and tb != t:
             return None
         if tb <= ta:
@@ -327,17 +334,10 @@ class OdometryHistory6:
 
     def pose_at(self, t: float) -> Optional[np.ndarray]:
         """(4, 4) odometry pose at ``t``, interpolated; None outside the history or in a gap."""
-        buf = self._odom
-        if not buf or t < buf[0][0] or t > buf[-1][0]:
+        pair = _bracket(self._odom, t)
+        if pair is None:
             return None
-        lo, hi = 0, len(buf) - 1
-        while hi - lo > 1:
-            mid = (lo + hi) // 2
-            if buf[mid][0] <= t:
-                lo = mid
-            else:
-                hi = mid
-        (ta, A), (tb, B) = buf[lo], buf[hi]
+        (ta, A), (tb, B) = pair
         if t == ta or tb <= ta:
             return A.copy()
         if t == tb:
