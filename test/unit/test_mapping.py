@@ -273,3 +273,16 @@ def test_free_running_cameras_of_a_turning_ring_map_by_exposure(ring, scene, spr
     else:
         assert err["n"] == len(scene.markers), f"mapped {err['n']} of {len(scene.markers)}: missing {err['missing']}"
         assert err["position_rms_mm"] < 0.5, f"ring frames split by exposure: {err['position_rms_mm']:.3f} mm"
+
+
+def test_an_se3_station_testifies_only_with_markers_spanning_a_plane():
+    """Two markers leave an SE(3) station free to turn about their line, three on a line too;
+    three spanning a plane fix it (the spread check's witnesses, MapBuilder._check_spread)."""
+    def at(*xyz):
+        T = np.eye(4)
+        T[:3, 3] = xyz
+        return T
+    assert not MapBuilder._spans_plane([at(0, 0, 0), at(1, 0, 0)])
+    assert not MapBuilder._spans_plane([at(0, 0, 0), at(1, 0, 0), at(2, 0.001, 0)])
+    assert MapBuilder._spans_plane([at(0, 0, 0), at(1, 0, 0), at(0, 0, 0.5)])
+    assert MapBuilder._two_apart([at(0, 0, 0), at(1, 0, 0)])   # enough for a ground robot's planar station
