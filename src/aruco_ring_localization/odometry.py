@@ -150,6 +150,23 @@ def odometry_in_base(T_odom_child: Optional[np.ndarray], linear, angular,
     return T, v, w
 
 
+def _append(buf: deque, stamp: float, value, history: float) -> bool:
+    """``(stamp, value)`` appended to a stamp-sorted history ``buf``, whose entries older than
+    ``history`` s before it go (the last two kept); False, and nothing appended, when ``stamp`` is
+    not after the latest one."""
+    if buf and stamp <= buf[-1][0]:
+        return False
+    buf.append((stamp, value))
+    _trim(buf, stamp, history)
+    return True
+
+
+def _trim(buf: deque, stamp: float, history: float) -> None:
+    """Drop the entries of ``buf`` older than ``history`` s before ``stamp`` (the last two kept)."""
+    while len(buf) > 2 and buf[1][0] < stamp - history:
+        buf.popleft()
+
+
 def _bracket(buf, t: float):
     """The two entries of a stamp-sorted history ``buf`` ((stamp, pose) pairs) around ``t``, by
     binary search (short: history / odometry period entries); None outside the history."""
@@ -217,13 +234,7 @@ class OdometryHistory:
         return self._odom[-1][0] if self._odom else None
 
     def add_odometry(self, stamp: float, pose) -> bool:
-        stamp = float(stamp)
-        p = np.asarray(pose, dtype=np.float64).reshape(3)
-        if self._odom and stamp <= self._odom[-1][0]:
-            return False
-        self._odom.append((stamp, p.copy()))
-        self._trim(self._odom, stamp)
-        return True
+        return _append(self._odom, float(stamp), np.array(pose, dtype=np.float64).reshape(3), self.params.history)
 
     def add_yaw_rate(self, stamp: float, rate: float) -> bool:
         stamp, rate = float(stamp), float(rate)
@@ -237,12 +248,8 @@ class OdometryHistory:
             if self._imu:
                 self._imu.clear()
         self._imu.append((stamp, yaw, rate))
-        self._trim(self._imu, stamp)
+        _trim(self._imu, stamp, self.params.history)
         return True
-
-    def _trim(self, buf: deque, stamp: float) -> None:
-        while len(buf) > 2 and buf[1][0] < stamp - self.params.history:
-            buf.popleft()
 
     def pose_at(self, t: float) -> Optional[np.ndarray]:
         """Odometry pose (x, y, yaw) at ``t``, interpolated; None outside the history or in a gap."""
@@ -324,13 +331,8 @@ class OdometryHistory6:
         return self._odom[-1][0] if self._odom else None
 
     def add_odometry(self, stamp: float, T_odom_base) -> bool:
-        stamp = float(stamp)
-        if self._odom and stamp <= self._odom[-1][0]:
-            return False
-        self._odom.append((stamp, np.array(T_odom_base, dtype=np.float64).reshape(4, 4)))
-        while len(self._odom) > 2 and self._odom[1][0] < stamp - self.params.history:
-            self._odom.popleft()
-        return True
+        return _append(self._odom, float(stamp), np.array(T_odom_base, dtype=np.float64).reshape(4, 4),
+                       self.params.history)
 
     def pose_at(self, t: float) -> Optional[np.ndarray]:
         """(4, 4) odometry pose at ``t``, interpolated; None outside the history or in a gap."""

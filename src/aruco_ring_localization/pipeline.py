@@ -552,18 +552,15 @@ class LocalizationPipeline(_RingPipeline):
             self.rejected_counts["odom_bad_pose"] = self.rejected_counts.get("odom_bad_pose", 0) + 1
             self.warn("odom.bad pose", "localizer: odom: pose.pose not finite: not used for prediction", now)
             return []
-        if self.tracker6 is not None:
-            # The 6-DOF tracker: the full pose, predicted along at the next ring frame (_track6).
-            if not self.odometry6.add_odometry(t, T_odom_base):
-                self.rejected_counts["odom_out_of_order"] = self.rejected_counts.get("odom_out_of_order", 0) + 1
-                self.warn("odom.out of order", f"localizer: odom: stamp {t:.3f} s not after the previous "
-                                               f"{self.odometry6.latest_stamp:.3f} s: pose not used", now)
-            return []
-        last = self.odometry.latest_stamp
+        # The 6-DOF tracker keeps the full pose (predicted along at the next ring frame, _track6).
+        last = (self.odometry if self.tracker6 is None else self.odometry6).latest_stamp
         if last is not None and t <= last:
             self.rejected_counts["odom_out_of_order"] = self.rejected_counts.get("odom_out_of_order", 0) + 1
             self.warn("odom.out of order", f"localizer: odom: stamp {t:.3f} s not after the previous {last:.3f} s: "
                                            "pose not used for prediction", now)
+            return []
+        if self.tracker6 is not None:
+            self.odometry6.add_odometry(t, T_odom_base)
             return []
         if last is not None and t - last <= self.config.motion.max_gap:
             prev = self.odometry.pose_at(last)
