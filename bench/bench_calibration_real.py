@@ -40,19 +40,26 @@ TESTS = ("test_5", "test_6", "test_8")
 MAX_FRAMES = 1_000_000     # all (test_6: 1,546, test_5: 2,751)
 
 
-def calibrate_test(test: str, max_frames: int, seed: int = 5, options: Optional[CalibrationOptions] = None
-                   ) -> Dict[str, object]:
-    """Calibrate ``test``'s rig from TagSLAM's camera poses made rough (``seed``); the errors of
-    each camera relative to camera 0 against TagSLAM's, and what the comparisons need."""
-    out_dir = os.path.join(OUT, test)
+def load_case(test: str, out_dir: str):
+    """``test``'s rig with TagSLAM's camera poses (written to ``out_dir``), its tags, TagSLAM's
+    reference and the ring frames of its detections (TagSLAM's ignored and moving tags left out):
+    ``(ring, tags, ref, frames)``."""
     os.makedirs(out_dir, exist_ok=True)
     src, rig_body, tags, ref = load_test(test)
     rig = read_rig(os.path.join(src, "cameras.yaml"), base_frame=rig_body,
                    camera_poses=write_camera_poses(ref, os.path.join(out_dir, "camera_poses_tagslam.yaml")))
     ring = rig.ring()
-    ignore = tags.ignore | tags.moving
     frames = ring_frames(cached_bag(test, "tag_detections"), ring, remap=tags.remap,
-                         ignore=",".join(str(i) for i in sorted(ignore)))
+                         ignore=",".join(str(i) for i in sorted(tags.ignore | tags.moving)))
+    return ring, tags, ref, frames
+
+
+def calibrate_test(test: str, max_frames: int, seed: int = 5, options: Optional[CalibrationOptions] = None
+                   ) -> Dict[str, object]:
+    """Calibrate ``test``'s rig from TagSLAM's camera poses made rough (``seed``); the errors of
+    each camera relative to camera 0 against TagSLAM's, and what the comparisons need."""
+    out_dir = os.path.join(OUT, test)
+    ring, tags, ref, frames = load_case(test, out_dir)
     rough = rough_ring(ring, seed=seed)
     t0 = time.process_time()
     opts = options or CalibrationOptions()

@@ -104,22 +104,12 @@ def filtered_frames(frames, drop: Dict[tuple, str], reasons) -> list:
 
 def main(test: str, n: int) -> dict:
     import bench_calibration_real as bcr
-    from tagslam_reference import cached_bag, load_test, ring_frames, write_camera_poses
 
-    from aruco_ring_localization.importers import read_rig
     from aruco_ring_localization.ring_calibration import CalibrationOptions, calibrate_ring
     from aruco_ring_localization.simulation.calibration_run import rough_ring
 
-    out_dir = os.path.join(bcr.ROOT, "results", "bench", "real_calibration_diag", test)
-    os.makedirs(out_dir, exist_ok=True)
-    src, rig_body, tags, ref = load_test(test)
-    rig = read_rig(os.path.join(src, "cameras.yaml"), base_frame=rig_body,
-                   camera_poses=write_camera_poses(ref, os.path.join(out_dir, "camera_poses_tagslam.yaml")))
-    ring = rig.ring()
+    ring, tags, _, frames = bcr.load_case(test, os.path.join(bcr.ROOT, "results", "bench", "real_calibration_diag", test))
     names = ring.names
-    ignore = tags.ignore | tags.moving
-    frames = ring_frames(cached_bag(test, "tag_detections"), ring, remap=tags.remap,
-                         ignore=",".join(str(i) for i in sorted(ignore)))
     sizes = tags.marker_sizes()
     rough = rough_ring(ring, seed=5)
     ref_T = {c: ring[c].T_base_cam for c in names}
@@ -147,21 +137,12 @@ def halves(test: str, n: int, parts: int = 2) -> dict:
     each): how far apart the recording's own parts put a rigid ring (``T_cam0_camk``, worst camera,
     mm / deg, every pair of parts), against TagSLAM's; the reproducibility a rigid ring has on it."""
     import bench_calibration_real as bcr
-    from tagslam_reference import cached_bag, load_test, ring_frames, write_camera_poses
 
-    from aruco_ring_localization.importers import read_rig
     from aruco_ring_localization.ring_calibration import CalibrationOptions, calibrate_ring
     from aruco_ring_localization.simulation.calibration_run import rough_ring
 
-    out_dir = os.path.join(bcr.ROOT, "results", "bench", "real_calibration_diag", test)
-    os.makedirs(out_dir, exist_ok=True)
-    src, rig_body, tags, ref = load_test(test)
-    rig = read_rig(os.path.join(src, "cameras.yaml"), base_frame=rig_body,
-                   camera_poses=write_camera_poses(ref, os.path.join(out_dir, "camera_poses_tagslam.yaml")))
-    ring = rig.ring()
+    ring, tags, _, frames = bcr.load_case(test, os.path.join(bcr.ROOT, "results", "bench", "real_calibration_diag", test))
     names = ring.names
-    frames = ring_frames(cached_bag(test, "tag_detections"), ring, remap=tags.remap,
-                         ignore=",".join(str(i) for i in sorted(tags.ignore | tags.moving)))
     frames = sorted((f for f in frames if f.observation_count() > 0), key=lambda f: f.stamp)
     bounds = np.linspace(0, len(frames), parts + 1).round().astype(int)
     rings = []

@@ -32,29 +32,19 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(os.path.dirname(HERE), "src"))
 sys.path.insert(0, HERE)
 
-from aruco_ring_localization import geometry as geo  # noqa: E402
 
 
 def main(test: str, first: int, count: int) -> dict:
     import bench_calibration_real as bcr
     from calibration_real_wiggle import wiggle_fit
-    from tagslam_reference import cached_bag, load_test, ring_frames, write_camera_poses
 
-    from aruco_ring_localization.importers import read_rig
     from aruco_ring_localization.ring_calibration import CalibrationOptions, calibrate_ring
     from aruco_ring_localization.simulation.calibration_run import rough_ring
 
-    out_dir = os.path.join(bcr.ROOT, "results", "bench", "real_calibration_timing", test)
-    os.makedirs(out_dir, exist_ok=True)
-    src, rig_body, tags, ref = load_test(test)
-    rig = read_rig(os.path.join(src, "cameras.yaml"), base_frame=rig_body,
-                   camera_poses=write_camera_poses(ref, os.path.join(out_dir, "camera_poses_tagslam.yaml")))
-    ring = rig.ring()
+    ring, tags, _, frames = bcr.load_case(test, os.path.join(bcr.ROOT, "results", "bench", "real_calibration_timing",
+                                                             test))
     names = ring.names
     C = len(names)
-    ignore = tags.ignore | tags.moving
-    frames = ring_frames(cached_bag(test, "tag_detections"), ring, remap=tags.remap,
-                         ignore=",".join(str(i) for i in sorted(ignore)))
     frames = sorted((f for f in frames if f.observation_count() > 0), key=lambda f: f.stamp)[first:first + count]
     c0 = time.process_time()
     cal = calibrate_ring(frames, rough_ring(ring, seed=5), tags.marker_sizes(),
