@@ -33,7 +33,6 @@ sys.path.insert(0, os.path.join(os.path.dirname(HERE), "src"))
 sys.path.insert(0, HERE)
 
 
-
 def main(test: str, first: int, count: int) -> dict:
     import bench_calibration_real as bcr
     from calibration_real_wiggle import wiggle_fit
