@@ -428,6 +428,16 @@ def _start_master(workdir: str):
     return proc, log
 
 
+def _stop_master(master: subprocess.Popen, log) -> None:
+    """Stop what :func:`_start_master` started (SIGINT to its process group, SIGKILL after 20 s)."""
+    os.killpg(master.pid, signal.SIGINT)
+    try:
+        master.wait(20)
+    except subprocess.TimeoutExpired:
+        os.killpg(master.pid, signal.SIGKILL)
+    log.close()
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=60, help="ring frames measured")
@@ -446,12 +456,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         load1 = os.getloadavg()
         out["_load"] = [load0[0], load1[0], load1[1]]
     finally:
-        os.killpg(master.pid, signal.SIGINT)
-        try:
-            master.wait(20)
-        except subprocess.TimeoutExpired:
-            os.killpg(master.pid, signal.SIGKILL)
-        log.close()
+        _stop_master(master, log)
         if not args.keep:
             shutil.rmtree(workdir, ignore_errors=True)
         else:

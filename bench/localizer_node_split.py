@@ -192,12 +192,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     try:
         out = measure_node(ring, frames, args.warmup, workdir, args.py_spy, args.profile)
     finally:
-        os.killpg(master.pid, signal.SIGINT)
-        try:
-            master.wait(20)
-        except subprocess.TimeoutExpired:
-            os.killpg(master.pid, signal.SIGKILL)
-        log.close()
+        bn._stop_master(master, log)
         shutil.rmtree(workdir, ignore_errors=True)
     out.update(core)
     out["frames"] = args.frames
