@@ -539,8 +539,9 @@ class LocalizationPipeline(_RingPipeline):
 
         The pose must be a valid transform and must not jump: between two messages within
         ``motion.max_gap`` it may move at most ``limits.max_speed`` (and turn at most
-        ``limits.max_yaw_rate``) times the stamps' difference, plus 2 cm / 2 deg; otherwise the
-        history restarts from it (nothing is predicted across the jump) with a throttled warning.
+        ``limits.max_yaw_rate``; for the 6-DOF tracker the angle of its full rotation) times the
+        stamps' difference, plus 2 cm / 2 deg; otherwise the history restarts from it (nothing is
+        predicted across the jump) with a throttled warning.
         """
         try:
             se2 = geo.se2_from_transform(geo.validate_transform(T_odom_base, "odom pose"))
@@ -559,24 +560,23 @@ class LocalizationPipeline(_RingPipeline):
             self.warn("odom.out of order", f"localizer: odom: stamp {t:.3f} s not after the previous {last:.3f} s: "
                                            "pose not used for prediction", now)
             return []
-        if self.tracker6 is not None:
-            self.odometry6.add_odometry(t, T_odom_base)
-            return []
+        six = self.tracker6 is not None
+        history = self.odometry6 if six else self.odometry
         if last is not None and t - last <= self.config.motion.max_gap:
-            prev = self.odometry.pose_at(last)
-            d = None if prev is None else se2_between(prev, se2)
-            lim = self.config.limits
-            dt = t - last
-            if d is not None and (np.hypot(d[0], d[1]) > lim.max_speed * dt + 0.02
-                                  or abs(d[2]) > lim.max_yaw_rate * dt + np.radians(2.0)):
+            jump = self._odometry_jump(last, t, T_odom_base if six else se2)
+            if jump is not None:
+                dist, angle = jump
                 key = f"odom_{ODOM_POSE_JUMP.replace(' ', '_')}"
                 self.rejected_counts[key] = self.rejected_counts.get(key, 0) + 1
-                self.warn("odom.pose jump", f"localizer: odom: pose.pose jumped {np.hypot(d[0], d[1]):.3f} m / "
-                                            f"{np.degrees(abs(d[2])):.1f} deg in {dt:.3f} s (beyond limits/max_speed, "
+                self.warn("odom.pose jump", f"localizer: odom: pose.pose jumped {dist:.3f} m / "
+                                            f"{np.degrees(angle):.1f} deg in {t - last:.3f} s (beyond limits/max_speed, "
                                             "max_yaw_rate): the odometry history restarts here", now)
-                self.odometry.reset()
-                self.odometry.add_odometry(t, se2)
+                history.reset()
+                history.add_odometry(t, T_odom_base if six else se2)
                 return []
+        if six:
+            self.odometry6.add_odometry(t, T_odom_base)
+            return []
         self.odometry.add_odometry(t, se2)
         if not self.filter.initialized or self.filter.stamp is None or t <= self.filter.stamp:
             return []
@@ -585,6 +585,27 @@ class LocalizationPipeline(_RingPipeline):
         track = TrackResult(stamp=t, localization=LocalizationResult(stamp=t), pose=self.filter.pose,
                             covariance=self.filter.covariance)
         return [self._output(track, from_odometry=True)]
+
+    def _odometry_jump(self, last: float, t: float, pose) -> Optional[Tuple[float, float]]:
+        """(distance m, rotation rad) of the odometry's move from its pose at ``last`` to ``pose`` at
+        ``t`` when it is beyond ``limits.max_speed`` / ``limits.max_yaw_rate`` (the 6-DOF rotation's
+        angle for the 6-DOF tracker) times the stamps' difference plus 2 cm / 2 deg, else None."""
+        if self.tracker6 is not None:
+            prev6 = self.odometry6.pose_at(last)
+            if prev6 is None:
+                return None
+            D = geo.inverse(prev6) @ pose
+            dist, angle = float(np.linalg.norm(D[:3, 3])), geo.rotation_angle(D[:3, :3])
+        else:
+            prev = self.odometry.pose_at(last)
+            if prev is None:
+                return None
+            d = se2_between(prev, pose)
+            dist, angle = float(np.hypot(d[0], d[1])), abs(float(d[2]))
+        lim, dt = self.config.limits, t - last
+        if dist > lim.max_speed * dt + 0.02 or angle > lim.max_yaw_rate * dt + np.radians(2.0):
+            return dist, angle
+        return None
 
     @property
     def _odometry_on(self) -> bool:

@@ -220,9 +220,10 @@ def _pipe(lab, **overrides) -> LocalizationPipeline:
 
 
 def _drive(pipe: LocalizationPipeline, sim: RingSimulator, t_end: float, phases, odom_rate: float = 50.0,
-           dark=(np.inf, np.inf), odom_scale: float = 1.01, seed: int = 6):
-    """Feed camera frames (10 Hz, free-running) and odometry (its own origin, 1 % scale error) in
-    arrival order; returns [(output, true pose at its stamp)]."""
+           dark=(np.inf, np.inf), odom_scale: float = 1.01, seed: int = 6, jump=(np.inf, 0.0)):
+    """Feed camera frames (10 Hz, free-running) and odometry (its own origin, 1 % scale error; from
+    ``jump[0]`` s on, its x shifted by ``jump[1]`` m: a reset) in arrival order; returns
+    [(output, true pose at its stamp)]."""
     rng = np.random.default_rng(seed)
     events = []
     for k in range(int(t_end / 0.1)):
@@ -236,7 +237,7 @@ def _drive(pipe: LocalizationPipeline, sim: RingSimulator, t_end: float, phases,
         for j in range(1, int(t_end * odom_rate)):
             t = j / odom_rate
             tw = TWIST * np.array([odom_scale, odom_scale, odom_scale])
-            odom = constant_velocity_displacement(tw, t)
+            odom = constant_velocity_displacement(tw, t) + (jump[1] if t >= jump[0] else 0.0) * np.array([1, 0, 0])
             events.append((t + 0.001, "odom", t, odom, tw))
     events.sort(key=lambda e: e[0])
     outs = []
@@ -342,11 +343,12 @@ def test_6dof_odometry_history_interpolates_and_gives_the_increment_with_its_noi
     assert h.increment(10.4, 10.4) is not None               # on a message: no interpolation needed
 
 
-def _track6_in_the_dark(lab, odometry: bool) -> float:
+def _track6_in_the_dark(lab, odometry: bool, jump=(np.inf, 0.0), jumps_refused: int = 0) -> float:
     """Position error (m) of the 6-DOF track itself (published or not) at the end of 0.8 s without
-    markers (below tracker6.lost_after), the odometry fed or not."""
+    markers (below tracker6.lost_after), the odometry fed or not (``jump``: see _drive)."""
     pipe = _pipe(lab, **{"filter.model": "6dof", "motion.odometry": odometry})
-    _drive(pipe, lab[2], 3.85, np.zeros(8), dark=(3.0, 3.85))
+    _drive(pipe, lab[2], 3.85, np.zeros(8), dark=(3.0, 3.85), jump=jump)
+    assert pipe.rejected_counts.get("odom_pose_jump", 0) == jumps_refused
     tr = pipe.tracker6
     assert tr.initialized and 3.7 <= tr.stamp < 3.85 and tr.last_accepted_stamp < 3.0
     return float(np.hypot(*(tr.pose[:2, 3] - _true_pose(tr.stamp)[:2])))
@@ -359,6 +361,15 @@ def test_the_6dof_track_is_predicted_along_the_odometry(lab):
     without = _track6_in_the_dark(lab, False)
     assert with_odom < 0.02, with_odom
     assert without > 5 * with_odom, (without, with_odom)
+
+
+def test_a_jumping_6dof_odometry_does_not_move_the_track(lab):
+    """A visual-inertial odometry that resets 1 m away while the markers are out of sight: the jump
+    is refused (the history restarts there) and the track keeps to the motion it had."""
+    err = _track6_in_the_dark(lab, True, jump=(3.45, 1.0), jumps_refused=1)
+    assert err < 0.05, err
+    small = _track6_in_the_dark(lab, True, jump=(3.45, 0.01))    # within the 2 cm slack: followed
+    assert small < 0.03, small
 
 
 def test_odometry_of_a_mounted_body_as_base_links():
