@@ -107,6 +107,11 @@ class MappingOptions:
                                            "(TagSLAM's minimum_tag_area); 0 keeps all", unit="px^2")
     still_px: float = param(1.5, "automatic stations: consecutive frames whose common detections moved less than "
                                  "this (median of the largest corner motion) belong to one robot placement", unit="px")
+    still_only: bool = param(False, "automatic stations: a frame is used only when its detections moved at most "
+                                    "still_px since the previous frame (the ring at rest): frames taken on the "
+                                    "move (motion blur, unsynchronized cameras) are left out. For stop-and-go "
+                                    "mapping (drive, stop a second or two, drive on); a ring that never rests "
+                                    "(handheld) maps nothing")
     max_frames_per_station: int = param(30, "frames kept per station (more add little and cost time)")
     max_stamp_spread: float = param(0.005, "automatic stations: a ring frame whose cameras' stamps spread wider "
                                            "than this (free-running cameras) and that is not still is split into "
@@ -356,10 +361,12 @@ class MapBuilder:
         self.odometry = OdometryTrack()                                       # mapping.odometry's poses
         self._camera_frames: Dict[Tuple[int, str], int] = defaultdict(int)   # (station, camera) -> frames kept
         self._anchor_corners: Dict[Tuple[str, int], np.ndarray] = {}
+        self._previous_corners: Dict[Tuple[str, int], np.ndarray] = {}     # still_only: the last frame's
         self._links: Dict[int, int] = {}       # union-find of the markers linked by the kept frames
         self._last_station: Optional[int] = None
         self.frames = 0
-        #: frames left out because the ring was moving but had not moved min_station_motion_px yet.
+        #: frames left out because the ring was moving but had not moved min_station_motion_px yet
+        #: (with still_only: because it moved since the previous frame).
         self.skipped_moving = 0
         self.seen: Dict[int, int] = defaultdict(int)          # marker -> detections (all, kept or not)
         self.rejected_detections: Dict[str, int] = defaultdict(int)
@@ -391,6 +398,11 @@ class MapBuilder:
                 ``min_station_motion_px``).
         """
         self.frames += 1
+        if station is None and self.options.still_only:
+            if not self._at_rest(ring_frame):
+                self.skipped_moving += 1
+                return -1
+            return self._add_part(ring_frame)
         if station is None and self.options.max_stamp_spread >= 0 and len(ring_frame.cameras) > 1:
             stamps = [cf.stamp for cf in ring_frame.cameras.values()]
             if max(stamps) - min(stamps) > self.options.max_stamp_spread and not self._still(ring_frame):
@@ -406,11 +418,22 @@ class MapBuilder:
         move = self._median_move((name, o) for name, cf in ring_frame.cameras.items() for o in cf.observations)
         return move is not None and move <= self.options.still_px
 
-    def _median_move(self, detections) -> Optional[float]:
+    def _at_rest(self, ring_frame: RingFrame) -> bool:
+        """``still_only``: whether ``ring_frame``'s detections moved at most ``still_px`` since the
+        previous frame (False for the first frame and when no marker is in both)."""
+        pairs = [(name, o) for name, cf in ring_frame.cameras.items() for o in cf.observations]
+        move = self._median_move(pairs, self._previous_corners)
+        self._previous_corners = {(name, o.marker_id): o.corners for name, o in pairs}
+        return move is not None and move <= self.options.still_px
+
+    def _median_move(self, detections, reference: Optional[Dict[Tuple[str, int], np.ndarray]] = None
+                     ) -> Optional[float]:
         """Median over ``detections`` ((camera, observation) pairs) of each one's largest corner motion
-        since the current station's first frame, px; None when none of them was seen there."""
+        since ``reference`` (default: the current station's first frame), px; None when none of them
+        is in it."""
+        ref = self._anchor_corners if reference is None else reference
         moves = [float(np.max(np.linalg.norm(o.corners - prev, axis=1)))
-                 for name, o in detections for prev in [self._anchor_corners.get((name, o.marker_id))]
+                 for name, o in detections for prev in [ref.get((name, o.marker_id))]
                  if prev is not None]
         return float(np.median(moves)) if moves else None
 
