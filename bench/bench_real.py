@@ -55,11 +55,12 @@ sys.path.insert(0, HERE)
 from tagslam_reference import DATA, cached_bag, load_test, ring_frames, write_camera_poses  # noqa: E402
 
 from aruco_ring_localization import geometry as geo  # noqa: E402
-from aruco_ring_localization.anchors import anchor_report  # noqa: E402
+from aruco_ring_localization.anchors import anchor_report, check_measurement_report  # noqa: E402
 from aruco_ring_localization.errors import ArucoRingError, MapSanityError  # noqa: E402
 from aruco_ring_localization.evaluation.maps import map_error  # noqa: E402
 from aruco_ring_localization.importers import (read_rig, tagslam_anchors, tagslam_boards, tagslam_odometry,  # noqa: E402
                                                write_ring_files)
+from aruco_ring_localization.importers.tagslam import tagslam_measurements  # noqa: E402
 from aruco_ring_localization.mapping_odometry import MappingOdometryOptions  # noqa: E402
 from aruco_ring_localization.localization import LocalizationParams, RingLocalizer  # noqa: E402
 from aruco_ring_localization.mapping import MapBuilder, MappingOptions  # noqa: E402
@@ -352,7 +353,8 @@ def _odometry(test: str, src: str, rig_body: str, frames) -> Tuple[Optional[Mapp
 
 
 def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool = True,
-            odometry: bool = True, boards: bool = True, view_limits: bool = False) -> Dict[str, float]:
+            odometry: bool = True, boards: bool = True, view_limits: bool = False,
+            measurements: bool = True) -> Dict[str, float]:
     out_dir, src, tags, ref, ring, sizes, ignore, frames, truth = _load_case(test, max_frames)
     write_ring_files(ring, os.path.join(out_dir, "ring.yaml"))
     truth.save(os.path.join(out_dir, "tagslam_map.yaml"))
@@ -362,6 +364,12 @@ def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool =
     # TagSLAM's surveyed tags (the poses tagslam.yaml fixes) as anchors, as TagSLAM uses them.
     survey = tagslam_anchors(tags, ignore, os.path.join(src, "tagslam.yaml")) if anchors else None
     res["anchored"] = [] if survey is None else survey.ids
+    # Its survey measurements (distance, plane and coordinate measurements), as TagSLAM uses them;
+    # planes are in the anchors' frame (left out without anchors).
+    meas = tagslam_measurements(os.path.join(src, "tagslam.yaml"), ignore) if measurements and anchors else None
+    if meas is not None and survey is None:
+        meas.planes = []
+    res["measurements"] = len(meas) if meas is not None else 0
     # TagSLAM's odometry (tagslam.yaml's odom_topic, T_body_odom) as links between stations, as TagSLAM uses it.
     odo_opts, odo = _odometry(test, src, ref.rig_body, frames) if odometry else (None, ())
     res["odometry"] = odo_opts.topic if odo_opts is not None else ""
@@ -379,7 +387,7 @@ def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool =
     layout = tagslam_boards(os.path.join(src, "tagslam.yaml"), rig_bodies=(ref.rig_body,)) if boards else None
     res["boards"] = len(layout) if layout is not None else 0
     b = MapBuilder(ring, sizes, options=options, anchors=survey, boards=layout if layout is not None and len(layout)
-                   else None)
+                   else None, measurements=meas)
     if odo:
         b.set_odometry(*odo)
     for f in frames:
@@ -388,6 +396,13 @@ def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool =
     note = ""
     try:
         ours = b.build()
+        rep = ours.quality.get("survey_measurements")
+        if rep:   # each measurement's residual, and the check build-map's save applies (MapBuilder.save_map)
+            res["measurement_sigmas_max"] = max((e.get("residual_sigmas", 0.0) for e in rep["distances"]
+                                                 + rep["planes"]), default=0.0)
+            problems = check_measurement_report(rep, b.options.sanity.max_anchor_sigmas)
+            if problems:
+                raise MapSanityError(problems)
         ours.save(os.path.join(out_dir, "map.yaml"), b.options.sanity)
     except MapSanityError as exc:
         # Not written. The figures below are those of the map the checks refused (said in the row):

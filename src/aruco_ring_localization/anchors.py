@@ -40,7 +40,7 @@ File format (YAML; docs/formats.md)::
         normal: [0.0, 0.0, 1.0]      # unit vector (surveyed frame)
         distance: 0.0                # m: normal . point = distance
         std: 0.01                    # m, 1 sigma of each point's distance to the plane
-        points: corners              # corners (the 4 of each marker, default) or centres
+        points: corners              # corners (the 4 of each marker, default), centres, or one corner 0-3
 
 Distances and planes (:class:`Measurements`) constrain the map's geometry (its scale along a
 measured line, its flatness) without defining a frame: a file may hold only them, and the map
@@ -496,7 +496,7 @@ class DistanceMeasurement:
 
 @dataclass(frozen=True)
 class PlaneMeasurement:
-    """Markers whose points (their 4 corners, or their centres) lie on the plane
+    """Markers whose points (their 4 corners, their centres or one corner each) lie on the plane
     ``normal . p = distance`` of the surveyed frame, each point within ``std`` (m)."""
 
     markers: Tuple[int, ...]
@@ -509,7 +509,8 @@ class PlaneMeasurement:
 
     def marker_points(self) -> List[MarkerPoint]:
         """Every constrained point, marker by marker."""
-        corners: List[Optional[int]] = [0, 1, 2, 3] if self.points == "corners" else [None]
+        corners: List[Optional[int]] = [0, 1, 2, 3] if self.points == "corners" else \
+            [None] if self.points == "centres" else [int(self.points)]
         return [MarkerPoint(m, c) for m in self.markers for c in corners]
 
 
@@ -538,7 +539,8 @@ class Measurements:
                                 for d in self.distances]
         if self.planes:
             out["planes"] = [dict({"markers": list(p.markers), "normal": [float(v) for v in p.normal],
-                                   "distance": float(p.distance), "std": float(p.std), "points": p.points},
+                                   "distance": float(p.distance), "std": float(p.std),
+                                   "points": int(p.points) if p.points.isdigit() else p.points},
                                   **({"instrument": p.instrument} if p.instrument else {})) for p in self.planes]
         return out
 
@@ -620,8 +622,11 @@ def _plane_from_dict(node: Any, source: str, key: str) -> PlaneMeasurement:
     if isinstance(d, bool) or not isinstance(d, (int, float)) or not math.isfinite(d) or abs(d) > MAX_COORDINATE:
         raise ConfigError(f"expected a finite number (m), got {d!r}", path=source, key=f"{key}.distance")
     points = node.get("points", "corners")
-    if points not in ("corners", "centres"):
-        raise ConfigError(f"expected corners or centres, got {points!r}", path=source, key=f"{key}.points")
+    if isinstance(points, int) and not isinstance(points, bool) and 0 <= points <= 3:
+        points = str(points)
+    if points not in ("corners", "centres", "0", "1", "2", "3"):
+        raise ConfigError(f"expected corners, centres or one corner 0-3, got {points!r}", path=source,
+                          key=f"{key}.points")
     return PlaneMeasurement(mids, n / np.linalg.norm(n), float(d), _positive(node["std"], source, f"{key}.std", "m"),
                             points, _text(node, source, key), key)
 
@@ -703,3 +708,24 @@ def check_measurement_report(report: Any, max_sigmas: float) -> List[str]:
                             f"{max_sigmas:g}): check the plane in {src} (its markers, normal, distance, std)")
     return problems
 
+
+
+def measurement_lines(report: Any) -> List[str]:
+    """One line per survey measurement of a map's record (:func:`measurement_report`), for people."""
+    if not isinstance(report, Mapping):
+        return []
+    out = []
+    for e in report.get("distances", []) or []:
+        if not isinstance(e, Mapping):
+            continue
+        what = (f"distance {e.get('key')}: marker {e['from'].get('marker')} corner {e['from'].get('corner')} to "
+                f"marker {e['to'].get('marker')} corner {e['to'].get('corner')}, measured {e.get('measured')} m")
+        out.append(f"{what}: {e['residual_mm']:+.2f} mm ({e['residual_sigmas']:.1f} sigma)" if "residual_mm" in e
+                   else f"{what}: not mapped")
+    for e in report.get("planes", []) or []:
+        if not isinstance(e, Mapping):
+            continue
+        what = f"plane {e.get('key')} ({len(e.get('markers', []))} markers)"
+        out.append(f"{what}: RMS {e['rms_mm']:.2f} mm, worst {e['residual_mm']:+.2f} mm ({e['residual_sigmas']:.1f} "
+                   f"sigma)" if "rms_mm" in e else f"{what}: not mapped")
+    return out
