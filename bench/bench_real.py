@@ -55,7 +55,7 @@ sys.path.insert(0, HERE)
 from tagslam_reference import DATA, cached_bag, load_test, ring_frames, write_camera_poses  # noqa: E402
 
 from aruco_ring_localization import geometry as geo  # noqa: E402
-from aruco_ring_localization.anchors import anchor_report, check_measurement_report  # noqa: E402
+from aruco_ring_localization.anchors import anchor_report, check_measurement_report, measurement_report  # noqa: E402
 from aruco_ring_localization.errors import ArucoRingError, MapSanityError  # noqa: E402
 from aruco_ring_localization.evaluation.maps import map_error  # noqa: E402
 from aruco_ring_localization.importers import (read_rig, tagslam_anchors, tagslam_boards, tagslam_odometry,  # noqa: E402
@@ -397,9 +397,11 @@ def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool =
     try:
         ours = b.build()
         rep = ours.quality.get("survey_measurements")
-        if rep:   # each measurement's residual, and the check build-map's save applies (MapBuilder.save_map)
-            res["measurement_sigmas_max"] = max((e.get("residual_sigmas", 0.0) for e in rep["distances"]
-                                                 + rep["planes"]), default=0.0)
+        if rep:   # each measurement's residual, and the check build-map's save applies (MapBuilder.save_map);
+            # TagSLAM's own map measured against them too (in its own frame: tagslam.yaml's).
+            own = measurement_report(meas, ref.tags, sizes)
+            for key, r in (("measurement_sigmas_max", rep), ("tagslam_measurement_sigmas_max", own)):
+                res[key] = max((e.get("residual_sigmas", 0.0) for e in r["distances"] + r["planes"]), default=0.0)
             problems = check_measurement_report(rep, b.options.sanity.max_anchor_sigmas)
             if problems:
                 raise MapSanityError(problems)
