@@ -374,9 +374,9 @@ def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool =
     odo_opts, odo = _odometry(test, src, ref.rig_body, frames) if odometry else (None, ())
     res["odometry"] = odo_opts.topic if odo_opts is not None else ""
     options = MappingOptions(frame="marker") if odo_opts is None else MappingOptions(frame="marker", odometry=odo_opts)
-    if survey is not None and tags.pixel_noise:
-        # TagSLAM's problem: its known poses' noise against its corner noise (tagslam.yaml), so that
-        # the survey and the images weigh as they do in the reference.
+    if (survey is not None or meas is not None) and tags.pixel_noise:
+        # TagSLAM's problem: its known poses' and measurements' noise against its corner noise
+        # (tagslam.yaml), so that the survey and the images weigh as they do in the reference.
         options = dataclasses.replace(options, ba=dataclasses.replace(options.ba, pixel_noise=tags.pixel_noise))
     if view_limits:
         # The views TagSLAM drops (tagslam.yaml's minimum_viewing_angle, minimum_tag_area).
