@@ -93,3 +93,27 @@ def test_a_plane_with_anchors_is_recorded_and_a_plane_without_is_refused(ring, f
     assert p["markers"] == [ids[1]] and p["residual_sigmas"] < 5.0 and "rms_mm" in p
     with pytest.raises(ConfigError, match="plane"):
         anchors_from_dict({"planes": [plane]}, source="plate.yaml")
+
+
+def test_the_mapper_reads_measurements_from_its_anchors_file(tmp_path):
+    """``map/anchors_file`` (build-map --anchors) with distances only: the pipeline's MapBuilder
+    keeps the reference frame and the distances; a plane without anchors stops it at start."""
+    from aruco_ring_localization.config import with_overrides
+    from aruco_ring_localization.pipeline import MappingPipeline
+    from aruco_ring_localization.ring import CameraRing
+    from aruco_ring_localization.schemas import MapperConfig
+    from helpers import RING_YAML
+
+    tape = tmp_path / "tape.yaml"
+    tape.write_text("distances: [{from: {marker: 1, corner: 0}, to: {marker: 2, corner: 3}, distance: 4.2, "
+                    "std: 0.002}]\n")
+    ring = CameraRing.load(str(RING_YAML))
+    offline = {"input.use_tf": False, "input.camera_info_fallback": True, "map.anchors_file": str(tape)}
+    pipe = MappingPipeline(with_overrides(MapperConfig(), offline), ring)
+    assert pipe.builder.anchors is None
+    (d,) = pipe.builder.measurements.distances
+    assert (d.a.corner, d.b.corner, d.distance) == (0, 3, 4.2)
+    tape.write_text("planes: [{markers: [1, 2], normal: [0, 0, 1], distance: 0, std: 0.01}]\n")
+    with pytest.raises(ConfigError) as err:
+        MappingPipeline(with_overrides(MapperConfig(), offline), ring)
+    assert err.value.key == "planes[0]" and str(tape) in str(err.value)
