@@ -30,13 +30,28 @@ File format (YAML; docs/formats.md)::
       #   rotation: [qx, qy, qz, qw]  # the marker frame's orientation in the surveyed frame
       #   rotation_std_deg: 0.05
       #   std: 0.001
+    distances:                       # optional: tape / laser distances between marker points
+      - from: {marker: 24, corner: 0}   # corner 0-3 (the package's order, docs/formats.md) or centre
+        to: {marker: 60, corner: centre}
+        distance: 6.017              # m
+        std: 0.0002                  # m, 1 sigma
+    planes:                          # optional: markers whose points lie on a plane of the surveyed frame
+      - markers: [0, 36, 72]
+        normal: [0.0, 0.0, 1.0]      # unit vector (surveyed frame)
+        distance: 0.0                # m: normal . point = distance
+        std: 0.01                    # m, 1 sigma of each point's distance to the plane
+        points: corners              # corners (the 4 of each marker, default), centres, or one corner 0-3
+
+Distances and planes (:class:`Measurements`) constrain the map's geometry (its scale along a
+measured line, its flatness) without defining a frame: a file may hold only them, and the map
+frame is then the reference marker's. A plane is given in the surveyed frame, so it needs anchors.
 """
 from __future__ import annotations
 
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Mapping, Optional
+from typing import Any, Dict, List, Mapping, Optional, Tuple
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -93,14 +108,23 @@ class AnchorSet:
     anchors: List[Anchor]
     frame_id: str = ""
     source: str = "<anchors>"
+    #: distances and planes of the same file (:class:`Measurements`), or None. With them the
+    #: anchors may be empty: the file then constrains the geometry without defining the frame.
+    measurements: Optional["Measurements"] = None
 
     def __post_init__(self) -> None:
         ids = [a.marker_id for a in self.anchors]
         dup = sorted({i for i in ids if ids.count(i) > 1})
         if dup:
             raise ConfigError(f"marker {dup[0]} is surveyed twice", path=self.source, key="anchors")
+        if not self.anchors and self.measurements is not None and len(self.measurements):
+            if self.measurements.planes:
+                raise ConfigError("a plane is given in the surveyed frame: it needs anchors that define that frame "
+                                  "(or leave the planes out; distances alone need none)", path=self.source,
+                                  key=self.measurements.planes[0].key)
+            return
         if not self.anchors:
-            raise ConfigError("expected at least one anchor", path=self.source, key="anchors")
+            raise ConfigError("expected at least one anchor (or distances)", path=self.source, key="anchors")
         if len(self.anchors) < 2 and self.anchors[0].rotation is None:
             raise ConfigError("one anchor fixes the frame only with a full pose (rotation and rotation_std_deg); "
                               "survey 2 or more markers' positions, or add the rotation", path=self.source,
@@ -120,8 +144,12 @@ class AnchorSet:
 
     def to_dict(self) -> Dict[str, Any]:
         """The file's content (what :func:`anchors_from_dict` reads back)."""
-        out = [_survey_dict(a, "position") for a in self.anchors]
-        return {"frame_id": self.frame_id, "anchors": out} if self.frame_id else {"anchors": out}
+        out: Dict[str, Any] = {"frame_id": self.frame_id} if self.frame_id else {}
+        if self.anchors:
+            out["anchors"] = [_survey_dict(a, "position") for a in self.anchors]
+        if self.measurements is not None:
+            out.update(self.measurements.to_dict())
+        return out
 
 
 def load_anchors(path: str) -> AnchorSet:
@@ -195,16 +223,21 @@ def anchors_from_dict(data: Any, source: str = "<anchors>") -> AnchorSet:
     if not isinstance(data, Mapping):
         raise ConfigError(f"expected a mapping with 'anchors' at the top level, got {type(data).__name__}",
                           path=source)
-    unknown = sorted(set(map(str, data)) - {"frame_id", "anchors"})
+    unknown = sorted(set(map(str, data)) - {"frame_id", "anchors", "distances", "planes"})
     if unknown:
-        raise ConfigError(f"unknown key {unknown[0]!r} (expected frame_id, anchors)", path=source, key=unknown[0])
+        raise ConfigError(f"unknown key {unknown[0]!r} (expected frame_id, anchors, distances, planes)", path=source,
+                          key=unknown[0])
     frame_id = data.get("frame_id", "") or ""
     if not isinstance(frame_id, str):
         raise ConfigError(f"expected a frame name, got {frame_id!r}", path=source, key="frame_id")
+    meas = measurements_from_dict(data, source)
     nodes = data.get("anchors")
+    if nodes is None and len(meas):
+        nodes = []
     if not isinstance(nodes, list):
         raise ConfigError("expected a list of anchors", path=source, key="anchors")
-    return AnchorSet([_anchor_from_dict(n, source, f"anchors[{i}]") for i, n in enumerate(nodes)], frame_id, source)
+    return AnchorSet([_anchor_from_dict(n, source, f"anchors[{i}]") for i, n in enumerate(nodes)], frame_id, source,
+                     meas if len(meas) else None)
 
 
 # --- the fit ---------------------------------------------------------------------------------
@@ -418,3 +451,281 @@ def anchors_yaml(anchors: AnchorSet, header: str = "") -> str:
 
     lines = "".join(f"# {h}\n" if h else "#\n" for h in header.splitlines()) if header else ""
     return lines + yaml.safe_dump(anchors.to_dict(), sort_keys=False, default_flow_style=None)
+
+
+# --- survey measurements: distances and planes -----------------------------------------------
+
+#: Names a measured point may have besides the corner numbers 0-3.
+CENTRE_NAMES = ("centre", "center")
+#: Largest measured distance, m.
+MAX_DISTANCE = 1.0e4
+
+
+@dataclass(frozen=True)
+class MarkerPoint:
+    """A point of a marker: one of its corners (0-3, the order of :func:`markers.marker_corners`:
+    top-left, top-right, bottom-right, bottom-left seen facing the marker) or its centre (None)."""
+
+    marker_id: int
+    corner: Optional[int] = None
+
+    def local(self, size: float) -> np.ndarray:
+        """(3,) the point in the marker's frame for a marker of side ``size`` (m)."""
+        from .markers import marker_corners
+
+        return np.zeros(3) if self.corner is None else marker_corners(size)[self.corner].copy()
+
+    def to_dict(self) -> Dict[str, Any]:
+        return {"marker": self.marker_id, "corner": "centre" if self.corner is None else self.corner}
+
+    def __str__(self) -> str:
+        return f"marker {self.marker_id} " + ("centre" if self.corner is None else f"corner {self.corner}")
+
+
+@dataclass(frozen=True)
+class DistanceMeasurement:
+    """A measured distance between two marker points (tape, laser distance meter), m."""
+
+    a: MarkerPoint
+    b: MarkerPoint
+    distance: float
+    std: float
+    instrument: str = ""
+    key: str = ""
+
+
+@dataclass(frozen=True)
+class PlaneMeasurement:
+    """Markers whose points (their 4 corners, their centres or one corner each) lie on the plane
+    ``normal . p = distance`` of the surveyed frame, each point within ``std`` (m)."""
+
+    markers: Tuple[int, ...]
+    normal: np.ndarray
+    distance: float
+    std: float
+    points: str = "corners"
+    instrument: str = ""
+    key: str = ""
+
+    def marker_points(self) -> List[MarkerPoint]:
+        """Every constrained point, marker by marker."""
+        corners: List[Optional[int]] = [0, 1, 2, 3] if self.points == "corners" else \
+            [None] if self.points == "centres" else [int(self.points)]
+        return [MarkerPoint(m, c) for m in self.markers for c in corners]
+
+
+@dataclass
+class Measurements:
+    """The distances and planes of an anchors file."""
+
+    distances: List[DistanceMeasurement] = field(default_factory=list)
+    planes: List[PlaneMeasurement] = field(default_factory=list)
+    source: str = "<anchors>"
+
+    def __len__(self) -> int:
+        return len(self.distances) + len(self.planes)
+
+    @property
+    def ids(self) -> List[int]:
+        out = {p.marker_id for d in self.distances for p in (d.a, d.b)}
+        out.update(m for pl in self.planes for m in pl.markers)
+        return sorted(out)
+
+    def to_dict(self) -> Dict[str, Any]:
+        out: Dict[str, Any] = {}
+        if self.distances:
+            out["distances"] = [dict({"from": d.a.to_dict(), "to": d.b.to_dict(), "distance": float(d.distance),
+                                      "std": float(d.std)}, **({"instrument": d.instrument} if d.instrument else {}))
+                                for d in self.distances]
+        if self.planes:
+            out["planes"] = [dict({"markers": list(p.markers), "normal": [float(v) for v in p.normal],
+                                   "distance": float(p.distance), "std": float(p.std),
+                                   "points": int(p.points) if p.points.isdigit() else p.points},
+                                  **({"instrument": p.instrument} if p.instrument else {})) for p in self.planes]
+        return out
+
+
+def _marker_id(value: Any, source: str, key: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise ConfigError(f"expected a marker id (integer >= 0), got {value!r}", path=source, key=key)
+    return int(value)
+
+
+def _marker_point(node: Any, source: str, key: str) -> MarkerPoint:
+    if not isinstance(node, Mapping):
+        raise ConfigError(f"expected a mapping {{marker: ID, corner: 0-3 or centre}}, got {node!r}", path=source,
+                          key=key)
+    unknown = sorted(set(map(str, node)) - {"marker", "corner"})
+    if unknown:
+        raise ConfigError(f"unknown key {unknown[0]!r} (expected marker, corner)", path=source,
+                          key=f"{key}.{unknown[0]}")
+    if "marker" not in node:
+        raise ConfigError("missing", path=source, key=f"{key}.marker")
+    mid = _marker_id(node["marker"], source, f"{key}.marker")
+    c = node.get("corner", "centre")
+    if isinstance(c, str) and c.strip().lower() in CENTRE_NAMES:
+        return MarkerPoint(mid, None)
+    if isinstance(c, bool) or not isinstance(c, int) or not 0 <= c <= 3:
+        raise ConfigError(f"expected a corner 0-3 (top-left, top-right, bottom-right, bottom-left facing the "
+                          f"marker) or centre, got {c!r}", path=source, key=f"{key}.corner")
+    return MarkerPoint(mid, int(c))
+
+
+def _text(node: Mapping, source: str, key: str) -> str:
+    v = node.get("instrument", "")
+    if not isinstance(v, str):
+        raise ConfigError(f"expected text, got {v!r}", path=source, key=f"{key}.instrument")
+    return v
+
+
+def _check_keys(node: Any, keys: set, required: Tuple[str, ...], source: str, key: str, what: str) -> None:
+    if not isinstance(node, Mapping):
+        raise ConfigError(f"expected a mapping with {what}, got {node!r}", path=source, key=key)
+    unknown = sorted(set(map(str, node)) - keys)
+    if unknown:
+        raise ConfigError(f"unknown key {unknown[0]!r} (expected {', '.join(sorted(keys))})", path=source,
+                          key=f"{key}.{unknown[0]}")
+    for r in required:
+        if r not in node:
+            raise ConfigError("missing", path=source, key=f"{key}.{r}")
+
+
+def _distance_from_dict(node: Any, source: str, key: str) -> DistanceMeasurement:
+    _check_keys(node, {"from", "to", "distance", "std", "instrument"}, ("from", "to", "distance", "std"), source, key,
+                "from, to, distance and std")
+    a = _marker_point(node["from"], source, f"{key}.from")
+    b = _marker_point(node["to"], source, f"{key}.to")
+    if a.marker_id == b.marker_id:
+        raise ConfigError(f"both ends on marker {a.marker_id}: a distance links two markers", path=source,
+                          key=f"{key}.to")
+    d = _positive(node["distance"], source, f"{key}.distance", "m")
+    if d > MAX_DISTANCE:
+        raise ConfigError(f"longer than {MAX_DISTANCE:g} m", path=source, key=f"{key}.distance")
+    return DistanceMeasurement(a, b, d, _positive(node["std"], source, f"{key}.std", "m"), _text(node, source, key),
+                               key)
+
+
+def _plane_from_dict(node: Any, source: str, key: str) -> PlaneMeasurement:
+    _check_keys(node, {"markers", "normal", "distance", "std", "points", "instrument"},
+                ("markers", "normal", "distance", "std"), source, key, "markers, normal, distance and std")
+    ids = node["markers"]
+    if not isinstance(ids, list) or not ids:
+        raise ConfigError(f"expected a list of marker ids, got {ids!r}", path=source, key=f"{key}.markers")
+    mids = tuple(_marker_id(m, source, f"{key}.markers[{i}]") for i, m in enumerate(ids))
+    if len(set(mids)) != len(mids):
+        raise ConfigError("a marker is listed twice", path=source, key=f"{key}.markers")
+    n = _vector(node["normal"], 3, source, f"{key}.normal", "a normal [nx, ny, nz]")
+    if abs(float(np.linalg.norm(n)) - 1.0) > 1e-3:
+        raise ConfigError(f"expected a unit vector, got length {float(np.linalg.norm(n)):.4g}", path=source,
+                          key=f"{key}.normal")
+    d = node["distance"]
+    if isinstance(d, bool) or not isinstance(d, (int, float)) or not math.isfinite(d) or abs(d) > MAX_COORDINATE:
+        raise ConfigError(f"expected a finite number (m), got {d!r}", path=source, key=f"{key}.distance")
+    points = node.get("points", "corners")
+    if isinstance(points, int) and not isinstance(points, bool) and 0 <= points <= 3:
+        points = str(points)
+    if points not in ("corners", "centres", "0", "1", "2", "3"):
+        raise ConfigError(f"expected corners, centres or one corner 0-3, got {points!r}", path=source,
+                          key=f"{key}.points")
+    return PlaneMeasurement(mids, n / np.linalg.norm(n), float(d), _positive(node["std"], source, f"{key}.std", "m"),
+                            points, _text(node, source, key), key)
+
+
+def measurements_from_dict(data: Mapping, source: str = "<anchors>") -> Measurements:
+    """The ``distances`` and ``planes`` of a parsed anchors file (empty when it has none)."""
+    out = Measurements(source=source)
+    for name, parse, dest in (("distances", _distance_from_dict, out.distances),
+                              ("planes", _plane_from_dict, out.planes)):
+        nodes = data.get(name)
+        if nodes is None:
+            continue
+        if not isinstance(nodes, list):
+            raise ConfigError(f"expected a list of {name}", path=source, key=name)
+        dest.extend(parse(n, source, f"{name}[{i}]") for i, n in enumerate(nodes))
+    return out
+
+
+def measurement_report(meas: Measurements, T_map_markers: Mapping[int, np.ndarray], sizes: Any) -> Dict[str, Any]:
+    """The map's record of the survey measurements: each one's value in the map and its residual
+    (mapped minus measured) in mm and in units of its std. ``sizes(marker_id)`` gives marker sides
+    (m); planes are evaluated in the map frame (the surveyed frame: they need anchors)."""
+    def point(p: MarkerPoint) -> Optional[np.ndarray]:
+        T = T_map_markers.get(p.marker_id)
+        return None if T is None else np.asarray(T)[:3, :3] @ p.local(float(sizes(p.marker_id))) + np.asarray(T)[:3, 3]
+
+    dists = []
+    for d in meas.distances:
+        e: Dict[str, Any] = {"key": d.key, "from": d.a.to_dict(), "to": d.b.to_dict(), "measured": float(d.distance),
+                             "std": float(d.std)}
+        pa, pb = point(d.a), point(d.b)
+        if pa is None or pb is None:
+            e["mapped"] = False
+        else:
+            got = float(np.linalg.norm(pa - pb))
+            e.update(mapped_distance=got, residual_mm=1000.0 * (got - d.distance),
+                     residual_sigmas=abs(got - d.distance) / d.std)
+        dists.append(e)
+    planes = []
+    for pl in meas.planes:
+        e = {"key": pl.key, "markers": list(pl.markers), "normal": [float(v) for v in pl.normal],
+             "distance": float(pl.distance), "std": float(pl.std), "points": pl.points}
+        res = [float(pl.normal @ q - pl.distance) for q in (point(p) for p in pl.marker_points()) if q is not None]
+        missing = sorted({m for m in pl.markers if m not in T_map_markers})
+        if missing:
+            e["unmapped"] = missing
+        if res:
+            k = int(np.argmax(np.abs(res)))
+            worst = [p for p in pl.marker_points() if p.marker_id in T_map_markers][k]
+            e.update(rms_mm=1000.0 * float(np.sqrt(np.mean(np.square(res)))), residual_mm=1000.0 * res[k],
+                     worst=worst.to_dict(), residual_sigmas=abs(res[k]) / pl.std)
+        planes.append(e)
+    return {"source": meas.source, "distances": dists, "planes": planes}
+
+
+def check_measurement_report(report: Any, max_sigmas: float) -> List[str]:
+    """Problems of a map's survey measurements (:func:`measurement_report`; empty: OK): a distance
+    or a plane point more than ``max_sigmas`` of its std off (a mistyped value, a wrong id or
+    corner, a std too small, a marker that moved since the survey)."""
+    if not isinstance(report, Mapping):
+        return []
+    problems = []
+    src = report.get("source")
+    for e in report.get("distances", []) or []:
+        sig = e.get("residual_sigmas") if isinstance(e, Mapping) else None
+        if isinstance(sig, (int, float)) and not sig <= max_sigmas:
+            problems.append(f"measurements: {e.get('key')} (marker {e['from'].get('marker')} corner "
+                            f"{e['from'].get('corner')} to marker {e['to'].get('marker')} corner "
+                            f"{e['to'].get('corner')}) is {e.get('mapped_distance', float('nan')):.4f} m in the map, "
+                            f"measured {e.get('measured')} m: {e.get('residual_mm', float('nan')):+.1f} mm ({sig:.1f} "
+                            f"sigma, limit {max_sigmas:g}): check it in {src} (a mistyped value, a wrong marker or "
+                            f"corner, a std too small) or whether a marker moved")
+    for e in report.get("planes", []) or []:
+        sig = e.get("residual_sigmas") if isinstance(e, Mapping) else None
+        if isinstance(sig, (int, float)) and not sig <= max_sigmas:
+            w = e.get("worst") or {}
+            problems.append(f"measurements: {e.get('key')}: marker {w.get('marker')} corner {w.get('corner')} is "
+                            f"{e.get('residual_mm', float('nan')):+.1f} mm off the plane ({sig:.1f} sigma, limit "
+                            f"{max_sigmas:g}): check the plane in {src} (its markers, normal, distance, std)")
+    return problems
+
+
+
+def measurement_lines(report: Any) -> List[str]:
+    """One line per survey measurement of a map's record (:func:`measurement_report`), for people."""
+    if not isinstance(report, Mapping):
+        return []
+    out = []
+    for e in report.get("distances", []) or []:
+        if not isinstance(e, Mapping):
+            continue
+        what = (f"distance {e.get('key')}: marker {e['from'].get('marker')} corner {e['from'].get('corner')} to "
+                f"marker {e['to'].get('marker')} corner {e['to'].get('corner')}, measured {e.get('measured')} m")
+        out.append(f"{what}: {e['residual_mm']:+.2f} mm ({e['residual_sigmas']:.1f} sigma)" if "residual_mm" in e
+                   else f"{what}: not mapped")
+    for e in report.get("planes", []) or []:
+        if not isinstance(e, Mapping):
+            continue
+        what = f"plane {e.get('key')} ({len(e.get('markers', []))} markers)"
+        out.append(f"{what}: RMS {e['rms_mm']:.2f} mm, worst {e['residual_mm']:+.2f} mm ({e['residual_sigmas']:.1f} "
+                   f"sigma)" if "rms_mm" in e else f"{what}: not mapped")
+    return out

@@ -82,6 +82,13 @@ class MarkerPriors:
         rotation_std: (L,) their 1-sigma, rad.
         level_station: (J,) indices of stations whose z axis is held along W's z (the robot stands on
             the frame's plane), with 1-sigma ``level_sigma`` (rad) on each tilt component.
+        distance_marker: (D, 2) indices of the two markers of each measured distance (survey
+            measurements, :class:`anchors.DistanceMeasurement`), ``distance_point`` (D, 2, 3) the
+            two points in those markers' frames, ``distance`` (D,) the measured length and
+            ``distance_std`` (D,) its 1-sigma, m: ``r = (|p_a - p_b| - distance) / std``.
+        plane_marker: (P,) index of the marker of each point on a measured plane, ``plane_point``
+            (P, 3) the point in the marker's frame, ``plane_normal`` (P, 3) the plane's unit normal
+            in W, ``plane_offset`` (P,) and ``plane_std`` (P,) m: ``r = (n . p - offset) / std``.
     """
 
     position_marker: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
@@ -92,6 +99,15 @@ class MarkerPriors:
     rotation_std: np.ndarray = field(default_factory=lambda: np.zeros(0))
     level_station: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
     level_sigma: float = 1e-6
+    distance_marker: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=int))
+    distance_point: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3)))
+    distance: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    distance_std: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    plane_marker: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+    plane_point: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    plane_normal: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    plane_offset: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    plane_std: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def __post_init__(self) -> None:
         self.position_marker = np.asarray(self.position_marker, dtype=int).reshape(-1)
@@ -107,9 +123,31 @@ class MarkerPriors:
             raise GeometryError("MarkerPriors: the arrays of one kind of prior must have the same length")
         if np.any(self.position_std <= 0) or np.any(self.rotation_std <= 0) or not self.level_sigma > 0:
             raise GeometryError("MarkerPriors: every std must be positive")
+        self.distance_marker = np.asarray(self.distance_marker, dtype=int).reshape(-1, 2)
+        self.distance_point = np.asarray(self.distance_point, dtype=float).reshape(-1, 2, 3)
+        self.distance = np.asarray(self.distance, dtype=float).reshape(-1)
+        self.distance_std = np.asarray(self.distance_std, dtype=float).reshape(-1)
+        self.plane_marker = np.asarray(self.plane_marker, dtype=int).reshape(-1)
+        self.plane_point = np.asarray(self.plane_point, dtype=float).reshape(-1, 3)
+        self.plane_normal = np.asarray(self.plane_normal, dtype=float).reshape(-1, 3)
+        self.plane_offset = np.asarray(self.plane_offset, dtype=float).reshape(-1)
+        self.plane_std = np.asarray(self.plane_std, dtype=float).reshape(-1)
+        D, P = len(self.distance_marker), len(self.plane_marker)
+        if len(self.distance_point) != D or len(self.distance) != D or len(self.distance_std) != D \
+                or len(self.plane_point) != P or len(self.plane_normal) != P or len(self.plane_offset) != P \
+                or len(self.plane_std) != P:
+            raise GeometryError("MarkerPriors: the arrays of one kind of measurement must have the same length")
+        if np.any(self.distance_std <= 0) or np.any(self.plane_std <= 0):
+            raise GeometryError("MarkerPriors: every measurement std must be positive")
 
     @property
     def n_residuals(self) -> int:
+        return (3 * len(self.position_marker) + 3 * len(self.rotation_marker) + 2 * len(self.level_station)
+                + len(self.distance_marker) + len(self.plane_marker))
+
+    @property
+    def n_pose_residuals(self) -> int:
+        """Rows before the measurements' (positions, rotations, level stations)."""
         return 3 * len(self.position_marker) + 3 * len(self.rotation_marker) + 2 * len(self.level_station)
 
 
@@ -334,6 +372,17 @@ class _Model:
         self.odo = odo
         self.n_odo_res = 6 * len(odo) if odo is not None else 0
         self.n_res = self.n_obs_res + self.n_prior_res + self.n_anchor_res + self.n_odo_res
+        # Measured distances between two free markers couple them: the markers' block of H is then
+        # no longer block diagonal, and the steps eliminating the markers add the distance rows
+        # back exactly (Woodbury, :meth:`solve_damped`).
+        D = len(priors.distance_marker) if priors is not None else 0
+        self._dist_rows = (self.n_obs_res + self.n_prior_res + (priors.n_pose_residuals if D else 0)
+                           + np.arange(D))
+        if D:
+            ca, cb = self.col_m[priors.distance_marker[:, 0]], self.col_m[priors.distance_marker[:, 1]]
+            self._dist_coupled = bool(np.any((ca >= 0) & (cb >= 0) & (ca != cb)))
+        else:
+            self._dist_coupled = False
         self._build_pattern()
 
     def _build_pattern(self) -> None:
@@ -390,6 +439,21 @@ class _Model:
         c = self.col_s[pr.level_station][:, None, None] + np.arange(3)[None, None, :]
         rows.append(np.broadcast_to(r, (J, 2, 3)).ravel())
         cols.append(np.broadcast_to(c, (J, 2, 3)).ravel())
+        base += 2 * J
+        # Distances: 1 row x (w, t of marker a, then of marker b); planes: 1 row x (w, t) of the
+        # marker; the columns of a fixed marker left out (masks kept for the values).
+        D, P = len(pr.distance_marker), len(pr.plane_marker)
+        ca, cb = self.col_m[pr.distance_marker[:, 0]], self.col_m[pr.distance_marker[:, 1]]
+        c = np.concatenate([ca[:, None] + np.arange(6), cb[:, None] + np.arange(6)], axis=1)
+        self._dist_mask = np.concatenate([np.repeat((ca >= 0)[:, None], 6, 1), np.repeat((cb >= 0)[:, None], 6, 1)],
+                                         axis=1)
+        rows.append(np.broadcast_to((base + np.arange(D))[:, None], (D, 12))[self._dist_mask])
+        cols.append(c[self._dist_mask])
+        base += D
+        cp = self.col_m[pr.plane_marker]
+        self._plane_mask = np.repeat((cp >= 0)[:, None], 6, 1)
+        rows.append(np.broadcast_to((base + np.arange(P))[:, None], (P, 6))[self._plane_mask])
+        cols.append((cp[:, None] + np.arange(6))[self._plane_mask])
         return np.concatenate(rows).astype(int), np.concatenate(cols).astype(int)
 
     def _odometry_pattern(self, base: int) -> Tuple[np.ndarray, np.ndarray]:
@@ -480,6 +544,31 @@ class _Model:
             if jacobian:
                 dz = -(geo.skew(z) @ geo.so3_left_jacobian(ws[js]))[:, :2, :]
                 d.append((dz / pr.level_sigma).ravel())
+        # Distance: p = R_m X + t_m per end, r = (|p_a - p_b| - L) / std; with u = (p_a - p_b) / |.|,
+        # dr/d(w_a, t_a) = u^T (-[R_a X_a]x J_l(w_a), I) / std and the negative for marker b.
+        if len(pr.distance_marker):
+            ia, ib = pr.distance_marker[:, 0], pr.distance_marker[:, 1]
+            va = (Rm[ia] @ pr.distance_point[:, 0, :, None])[..., 0]
+            vb = (Rm[ib] @ pr.distance_point[:, 1, :, None])[..., 0]
+            diff = (va + tm[ia]) - (vb + tm[ib])
+            length = np.maximum(np.linalg.norm(diff, axis=1), 1e-12)
+            r.append((length - pr.distance) / pr.distance_std)
+            if jacobian:
+                u = (diff / length[:, None])[:, None, :]                              # (D, 1, 3)
+                ja = (u @ (-geo.skew(va) @ geo.so3_left_jacobian(wm[ia])))[:, 0, :]
+                jb = (u @ (-geo.skew(vb) @ geo.so3_left_jacobian(wm[ib])))[:, 0, :]
+                Jd = np.concatenate([ja, u[:, 0, :], -jb, -u[:, 0, :]], axis=1) / pr.distance_std[:, None]
+                d.append(Jd[self._dist_mask])
+        # Plane: r = (n . (R_m X + t_m) - offset) / std, dr/d(w, t) = n^T (-[R_m X]x J_l(w), I) / std.
+        if len(pr.plane_marker):
+            ip = pr.plane_marker
+            v = (Rm[ip] @ pr.plane_point[:, :, None])[..., 0]
+            n = pr.plane_normal
+            r.append((np.sum(n * (v + tm[ip]), axis=1) - pr.plane_offset) / pr.plane_std)
+            if jacobian:
+                jw = (n[:, None, :] @ (-geo.skew(v) @ geo.so3_left_jacobian(wm[ip])))[:, 0, :]
+                Jp = np.concatenate([jw, n], axis=1) / pr.plane_std[:, None]
+                d.append(Jp[self._plane_mask])
         return (np.concatenate(r), np.concatenate(d)) if jacobian else np.concatenate(r)
 
     def sparsity(self) -> sp.csr_matrix:
@@ -658,7 +747,21 @@ class _Model:
             pos = np.searchsorted(self._h_uniq, he.row.astype(np.int64) * n + he.col)
             data += np.bincount(pos, weights=he.data, minlength=len(self._h_uniq))
             g += JE.T @ (swe * r[self.n_obs_res:])
+            if self._dist_coupled:
+                # The (weighted) distance rows of this H, for solve_damped's exact correction.
+                self._dist_E = JE[self._dist_rows - self.n_obs_res].tocsr()
         return sp.csr_matrix((data, self._h_indices, self._h_indptr), shape=(n, n)), g
+
+    def without_distances(self, H: sp.csr_matrix, E: sp.csr_matrix) -> sp.csr_matrix:
+        """``H - E^T E`` in ``H``'s structure (:meth:`normal_equations`'), ``E`` the weighted rows
+        of the measured distances: the information without them, whose markers' part is block
+        diagonal again."""
+        n = self.n_params
+        ete = (E.T @ E).tocoo()
+        pos = np.searchsorted(self._h_uniq, ete.row.astype(np.int64) * n + ete.col)
+        out = H.copy()
+        out.data = out.data - np.bincount(pos, weights=ete.data, minlength=len(self._h_uniq))
+        return out
 
     def solve_damped(self, H: sp.csr_matrix, b: np.ndarray, damping: np.ndarray) -> np.ndarray:
         """``(H + diag(damping)) dx = b`` by the Schur complement on the markers.
@@ -691,15 +794,34 @@ class _Model:
             return x
         if nm == 0:
             return splu(Hd.tocsc()).solve(b)
+        if self._dist_coupled:
+            # Distances couple markers, which the elimination below (block by block) cannot see:
+            # solve without them (H0 = H - E^T E, block diagonal again) and add them back exactly,
+            # (H0 + E^T E)^-1 b = y - Z (I + E Z)^-1 E y with y = H0^-1 b, Z = H0^-1 E^T.
+            E = self._dist_E
+            Y = self._solve_markers_eliminated(self.without_distances(Hd, E), np.column_stack([b, E.T.toarray()]))
+            y, Z = Y[:, 0], Y[:, 1:]
+            return y - Z @ np.linalg.solve(np.eye(Z.shape[1]) + E @ Z, E @ y)
+        return self._solve_markers_eliminated(Hd, b)
+
+    def _solve_markers_eliminated(self, Hd: sp.csr_matrix, b: np.ndarray) -> np.ndarray:
+        """``Hd x = b`` (``b``: (n,) or (n, k)) through the Schur complement on the markers (their
+        6x6 diagonal blocks of ``Hd``; anything between two markers is not read)."""
+        from scipy.sparse.linalg import splu
+
+        n, nm = self.n_params, self.n_marker_params
+        shape = b.shape
+        b = b.reshape(n, -1)
+        k = b.shape[1]
         A = Hd.data[self._h_marker_blocks]                               # (Mf, 6, 6)
         try:
             Ainv = np.linalg.inv(A)
         except np.linalg.LinAlgError as e:
             raise RuntimeError("singular marker block") from e
         Mf = len(A)
-        y = (Ainv @ b[:nm].reshape(Mf, 6, 1)).ravel()
+        y = (Ainv @ b[:nm].reshape(Mf, 6, k)).reshape(nm, k)
         if nm == n:
-            return y
+            return y.reshape(shape)
         B = Hd[:nm, nm:]
         if self._reduced_is_dense():
             # Stations that all see the same few markers (a handheld walk around one scene) couple
@@ -708,12 +830,12 @@ class _Model:
             ABd = (Ainv @ B.toarray().reshape(Mf, 6, n - nm)).reshape(nm, n - nm)
             S_d = Hd[nm:, nm:].toarray() - B.T @ ABd
             xc = _dense_spd_solve(S_d, b[nm:] - B.T @ y)
-            return np.concatenate([y - ABd @ xc, xc])
+            return np.concatenate([y - ABd @ xc, xc]).reshape(shape)
         Ainv_sp = sp.bsr_matrix((Ainv, np.arange(Mf), np.arange(Mf + 1)), shape=(nm, nm)).tocsr()
         AB = (Ainv_sp @ B).tocsr()
         S = (Hd[nm:, nm:] - B.T @ AB).tocsc()
-        xc = splu(S).solve(b[nm:] - B.T @ y)
-        return np.concatenate([y - AB @ xc, xc])
+        xc = splu(S).solve(np.ascontiguousarray(b[nm:] - B.T @ y))
+        return np.concatenate([y - AB @ xc, xc.reshape(-1, k)]).reshape(shape)
 
     def marginal_information(self, H: sp.csr_matrix, cols: np.ndarray) -> np.ndarray:
         """The information of the parameters ``cols`` (sorted) with every other one marginalised:
@@ -1166,9 +1288,16 @@ def _bundle_adjust(prob: BAProblem, opts: Optional[BAOptions] = None) -> BAResul
             rows[: model.n_obs_res] = 1.0 / max(vf, 1e-12)
         if isinstance(J, np.ndarray) and J.ndim == 1:       # solver lm: the robust weights at the solution
             H = model.normal_equations(res_x, r, J * rows)[0]
+            if model._dist_coupled and not model._station_elimination():
+                # The markers' covariances are computed block by block: without the distances
+                # that couple markers (less information: the covariances are conservative).
+                H = model.without_distances(H, model._dist_E)
         else:                                               # solver trf: scipy's (loss-scaled) Jacobian
             Jm = J if sp.issparse(J) else sp.csr_matrix(J)
             Jm = (sp.diags(np.sqrt(rows)) @ Jm).tocsr()
+            if model._dist_coupled and not model._station_elimination():
+                keep = np.setdiff1d(np.arange(model.n_res), model._dist_rows)
+                Jm = Jm[keep]
             H = (Jm.T @ Jm).tocsr()
         cov, cam_cov = _marker_covariances(model, H, 1.0 if priors else vf)
     seconds = time.perf_counter() - t0

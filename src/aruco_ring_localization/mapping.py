@@ -63,12 +63,13 @@ from typing import Any, Dict, Hashable, List, Optional, Sequence, Tuple
 import numpy as np
 
 from . import geometry as geo
-from .anchors import AnchorSet, anchor_report, fit_frame, frame_definition, frame_kind
+from .anchors import (AnchorSet, Measurements, anchor_report, check_measurement_report, fit_frame, frame_definition,
+                      frame_kind, measurement_report)
 from .boards import BoardSet, collapse, expand_covariances, expand_poses, fit_board_pose, solve_board_view
 from .bundle_adjustment import (BAOptions, BAProblem, BAResult, MarkerPriors, RelativePoseFactors, bundle_adjust,
                                 camera_cov_in_optical_frames, marker_std_in_frame, observation_rms_px)
 from .config import in_radians, param, section
-from .errors import ArucoRingError, ConfigError, GeometryError, MeasurementError
+from .errors import ArucoRingError, ConfigError, GeometryError, MapSanityError, MeasurementError
 from .detections import RingFrame, simultaneous_parts
 from .mapping_odometry import MappingOdometryOptions, OdometryTrack
 from .marker_map import MapSanityLimits, MarkerEntry, MarkerMap, map_frame_from_reference
@@ -320,7 +321,8 @@ class MapBuilder:
 
     def __init__(self, ring: CameraRing, sizes: MarkerSizes, method: str = "refined",
                  reference_marker: Optional[int] = None, options: Optional[MappingOptions] = None,
-                 frame_id: str = "map", anchors: Optional[AnchorSet] = None, boards: Optional[BoardSet] = None):
+                 frame_id: str = "map", anchors: Optional[AnchorSet] = None, boards: Optional[BoardSet] = None,
+                 measurements: Optional[Measurements] = None):
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         self.ring = ring
@@ -329,6 +331,16 @@ class MapBuilder:
         self.reference_marker = reference_marker
         self.options = options or MappingOptions()
         self.frame_id = frame_id
+        # Survey measurements (distances, planes: :class:`anchors.Measurements`), given or those of
+        # the anchors file; a file of measurements only defines no frame (the reference marker's).
+        if measurements is None and anchors is not None:
+            measurements = anchors.measurements
+        self.measurements = measurements if measurements is not None and len(measurements) else None
+        if anchors is not None and not anchors.anchors:
+            anchors = None
+        if self.measurements is not None and self.measurements.planes and anchors is None:
+            raise ConfigError("a plane is given in the surveyed frame: it needs anchors that define that frame",
+                              path=self.measurements.source, key=self.measurements.planes[0].key)
         self.anchors = anchors
         self.boards = boards
         self.clear()
@@ -1477,6 +1489,8 @@ class MapBuilder:
                 else:
                     logger.warning("mapping: surveyed marker %d is not in the map (%s): the frame rests on the "
                                    "others", p["marker"], self.anchors.source)
+        if self.measurements is not None:
+            self._record_measurements(out)
         if res is not None and self._refines_extrinsics:
             # The markers were estimated through these extrinsics: localizing with them removes the
             # ring's calibration error from every pose (ring_tf publishes them given the map file).
@@ -1502,8 +1516,25 @@ class MapBuilder:
             it, the markers and what to do); ConfigError: the file cannot be written.
         """
         m = self.build(method)
+        problems = check_measurement_report(m.quality.get("survey_measurements"), self.options.sanity.max_anchor_sigmas)
+        if problems:
+            raise MapSanityError(problems, path=str(path))
         m.save(path, self.options.sanity, backups=backups)
         return m
+
+    def _record_measurements(self, out: MarkerMap) -> None:
+        """The survey measurements' residuals in the map (``quality.survey_measurements``,
+        :func:`anchors.measurement_report`), logged."""
+        assert self.measurements is not None
+        rep = measurement_report(self.measurements, {e.marker_id: e.T_map_marker for e in out}, self.sizes)
+        out.quality["survey_measurements"] = rep
+        for e in rep["distances"] + rep["planes"]:
+            if "residual_mm" in e:
+                logger.info("mapping: survey %s off by %+.2f mm (%.1f sigma)", e["key"], e["residual_mm"],
+                            e["residual_sigmas"])
+            else:
+                logger.warning("mapping: survey %s: its markers are not in the map (%s)", e["key"],
+                               self.measurements.source)
 
     def _refined_reference(self, init: _Init, res: BAResult, mids: List[int]) -> int:
         """The marker that fixes the refined map's frame.
@@ -1595,6 +1626,8 @@ class MapBuilder:
                                   + [si[s] for s, k in init.seeds.items() if k == "points_level"],
                                   level_sigma=LEVEL_SIGMA)
             fixed_station = None
+        if self.measurements is not None:
+            priors = self._measurement_priors(priors, mi)
         # Each observation carries the extrinsics in force when it was taken; the solver keeps one
         # per camera: the ring's current one.
         return BAProblem(
@@ -1614,6 +1647,27 @@ class MapBuilder:
             T_base_cams_start=np.stack([init.extrinsics.get(c, self.ring[c].T_base_cam) for c in cams]),
             odometry=self._odometry_factors(sts, si),
         )
+
+    def _measurement_priors(self, priors: Optional[MarkerPriors], mi: Dict[int, int]) -> Optional[MarkerPriors]:
+        """``priors`` with the survey measurements among the mapped markers (``mi``: id -> index)
+        added: distances between marker points, points on planes (in the surveyed frame, where the
+        adjustment runs with anchors); measurements of markers not mapped are left out."""
+        assert self.measurements is not None
+        dist = [d for d in self.measurements.distances if d.a.marker_id in mi and d.b.marker_id in mi]
+        pts = [(p, pl) for pl in self.measurements.planes for p in pl.marker_points() if p.marker_id in mi]
+        if not dist and not pts:
+            return priors
+        out = priors if priors is not None else MarkerPriors()
+        return dataclasses.replace(
+            out,
+            distance_marker=[[mi[d.a.marker_id], mi[d.b.marker_id]] for d in dist],
+            distance_point=np.array([[d.a.local(self.sizes(d.a.marker_id)), d.b.local(self.sizes(d.b.marker_id))]
+                                     for d in dist]).reshape(-1, 2, 3),
+            distance=[d.distance for d in dist], distance_std=[d.std for d in dist],
+            plane_marker=[mi[p.marker_id] for p, _ in pts],
+            plane_point=np.array([p.local(self.sizes(p.marker_id)) for p, _ in pts]).reshape(-1, 3),
+            plane_normal=np.array([pl.normal for _, pl in pts]).reshape(-1, 3),
+            plane_offset=[pl.distance for _, pl in pts], plane_std=[pl.std for _, pl in pts])
 
     def _refine(self, init: _Init) -> Tuple[BAResult, List[int], _Init]:
         """The bundle adjustment, and again without the markers that do not fit it.
@@ -1753,6 +1807,21 @@ class MapBuilder:
         if priors is not None:
             priors = dataclasses.replace(priors, position_marker=c.unit[priors.position_marker],
                                          rotation_marker=c.unit[priors.rotation_marker])
+            if len(priors.distance_marker) or len(priors.plane_marker):
+                # Measured points of a board's marker: in the board's frame (its layout).
+                def in_unit(k: np.ndarray, X: np.ndarray) -> np.ndarray:
+                    T = c.T_unit_marker[k]
+                    return (T[:, :3, :3] @ X[..., None])[..., 0] + T[:, :3, 3]
+
+                dm = priors.distance_marker
+                priors = dataclasses.replace(
+                    priors, distance_marker=c.unit[dm],
+                    distance_point=np.stack([in_unit(dm[:, 0], priors.distance_point[:, 0]),
+                                             in_unit(dm[:, 1], priors.distance_point[:, 1])], axis=1)
+                    if len(dm) else priors.distance_point,
+                    plane_marker=c.unit[priors.plane_marker],
+                    plane_point=in_unit(priors.plane_marker, priors.plane_point) if len(priors.plane_marker)
+                    else priors.plane_point)
         sub = dataclasses.replace(prob, T_W_markers=T_u, sizes=sizes_u, obs_marker=c.unit[prob.obs_marker],
                                   obs_object=X, priors=priors)
         res = bundle_adjust(sub, opts)

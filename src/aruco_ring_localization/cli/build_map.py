@@ -23,6 +23,7 @@ from typing import List, Optional
 
 import numpy as np
 
+from ..anchors import measurement_lines
 from ..config import load_yaml_config
 from ..errors import ConfigError
 from ..pipeline import MappingPipeline
@@ -196,6 +197,8 @@ def _print_summary(pipeline: MappingPipeline, m, path: str) -> None:
                 continue
             r = 1000 * np.asarray(p["residual"])
             out.write(f"{p['marker']:>6} {r[0]:>9.2f} {r[1]:>9.2f} {r[2]:>9.2f} {p['residual_sigmas']:>9.2f}\n")
+    for line in measurement_lines(m.quality.get("survey_measurements")):
+        out.write(line + "\n")
     ba = pipeline.last_ba
     if ba is not None and m.method == "refined":
         out.write(f"bundle adjustment: RMS {ba.rms_px_before:.3f} -> {ba.rms_px_after:.3f} px, {ba.seconds:.2f} s\n")

@@ -378,3 +378,115 @@ def marker_sizes_from(fiducial_len: float, fiducial_len_override: str = "", tags
         return MarkerSizes.parse(fiducial_len, fiducial_len_override)
     base = read_tagslam_tags(tagslam_file).marker_sizes()
     return MarkerSizes(base.default, {**base.overrides, **parse_size_overrides(fiducial_len_override)})
+
+
+#: TagSLAM's corner k of a tag is the package's corner ``TAGSLAM_CORNER[k]`` (TagSLAM numbers them
+#: from (-s/2, -s/2) counter-clockwise in the tag's frame, the package from (-s/2, +s/2) clockwise:
+#: :func:`markers.marker_corners`); TagSLAM's corner -1 is the centre (None).
+TAGSLAM_CORNER = {0: 3, 1: 2, 2: 1, 3: 0, -1: None}
+
+
+def _named_entries(data: Mapping[str, Any], name: str, path: str) -> List[Tuple[str, str, Mapping[str, Any]]]:
+    """The ``- label: {...}`` entries of a tagslam.yaml list (key, label, fields)."""
+    nodes = data.get(name)
+    if nodes is None:
+        return []
+    if not isinstance(nodes, list):
+        raise ConfigError("expected a list of '- name: {...}' entries", path=path, key=name)
+    out = []
+    for i, n in enumerate(nodes):
+        if not isinstance(n, Mapping) or len(n) != 1 or not isinstance(next(iter(n.values())), Mapping):
+            raise ConfigError("expected a one-key mapping name: {...}", path=path, key=f"{name}[{i}]")
+        label, fields = next(iter(n.items()))
+        out.append((f"{name}[{i}]", str(label), fields))
+    return out
+
+
+def _tagslam_field(fields: Mapping[str, Any], field_name: str, path: str, key: str, kind: type) -> Any:
+    v = fields.get(field_name)
+    ok = isinstance(v, int) if kind is int else isinstance(v, (int, float)) and bool(np.isfinite(v))
+    if isinstance(v, bool) or not ok:
+        raise ConfigError(f"expected {'an integer' if kind is int else 'a number'}, got {v!r}", path=path,
+                          key=f"{key}.{field_name}")
+    return kind(v)
+
+
+def _tagslam_corner(fields: Mapping[str, Any], field_name: str, path: str, key: str) -> Any:
+    c = _tagslam_field(fields, field_name, path, key, int)
+    if c not in TAGSLAM_CORNER:
+        raise ConfigError(f"expected a corner 0-3 or -1 (the centre), got {c}", path=path, key=f"{key}.{field_name}")
+    corner = TAGSLAM_CORNER[c]
+    return "centre" if corner is None else corner
+
+
+def _tagslam_direction(fields: Mapping[str, Any], path: str, key: str) -> List[float]:
+    v = fields.get("direction")
+    try:
+        d = np.array([float(x) for x in v], dtype=float) if isinstance(v, list) and len(v) == 3 \
+            and not any(isinstance(x, bool) for x in v) else None
+    except (TypeError, ValueError):
+        d = None
+    if d is None or not np.all(np.isfinite(d)) or abs(float(np.linalg.norm(d)) - 1.0) > 1e-5:
+        raise ConfigError(f"expected a unit vector [x, y, z], got {v!r}", path=path, key=f"{key}.direction")
+    return [float(x) for x in d]
+
+
+def tagslam_measurements(path: str, exclude: Set[int] = frozenset(), source: str = ""):
+    """The survey measurements of a ``tagslam.yaml`` as :class:`anchors.Measurements` (the anchors
+    file's ``distances`` and ``planes``), or None when it has none:
+
+    * ``distance_measurements`` (``tag1``/``corner1`` to ``tag2``/``corner2``, ``distance``,
+      ``noise`` as the std): a distance between the two corners, TagSLAM's corner numbers converted
+      to the package's (:data:`TAGSLAM_CORNER`);
+    * ``plane_measurements`` (``tags``, ``direction``, ``distance``, ``noise``): TagSLAM holds each
+      tag's *centre* on the plane ``direction . p = distance``: a plane of centres;
+    * ``coordinate_measurements`` (``tag``, ``corner``, ``direction``, ``length``, ``noise``): one
+      corner on the plane ``direction . p = length``: a plane of that one corner.
+
+    Measurements of tags in ``exclude`` (ignored, moving) are left out. ConfigError names the file
+    and the entry."""
+    import dataclasses
+
+    from ..anchors import measurements_from_dict
+
+    data = load_yaml_file(path)
+    if not isinstance(data, Mapping):
+        raise ConfigError("expected a mapping", path=path)
+    dists, planes, dkeys, pkeys = [], [], [], []
+    for key, label, f in _named_entries(data, "distance_measurements", path):
+        t1, t2 = (_tagslam_field(f, k, path, key, int) for k in ("tag1", "tag2"))
+        if t1 in exclude or t2 in exclude:
+            continue
+        dists.append({"from": {"marker": t1, "corner": _tagslam_corner(f, "corner1", path, key)},
+                      "to": {"marker": t2, "corner": _tagslam_corner(f, "corner2", path, key)},
+                      "distance": _tagslam_field(f, "distance", path, key, float),
+                      "std": _tagslam_field(f, "noise", path, key, float), "instrument": f"TagSLAM {label}"})
+        dkeys.append(f"{key} ({label})")
+    for key, label, f in _named_entries(data, "plane_measurements", path):
+        tags = f.get("tags")
+        if not isinstance(tags, list) or not all(isinstance(t, int) and not isinstance(t, bool) for t in tags):
+            raise ConfigError(f"expected a list of tag ids, got {tags!r}", path=path, key=f"{key}.tags")
+        tags = [t for t in tags if t not in exclude]
+        if tags:
+            pkeys.append(f"{key} ({label})")
+            planes.append({"markers": tags, "normal": _tagslam_direction(f, path, key),
+                           "std": _tagslam_field(f, "noise", path, key, float),
+                           "distance": _tagslam_field(f, "distance", path, key, float), "points": "centres",
+                           "instrument": f"TagSLAM {label}"})
+    for key, label, f in _named_entries(data, "coordinate_measurements", path):
+        t = _tagslam_field(f, "tag", path, key, int)
+        if t in exclude:
+            continue
+        corner = _tagslam_corner(f, "corner", path, key)
+        pkeys.append(f"{key} ({label})")
+        planes.append({"markers": [t], "normal": _tagslam_direction(f, path, key),
+                       "std": _tagslam_field(f, "noise", path, key, float),
+                       "distance": _tagslam_field(f, "length", path, key, float),
+                       "points": "centres" if corner == "centre" else corner, "instrument": f"TagSLAM {label}"})
+    if not dists and not planes:
+        return None
+    out = measurements_from_dict({"distances": dists, "planes": planes}, source=source or path)
+    # Messages and the map's record name TagSLAM's entries.
+    out.distances = [dataclasses.replace(d, key=k) for d, k in zip(out.distances, dkeys)]
+    out.planes = [dataclasses.replace(p, key=k) for p, k in zip(out.planes, pkeys)]
+    return out
