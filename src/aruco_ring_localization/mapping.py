@@ -1461,7 +1461,10 @@ class MapBuilder:
         if self.anchors is not None:
             out.anchors = anchor_report(self.anchors, {e.marker_id: e.T_map_marker for e in out}, fit.kind)
             placed = self._add_surveyed_unseen(out)
+            unseen = set(self.surveyed_unseen()[1])       # warned about by _add_surveyed_unseen
             for p in out.anchors["points"]:
+                if p["marker"] in unseen:
+                    continue
                 if p["marker"] in placed:
                     # Its pose is the survey's: no residual to judge, said in the report.
                     del p["mapped"]
