@@ -360,7 +360,7 @@ def _odometry(test: str, src: str, rig_body: str, frames) -> Tuple[Optional[Mapp
     # from tagslam.yaml's odom_acceleration ... (mapping_odometry's per_message model); "per_message":
     # that model with its defaults (TagSLAM's: 5 m/s^2, 5 rad/s^2, maxima 10 x), tagslam.yaml's values unread.
     noise = (found.link_noise() if ODOM_NOISE == "tagslam" else
-             {"noise_model": "per_message"} if ODOM_NOISE == "per_message" else {})
+             {"noise_model": ODOM_NOISE} if ODOM_NOISE in ("per_message", "random_walk") else {})
     opts = MappingOdometryOptions(topic=found.topic, base_to_odom=tuple(float(v) for v in np.r_[tvec, rvec]), **noise)
     if frames:
         keep = stamps <= frames[-1].stamp + 1.0
@@ -1016,10 +1016,10 @@ if __name__ == "__main__":
                                                             "layouts (the ablation of the boards)")
     p.add_argument("--view-limits", action="store_true", help="drop the views TagSLAM drops (tagslam.yaml's "
                                                               "minimum_viewing_angle, minimum_tag_area)")
-    p.add_argument("--odom-noise", choices=("package", "tagslam", "per_message"), default=ODOM_NOISE,
+    p.add_argument("--odom-noise", choices=("package", "tagslam", "per_message", "random_walk"), default=ODOM_NOISE,
                    help="mapping's odometry links: the package's default noise model, tagslam.yaml's "
-                        "(odom_acceleration, odom_translation_noise ...: mapping_odometry's per_message model) or "
-                        "per_message with its defaults (TagSLAM's)")
+                        "(odom_acceleration, odom_translation_noise ...: mapping_odometry's per_message model), or "
+                        "the per_message or random_walk model with its defaults")
     a = p.parse_args()
     ODOM_NOISE = a.odom_noise
     if a.render:

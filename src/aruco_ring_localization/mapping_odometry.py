@@ -17,7 +17,13 @@ odometry poses at the stations' stamps (translation interpolated linearly, rotat
 between the two messages around each stamp; a stamp farther than ``max_gap`` from a message gets no
 link). Nothing about the odom frame itself is used: its drift does not enter.
 
-**Noise model** (per link, 1-sigma on each axis; ``d`` the distance and ``a`` the angle of the
+**Noise model**, ``noise_model``. ``per_message`` (the default; TagSLAM's, from its
+odometry_processor): each odometry message's motion has a sigma, how far it departs from the
+previous message's velocity clamped to ``[message_acceleration, message_acceleration_max] x dt^2``
+(the rotation alike; or fixed ``message_translation_noise`` / ``message_rotation_noise`` when both
+are set), and a link's variance is the sum over the messages it spans (a message partly inside
+the link by that part) plus the interpolation terms below (:meth:`OdometryTrack.message_variances`).
+``random_walk`` (per link, 1-sigma on each axis; ``d`` the distance and ``a`` the angle of the
 link's motion, both from the odometry)::
 
     sigma_trans^2 = min_translation^2 + translation_noise^2 * d + translation_per_second^2 * dt + jumps_trans^2
@@ -26,9 +32,7 @@ link's motion, both from the odometry)::
                     + rotation_per_second^2 * dt + jumps_rot^2 + interp_rot(t_i)^2 + interp_rot(t_j)^2
 
 (a random walk: the variance grows with the distance and the angle travelled, as wheel odometry
-and VIO drift, and with the time ``dt`` between the stations: TagSLAM's odometry model is that
-term alone, ``acceleration * dt_msg^2`` per message of period ``dt_msg``, i.e.
-``translation_per_second = odom_acceleration * dt_msg^1.5``). **Jumps**: an odometry message whose motion departs from the constant-velocity
+and VIO drift, and with the time ``dt`` between the stations). **Jumps** (``random_walk``): an odometry message whose motion departs from the constant-velocity
 prediction of the previous one by more than ``max_acceleration * dt^2`` (``max_angular_acceleration``
 for the rotation) adds that excess to the sigma of the link that spans it (``jumps_*``: root sum of
 squares): a VIO reset or a wheel slip widens its own link instead of bending the map.
@@ -93,7 +97,7 @@ class MappingOdometryOptions:
     max_gap: float = param(0.5, "a station whose stamp is farther than this from an odometry message (before and "
                                 "after) gets no link", unit="s")
     robust_scale: float = param(3.0, "Huber loss of each link beyond this many sigmas (whitened norm); 0: none")
-    noise_model: str = param("random_walk", "noise of a link: random_walk = the terms above (distance, angle, "
+    noise_model: str = param("per_message", "noise of a link: random_walk = the terms above (distance, angle, "
                                             "time); per_message = TagSLAM's: each odometry message's motion has "
                                             "its own sigma (message_*), a link sums those of the messages it "
                                             "spans (the interpolation term still applies; min_*, *_noise, "
@@ -184,10 +188,11 @@ class OdometryTrack:
         out = np.zeros((len(t), 2))
         if len(t) < 3:
             return out
-        D = np.einsum("nji,njk->nik", P[:-1], P[1:])                     # P_k-1^-1 P_k (body frame)
+        # P_k-1^-1 P_k (body frame): rotation R_k-1^T R_k, translation R_k-1^T (t_k - t_k-1). (Not
+        # the 4x4 transpose product, whose translation would be R_k-1^T t_k: the position, not the step.)
         dt = np.maximum(np.diff(t), 1e-3)
-        dx = D[:, :3, 3]
-        da = Rotation.from_matrix(D[:, :3, :3]).as_rotvec()
+        dx = np.einsum("nji,nj->ni", P[:-1, :3, :3], P[1:, :3, 3] - P[:-1, :3, 3])
+        da = Rotation.from_matrix(np.einsum("nji,njk->nik", P[:-1, :3, :3], P[1:, :3, :3])).as_rotvec()
         # Departure of increment k from increment k-1 scaled to its dt (constant velocity).
         ex = np.linalg.norm(dx[1:] - dx[:-1] * (dt[1:] / dt[:-1])[:, None], axis=1) - max_acceleration * dt[1:] ** 2
         ea = np.linalg.norm(da[1:] - da[:-1] * (dt[1:] / dt[:-1])[:, None], axis=1) \

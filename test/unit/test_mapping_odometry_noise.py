@@ -81,3 +81,19 @@ def test_bad_noise_options_are_refused():
         MappingOdometryOptions(message_acceleration=0.0)
     with pytest.raises(ConfigError, match="message_rotation_noise"):
         MappingOdometryOptions(message_rotation_noise=-1.0)
+
+
+def test_jumps_are_judged_on_the_steps_not_on_the_positions():
+    """A smooth turn at constant speed far from the odom frame's origin has no jump (the steps are
+    equal in the body frame); one step displaced by 0.3 m is one, of that size less the allowance.
+    (A product of the 4x4 poses' transposes puts R^T t, the position, where the step belongs, and
+    flags every message of a turn 20 m from the origin.)"""
+    stamps = np.arange(0.0, 3.001, 0.05)
+    centre = np.array([20.0, 5.0, 0.0])
+    poses = np.stack([geo.make_transform(geo.rot_z(0.3 * t), centre + [0.5 * np.cos(0.3 * t), 0.5 * np.sin(0.3 * t), 0])
+                      for t in stamps])
+    track = OdometryTrack(stamps, poses)
+    assert np.all(track.jumps(5.0, 5.0) == 0.0)
+    poses[30, :3, 3] += [0.3, 0.0, 0.0]
+    j = OdometryTrack(stamps, poses).jumps(5.0, 5.0)
+    assert np.count_nonzero(j[:, 0]) >= 1 and j[30, 0] == pytest.approx(0.3 - 5.0 * 0.05 ** 2, abs=0.01)
