@@ -163,6 +163,12 @@ class MappingOptions:
     frame: str = param("floor", "map frame: floor = origin on the floor below the reference marker, z up (the "
                                 "ring base frame's z), x the marker's x made horizontal; marker = the reference "
                                 "marker's own frame (fiducial_slam's convention)")
+    surveyed_unseen: bool = param(True, "with anchors: a surveyed marker with a full pose (position and rotation) "
+                                        "that the recording never detects is put in the map at its surveyed pose "
+                                        "with the survey's std, flagged surveyed_only (it is a marker of the hall "
+                                        "the localizer may see later); a position-only one cannot be and is "
+                                        "reported as not mapped. false: only detected markers are mapped "
+                                        "(build-map --no-surveyed-unseen)")
     ba: BAOptions = section(BAOptions, "bundle adjustment of method refined; the ring extrinsics are refined too, "
                                        "with priors around the calibration (several stations make them observable)",
                             refine_extrinsics=True)
@@ -1379,6 +1385,8 @@ class MapBuilder:
             "station_note": init.station_note,
             "anchor_seeded_groups": len(init.seeds),
             "rejected_detections": dict(self.rejected_detections),
+            "surveyed_only": self.surveyed_unseen()[0],
+            "surveyed_not_mapped": self.surveyed_unseen()[1],
         }
 
     def format_summary(self) -> str:
@@ -1393,6 +1401,11 @@ class MapBuilder:
         if s.get("anchor_seeded_groups"):
             text += (f"; {s['anchor_seeded_groups']} group(s) never seen with the others placed through their "
                      f"surveyed markers")
+        if s["surveyed_only"]:
+            text += (f"; {len(s['surveyed_only'])} surveyed marker(s) never detected, mapped from the survey alone "
+                     f"(surveyed_only): {s['surveyed_only']}")
+        if s["surveyed_not_mapped"]:
+            text += f"; surveyed but never detected, NOT mapped: {s['surveyed_not_mapped']}"
         if s["unlinked"]:
             text += f"; seen but not linked: {s['unlinked']}"
         if s["rejected"]:
@@ -1482,8 +1495,16 @@ class MapBuilder:
             out.quality["station_note"] = init.station_note
         if self.anchors is not None:
             out.anchors = anchor_report(self.anchors, {e.marker_id: e.T_map_marker for e in out}, fit.kind)
+            placed = self._add_surveyed_unseen(out)
+            unseen = set(self.surveyed_unseen()[1])       # warned about by _add_surveyed_unseen
             for p in out.anchors["points"]:
-                if "residual" in p:
+                if p["marker"] in unseen:
+                    continue
+                if p["marker"] in placed:
+                    # Its pose is the survey's: no residual to judge, said in the report.
+                    del p["mapped"]
+                    p["surveyed_only"] = True
+                elif "residual" in p:
                     logger.info("mapping: anchor marker %d mapped %.1f mm (%.1f sigma) from its surveyed position",
                                 p["marker"], 1000 * float(np.linalg.norm(p["residual"])), p["residual_sigmas"])
                 else:
@@ -1503,6 +1524,36 @@ class MapBuilder:
                 out.ring_covariance_cameras = list(self.ring.names)
                 out.ring_extrinsics_covariance = camera_cov_in_optical_frames(res.camera_cov, res.T_base_cams)
         return out
+
+    def surveyed_unseen(self) -> Tuple[List[int], List[int]]:
+        """The surveyed markers the recording never detected: (with a full pose: put in the map from
+        the survey when ``options.surveyed_unseen``; position only: cannot be placed), by id."""
+        if self.anchors is None:
+            return [], []
+        unseen = [a for a in self.anchors.anchors if a.marker_id not in self.seen]
+        full = [a.marker_id for a in unseen if a.rotation is not None]
+        return (full if self.options.surveyed_unseen else []), \
+            [a.marker_id for a in unseen if a.rotation is None or not self.options.surveyed_unseen]
+
+    def _add_surveyed_unseen(self, out: MarkerMap) -> List[int]:
+        """Put the surveyed markers no detection saw (full poses) into ``out`` (whose frame is the
+        surveyed frame) at their surveyed poses with the survey's std, flagged ``surveyed_only``;
+        their ids. Position-only ones are logged as not mapped."""
+        full, missing = self.surveyed_unseen()
+        by_id = {a.marker_id: a for a in self.anchors.anchors} if self.anchors is not None else {}
+        for m in full:
+            a = by_id[m]
+            out.add(MarkerEntry(m, geo.make_transform(a.rotation, a.position), self.sizes(m),
+                                np.asarray(a.position_std, dtype=float).copy(), np.full(3, float(a.rotation_std)), 0,
+                                surveyed_only=True))
+        if full:
+            logger.info("mapping: %d surveyed marker(s) never detected put in the map from the survey alone "
+                        "(surveyed_only, %s): %s", len(full), self.anchors.source, full)
+        if missing and self.anchors is not None:
+            why = "surveyed_unseen is off" if not self.options.surveyed_unseen else "surveyed position only"
+            logger.warning("mapping: surveyed marker(s) %s never detected and not mapped (%s, %s)", missing, why,
+                           self.anchors.source)
+        return full
 
     def save_map(self, path: str, method: Optional[str] = None, backups: int = 1) -> MarkerMap:
         """Build the map (:meth:`build`) and write it to ``path`` atomically (previous file kept as

@@ -17,7 +17,13 @@ odometry poses at the stations' stamps (translation interpolated linearly, rotat
 between the two messages around each stamp; a stamp farther than ``max_gap`` from a message gets no
 link). Nothing about the odom frame itself is used: its drift does not enter.
 
-**Noise model** (per link, 1-sigma on each axis; ``d`` the distance and ``a`` the angle of the
+**Noise model**, ``noise_model``. ``per_message`` (the default; TagSLAM's, from its
+odometry_processor): each odometry message's motion has a sigma, how far it departs from the
+previous message's velocity clamped to ``[message_acceleration, message_acceleration_max] x dt^2``
+(the rotation alike; or fixed ``message_translation_noise`` / ``message_rotation_noise`` when both
+are set), and a link's variance is the sum over the messages it spans (a message partly inside
+the link by that part) plus the interpolation terms below (:meth:`OdometryTrack.message_variances`).
+``random_walk`` (per link, 1-sigma on each axis; ``d`` the distance and ``a`` the angle of the
 link's motion, both from the odometry)::
 
     sigma_trans^2 = min_translation^2 + translation_noise^2 * d + translation_per_second^2 * dt + jumps_trans^2
@@ -26,9 +32,7 @@ link's motion, both from the odometry)::
                     + rotation_per_second^2 * dt + jumps_rot^2 + interp_rot(t_i)^2 + interp_rot(t_j)^2
 
 (a random walk: the variance grows with the distance and the angle travelled, as wheel odometry
-and VIO drift, and with the time ``dt`` between the stations: TagSLAM's odometry model is that
-term alone, ``acceleration * dt_msg^2`` per message of period ``dt_msg``, i.e.
-``translation_per_second = odom_acceleration * dt_msg^1.5``). **Jumps**: an odometry message whose motion departs from the constant-velocity
+and VIO drift, and with the time ``dt`` between the stations). **Jumps** (``random_walk``): an odometry message whose motion departs from the constant-velocity
 prediction of the previous one by more than ``max_acceleration * dt^2`` (``max_angular_acceleration``
 for the rotation) adds that excess to the sigma of the link that spans it (``jumps_*``: root sum of
 squares): a VIO reset or a wheel slip widens its own link instead of bending the map.
@@ -56,6 +60,10 @@ from .config import param
 from .errors import ConfigError
 
 logger = logging.getLogger(__name__)
+
+
+#: ``MappingOdometryOptions.noise_model`` values.
+NOISE_MODELS = ("random_walk", "per_message")
 
 
 @dataclass(frozen=True)
@@ -89,18 +97,43 @@ class MappingOdometryOptions:
     max_gap: float = param(0.5, "a station whose stamp is farther than this from an odometry message (before and "
                                 "after) gets no link", unit="s")
     robust_scale: float = param(3.0, "Huber loss of each link beyond this many sigmas (whitened norm); 0: none")
+    noise_model: str = param("per_message", "noise of a link: random_walk = the terms above (distance, angle, "
+                                            "time); per_message = TagSLAM's: each odometry message's motion has "
+                                            "its own sigma (message_*), a link sums those of the messages it "
+                                            "spans (the interpolation term still applies; min_*, *_noise, "
+                                            "*_per_metre, *_per_second and the jumps term do not)")
+    message_acceleration: float = param(5.0, "per_message: a message's position sigma is how far its motion "
+                                             "departs from the previous message's constant velocity, at least "
+                                             "this x dt^2 (TagSLAM's odom_acceleration, "
+                                             "odom_acceleration_noise_min)", unit="m/s^2")
+    message_acceleration_max: float = param(0.0, "per_message: ... at most this x dt^2 (TagSLAM's "
+                                                 "odom_acceleration_noise_max; 0: 10 x message_acceleration)",
+                                            unit="m/s^2")
+    message_angular_acceleration: float = param(5.0, "per_message: the same for the rotation, at least this x "
+                                                     "dt^2 (odom_angular_acceleration)", unit="rad/s^2")
+    message_angular_acceleration_max: float = param(0.0, "per_message: ... at most this x dt^2 (0: 10 x "
+                                                         "message_angular_acceleration)", unit="rad/s^2")
+    message_translation_noise: float = param(0.0, "per_message: with message_rotation_noise, a fixed position "
+                                                  "sigma per message instead of the acceleration's (TagSLAM's "
+                                                  "odom_translation_noise; 0: not used)", unit="m")
+    message_rotation_noise: float = param(0.0, "per_message: a fixed rotation sigma per message (TagSLAM's "
+                                               "odom_rotation_noise; used only when both are > 0)", unit="rad")
 
     def __post_init__(self) -> None:
         if len(self.base_to_odom) != 6 or not all(np.isfinite(float(v)) for v in self.base_to_odom):
             raise ConfigError(f"expected 6 finite numbers x y z rx ry rz, got {list(self.base_to_odom)!r}",
                               key="base_to_odom")
+        if self.noise_model not in NOISE_MODELS:
+            raise ConfigError(f"expected one of {', '.join(NOISE_MODELS)}, got {self.noise_model!r}",
+                              key="noise_model")
         for key in ("translation_noise", "rotation_noise", "rotation_per_metre", "translation_per_second",
                     "rotation_per_second", "max_acceleration",
-                    "max_angular_acceleration", "max_gap", "robust_scale"):
+                    "max_angular_acceleration", "max_gap", "robust_scale", "message_acceleration_max",
+                    "message_angular_acceleration_max", "message_translation_noise", "message_rotation_noise"):
             v = getattr(self, key)
             if not (np.isfinite(v) and v >= 0):
                 raise ConfigError(f"expected a number >= 0, got {v!r}", key=key)
-        for key in ("min_translation", "min_rotation"):
+        for key in ("min_translation", "min_rotation", "message_acceleration", "message_angular_acceleration"):
             v = getattr(self, key)
             if not (np.isfinite(v) and v > 0):
                 raise ConfigError(f"expected a number > 0, got {v!r}", key=key)
@@ -155,16 +188,50 @@ class OdometryTrack:
         out = np.zeros((len(t), 2))
         if len(t) < 3:
             return out
-        D = np.einsum("nji,njk->nik", P[:-1], P[1:])                     # P_k-1^-1 P_k (body frame)
+        # P_k-1^-1 P_k (body frame): rotation R_k-1^T R_k, translation R_k-1^T (t_k - t_k-1). (Not
+        # the 4x4 transpose product, whose translation would be R_k-1^T t_k: the position, not the step.)
         dt = np.maximum(np.diff(t), 1e-3)
-        dx = D[:, :3, 3]
-        da = Rotation.from_matrix(D[:, :3, :3]).as_rotvec()
+        dx = np.einsum("nji,nj->ni", P[:-1, :3, :3], P[1:, :3, 3] - P[:-1, :3, 3])
+        da = Rotation.from_matrix(np.einsum("nji,njk->nik", P[:-1, :3, :3], P[1:, :3, :3])).as_rotvec()
         # Departure of increment k from increment k-1 scaled to its dt (constant velocity).
         ex = np.linalg.norm(dx[1:] - dx[:-1] * (dt[1:] / dt[:-1])[:, None], axis=1) - max_acceleration * dt[1:] ** 2
         ea = np.linalg.norm(da[1:] - da[:-1] * (dt[1:] / dt[:-1])[:, None], axis=1) \
             - max_angular_acceleration * dt[1:] ** 2
         out[2:, 0] = np.maximum(ex, 0.0)
         out[2:, 1] = np.maximum(ea, 0.0)
+        return out
+
+    def message_variances(self, X: np.ndarray, opts: MappingOdometryOptions) -> np.ndarray:
+        """(N, 2) per message ``k``: the variance (m^2, rad^2) of its motion since message ``k - 1``
+        under the ``per_message`` model (row 0: no motion, 0). With both ``message_translation_noise``
+        and ``message_rotation_noise`` set, those sigmas; else each motion's departure from the
+        previous message's velocity (zero before the first motion), clamped to
+        ``[message_acceleration, message_acceleration_max] x dt^2`` (rotation alike). The motions are
+        the base frame's, ``X · P_k-1^-1 P_k · X^-1``."""
+        t, P, _ = self._sorted()
+        out = np.zeros((len(t), 2))
+        if len(t) < 2:
+            return out
+        if opts.message_translation_noise > 0 and opts.message_rotation_noise > 0:
+            out[1:, 0] = opts.message_translation_noise ** 2
+            out[1:, 1] = opts.message_rotation_noise ** 2
+            return out
+        raw = np.zeros((len(t) - 1, 4, 4))                               # P_k-1^-1 P_k
+        raw[:, :3, :3] = np.einsum("nji,njk->nik", P[:-1, :3, :3], P[1:, :3, :3])
+        raw[:, :3, 3] = np.einsum("nji,nj->ni", P[:-1, :3, :3], P[1:, :3, 3] - P[:-1, :3, 3])
+        raw[:, 3, 3] = 1.0
+        D = X[None] @ raw @ geo.inverse(X)[None]
+        dt = np.maximum(np.diff(t), 1e-3)
+        dx = D[:, :3, 3]
+        da = Rotation.from_matrix(D[:, :3, :3]).as_rotvec()
+        v_prev = np.vstack([np.zeros(3), dx[:-1] / dt[:-1, None]])
+        w_prev = np.vstack([np.zeros(3), da[:-1] / dt[:-1, None]])
+        dpos = np.linalg.norm(dx - v_prev * dt[:, None], axis=1)
+        dang = np.linalg.norm(da - w_prev * dt[:, None], axis=1)
+        amax = opts.message_acceleration_max or 10.0 * opts.message_acceleration
+        wmax = opts.message_angular_acceleration_max or 10.0 * opts.message_angular_acceleration
+        out[1:, 0] = np.clip(dpos, opts.message_acceleration * dt ** 2, amax * dt ** 2) ** 2
+        out[1:, 1] = np.clip(dang, opts.message_angular_acceleration * dt ** 2, wmax * dt ** 2) ** 2
         return out
 
     def interpolation_error(self, stamp: float, max_acceleration: float,
@@ -213,6 +280,10 @@ class OdometryTrack:
         poses = {s: self.pose_at(station_stamps[s], opts.max_gap) for s in order}
         interp = {s: self.interpolation_error(station_stamps[s], opts.max_acceleration, opts.max_angular_acceleration)
                   for s in order}
+        per_message = opts.noise_model == "per_message"
+        if per_message:
+            var = self.message_variances(X, opts)
+            t_prev = np.r_[t_all[:1], t_all[:-1]]                 # message k covers (t_prev[k], t_all[k]]
         I, J, Z, sig = [], [], [], []
         prev = None
         for s in order:
@@ -228,10 +299,20 @@ class OdometryTrack:
                 jt, jr = (np.sqrt(np.sum(jumps[inside] ** 2, axis=0)) if np.any(inside) else (0.0, 0.0))
                 dt = tb - ta
                 (it_a, ir_a), (it_b, ir_b) = interp[prev], interp[s]
-                st = np.sqrt(opts.min_translation ** 2 + opts.translation_noise ** 2 * d
-                             + opts.translation_per_second ** 2 * dt + jt ** 2 + it_a ** 2 + it_b ** 2)
-                sr = np.sqrt(opts.min_rotation ** 2 + opts.rotation_noise ** 2 * a + opts.rotation_per_metre ** 2 * d
-                             + opts.rotation_per_second ** 2 * dt + jr ** 2 + ir_a ** 2 + ir_b ** 2)
+                if per_message:
+                    # The messages' motions the link spans, each by the part of its interval inside
+                    # (ta, tb] (a random walk within a message).
+                    span = np.maximum(t_all - t_prev, 1e-9)
+                    part = np.clip((np.minimum(t_all, tb) - np.maximum(t_prev, ta)) / span, 0.0, 1.0)
+                    vt, vr = part @ var
+                    st = np.sqrt(max(vt + it_a ** 2 + it_b ** 2, 1e-12))
+                    sr = np.sqrt(max(vr + ir_a ** 2 + ir_b ** 2, 1e-12))
+                else:
+                    st = np.sqrt(opts.min_translation ** 2 + opts.translation_noise ** 2 * d
+                                 + opts.translation_per_second ** 2 * dt + jt ** 2 + it_a ** 2 + it_b ** 2)
+                    sr = np.sqrt(opts.min_rotation ** 2 + opts.rotation_noise ** 2 * a
+                                 + opts.rotation_per_metre ** 2 * d + opts.rotation_per_second ** 2 * dt + jr ** 2
+                                 + ir_a ** 2 + ir_b ** 2)
                 I.append(prev)
                 J.append(s)
                 Z.append(D)

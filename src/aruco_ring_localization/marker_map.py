@@ -123,6 +123,8 @@ class MarkerEntry:
         ambiguous: the orientation is one of the two IPPE solutions of views from one viewpoint
             (its rotation_std covers the other solution); another view resolves it.
         rms_px: reprojection RMS of its observations in the map (None: not recorded).
+        surveyed_only: the pose is the survey's alone (an anchor with a full pose that the
+            recording never detected), its std the survey's; no observation went into it.
     """
 
     marker_id: int
@@ -133,6 +135,7 @@ class MarkerEntry:
     observations: int = 0
     ambiguous: bool = False
     rms_px: Optional[float] = None
+    surveyed_only: bool = False
 
     def corners_in_map(self) -> np.ndarray:
         """(4, 3) corners in the map frame, aruco_detect order."""
@@ -217,6 +220,11 @@ class MarkerMap:
     def ids(self) -> List[int]:
         return sorted(self._entries)
 
+    @property
+    def surveyed_only_ids(self) -> List[int]:
+        """The markers whose pose is the survey's alone (:attr:`MarkerEntry.surveyed_only`)."""
+        return [e.marker_id for e in self if e.surveyed_only]
+
     def corners(self, marker_id: int) -> np.ndarray:
         """(4, 3) corners of a mapped marker in the map frame (cached; do not modify)."""
         return self._corners[marker_id]
@@ -242,6 +250,8 @@ class MarkerMap:
                 markers[-1]["rms_px"] = float(e.rms_px)
             if e.ambiguous:
                 markers[-1]["ambiguous"] = True
+            if e.surveyed_only:
+                markers[-1]["surveyed_only"] = True
         out: Dict[str, Any] = {
             "format_version": MAP_FORMAT_VERSION,
             "frame_id": self.frame_id,
@@ -438,7 +448,11 @@ def _entry_from_dict(m: Any, source: str, key: str) -> MarkerEntry:
     rms = m.get("rms_px")
     if rms is not None and (isinstance(rms, bool) or not isinstance(rms, (int, float)) or not rms >= 0):
         raise ConfigError(f"expected a non-negative number of pixels, got {rms!r}", path=source, key=f"{key}.rms_px")
-    return MarkerEntry(mid, T, float(size), pos_std, rot_std, nobs, ambiguous, None if rms is None else float(rms))
+    surveyed_only = m.get("surveyed_only", False)
+    if not isinstance(surveyed_only, bool):
+        raise ConfigError(f"expected true or false, got {surveyed_only!r}", path=source, key=f"{key}.surveyed_only")
+    return MarkerEntry(mid, T, float(size), pos_std, rot_std, nobs, ambiguous, None if rms is None else float(rms),
+                       surveyed_only)
 
 
 def _add_all_vectorised(out: MarkerMap, markers: List[Any]) -> bool:
@@ -455,11 +469,12 @@ def _add_all_vectorised(out: MarkerMap, markers: List[Any]) -> bool:
     sizes = [m.get("size") for m in markers]
     nobs = [m.get("observations", 0) for m in markers]
     ambiguous = [m.get("ambiguous", False) for m in markers]
+    surveyed_only = [m.get("surveyed_only", False) for m in markers]
     rms = [m.get("rms_px") for m in markers]
     if not (all(type(i) is int and i >= 0 for i in ids) and len(set(ids)) == n
             and all(type(v) is int and v >= 0 for v in nobs)
             and all(type(v) in (int, float) for v in sizes)
-            and all(type(v) is bool for v in ambiguous)
+            and all(type(v) is bool for v in ambiguous) and all(type(v) is bool for v in surveyed_only)
             and all(v is None or (type(v) in (int, float) and v >= 0) for v in rms)):
         return False
     fields = {}
@@ -492,7 +507,7 @@ def _add_all_vectorised(out: MarkerMap, markers: List[Any]) -> bool:
         mid = ids[k]
         out._entries[mid] = MarkerEntry(mid, T[k], float(size[k]), fields["position_std"][k],
                                         fields["rotation_std"][k], nobs[k], ambiguous[k],
-                                        None if rms[k] is None else float(rms[k]))
+                                        None if rms[k] is None else float(rms[k]), surveyed_only[k])
         out._corners[mid] = corners[k]
     return True
 

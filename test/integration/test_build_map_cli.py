@@ -116,6 +116,39 @@ def test_build_map_with_anchors(bag_path, tmp_path, capsys):
         f"strict RMS {err['position_rms_mm']:.2f} mm surveyed vs {ref_err['position_rms_mm']:.2f} mm reference"
 
 
+def test_build_map_places_surveyed_markers_the_bag_never_shows(bag_path, tmp_path, capsys):
+    """A surveyed marker with a full pose that the bag never shows is in the map from its survey,
+    flagged and printed; one with a position only is named as not mapped; --no-surveyed-unseen
+    leaves both out."""
+    import yaml
+
+    from aruco_ring_localization.anchors import anchors_yaml, noisy_anchors, spread_markers
+
+    truth = Scene.default().truth_map()
+    T = {m: truth.T_map_marker(m) for m in truth.ids}
+    data = yaml.safe_load(anchors_yaml(noisy_anchors(T, spread_markers(T, 3), 0.001, seed=3)))
+    data["anchors"] += [{"marker": 900, "position": [1.0, 2.0, 1.5], "std": [0.002, 0.002, 0.003],
+                         "rotation": [0.5, 0.5, 0.5, 0.5], "rotation_std_deg": 0.5},
+                        {"marker": 901, "position": [2.0, 2.0, 1.5], "std": 0.002}]
+    anchors = tmp_path / "anchors.yaml"
+    anchors.write_text(yaml.safe_dump(data))
+    out = tmp_path / "map.yaml"
+    assert main(["build-map", str(bag_path), "--ring", RING, "--out", str(out), "--anchors", str(anchors)]) == 0
+    text = capsys.readouterr().out
+    m = MarkerMap.load(str(out))
+    assert m.surveyed_only_ids == [900] and 901 not in m
+    assert np.allclose(m.T_map_marker(900)[:3, 3], [1.0, 2.0, 1.5]) and np.allclose(m[900].position_std,
+                                                                                      [0.002, 0.002, 0.003])
+    assert "surveyed only: 1 surveyed marker(s)" in text and "[900]" in text, text
+    assert "   900 never detected: placed from the survey alone" in text, text
+    assert "NOT in the map" in text and "[901]" in text, text
+    assert main(["build-map", str(bag_path), "--ring", RING, "--out", str(out), "--anchors", str(anchors),
+                 "--no-surveyed-unseen"]) == 0
+    text = capsys.readouterr().out
+    m = MarkerMap.load(str(out))
+    assert 900 not in m and m.surveyed_only_ids == [] and "[900, 901]" in text, text
+
+
 def test_build_map_with_a_bad_anchors_file_names_it(bag_path, tmp_path, capsys):
     anchors = tmp_path / "anchors.yaml"
     anchors.write_text("anchors:\n  - {marker: 17, position: [0, 0, 0], std: 0.001}\n"

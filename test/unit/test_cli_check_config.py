@@ -96,3 +96,14 @@ def test_script_runs_as_a_program(tmp_path):
                          capture_output=True, text=True, env=env, timeout=60)
     assert bad.returncode == 1, bad.stdout + bad.stderr
     assert path in bad.stdout and "cameras[0].name" in bad.stdout, bad.stdout
+
+
+def test_a_map_with_surveyed_only_markers_says_which(tmp_path, capsys):
+    entries = [MarkerEntry(i, geo.transform_from_se2(i, -i, 0.1 * i, z=1.2), 0.2, np.full(3, 0.002), np.zeros(3),
+                           0 if i == 7 else 40, surveyed_only=(i == 7)) for i in (3, 7, 11)]
+    path = str(tmp_path / "map.yaml")
+    MarkerMap(entries, reference_marker=3, method="refined").save(path)
+    assert main(["check-config", "--ring", str(RING_YAML), "--map", path]) == 0
+    out = capsys.readouterr().out
+    assert "surveyed only (never detected while mapping" in out and ": [7]" in out, out
+    assert out.count("surveyed only\n") == 1 and out.count("40 observations") == 2, out

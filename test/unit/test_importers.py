@@ -388,7 +388,25 @@ bodies:
     tags = read_tagslam_tags(str(path), rig_bodies=("rig",))
     pos_std, rot_std = tags.known_noise[3]
     assert np.allclose(pos_std, 0.1) and rot_std == 0.05
-    topic, T, acc, ang = tagslam_odometry(str(path), "rig")
-    assert topic == "/vio/odom" and acc == 2.0 and ang == 5.0
+    odo = tagslam_odometry(str(path), "rig")
+    T = odo.T_body_odom
+    assert odo.topic == "/vio/odom" and odo.acceleration == 2.0 and odo.angular_acceleration == 5.0
+    # TagSLAM's maximum defaults to 10 x the minimum; a fixed noise only when both are set.
+    assert odo.acceleration_max == 20.0 and odo.angular_acceleration_max == 50.0
+    assert odo.translation_noise == 0.0 and odo.rotation_noise == 0.0
+    assert odo.link_noise()["noise_model"] == "per_message" and odo.link_noise()["message_acceleration"] == 2.0
     assert np.allclose(T[:3, 3], [0.1, 0, 0]) and np.allclose(T[:3, :3], np.diag([-1.0, -1.0, 1.0]), atol=1e-6)
     assert tagslam_odometry(str(path), "floor") is None
+    # The newer names win over odom_acceleration; one fixed noise alone is not used (TagSLAM's rule).
+    path.write_text(text.replace("odom_acceleration: 2.0", "odom_acceleration: 2.0\n     "
+                                 "odom_acceleration_noise_min: 3.0\n     odom_acceleration_noise_max: 7.0\n     "
+                                 "odom_translation_noise: 0.02"))
+    odo = tagslam_odometry(str(path), "rig")
+    assert (odo.acceleration, odo.acceleration_max, odo.translation_noise) == (3.0, 7.0, 0.0)
+    path.write_text(text.replace("odom_acceleration: 2.0", "odom_translation_noise: 0.02\n     "
+                                 "odom_rotation_noise: 0.01"))
+    odo = tagslam_odometry(str(path), "rig")
+    assert (odo.translation_noise, odo.rotation_noise, odo.acceleration) == (0.02, 0.01, 5.0)
+    path.write_text(text.replace("odom_acceleration: 2.0", "odom_acceleration: -1"))
+    with pytest.raises(ConfigError, match="odom_acceleration"):
+        tagslam_odometry(str(path), "rig")

@@ -7,7 +7,7 @@ import pytest
 from aruco_ring_localization.anchors import Anchor, AnchorSet, noisy_anchors
 from aruco_ring_localization.errors import MapSanityError
 from aruco_ring_localization.evaluation.maps import map_error
-from aruco_ring_localization.mapping import MapBuilder
+from aruco_ring_localization.mapping import MapBuilder, MappingOptions
 from aruco_ring_localization.marker_map import MarkerMap, check_map
 from aruco_ring_localization.markers import MarkerSizes
 from aruco_ring_localization.simulation.ring_sim import RingSimulator
@@ -139,3 +139,97 @@ def test_both_solvers_give_the_same_surveyed_map(ring, frames, truth):
     assert d < 1e-4, f"lm and trf surveyed maps differ by {1000 * d:.3f} mm"
     assert map_error(maps["trf"], truth)["position_rms_mm"] < map_error(_build(ring, frames, None), truth)[
         "position_rms_mm"]
+
+
+def _without(frames, marker_id):
+    """The frames with every detection of ``marker_id`` removed (a marker the recording never sees)."""
+    import dataclasses
+
+    return [dataclasses.replace(f, cameras={c: dataclasses.replace(cf, observations=[o for o in cf.observations
+                                                                                   if o.marker_id != marker_id])
+                                            for c, cf in f.cameras.items()}) for f in frames]
+
+
+def _with_unseen(truth, unseen_full, unseen_position, std=0.002, rot_std=0.01):
+    """Three spread position anchors plus, for markers no frame shows, one with its full (true) pose
+    and one with its position only."""
+    base = _survey(truth, [m for m in _spread_ids(truth) if m not in (unseen_full, unseen_position)])
+    T, P = truth.T_map_marker(unseen_full), truth.T_map_marker(unseen_position)
+    extra = [Anchor(unseen_full, T[:3, 3].copy(), np.array([std, std, 2 * std]), T[:3, :3].copy(), rot_std,
+                    key="anchors[8]"),
+             Anchor(unseen_position, P[:3, 3].copy(), np.full(3, std), key="anchors[9]")]
+    return AnchorSet(list(base.anchors) + extra, base.frame_id, base.source)
+
+
+def test_a_surveyed_marker_never_seen_is_mapped_from_its_survey(ring, frames, truth, tmp_path):
+    spread = set(_spread_ids(truth))
+    full, position = [m for m in truth.ids if m not in spread][:2]
+    seen = _without(_without(frames, full), position)
+    anchors = _with_unseen(truth, full, position)
+    b = MapBuilder(ring, MarkerSizes(0.2), anchors=anchors)
+    for f in seen:
+        b.add_frame(f)
+    m = b.build()
+    # The full-pose one: in the map at its surveyed pose with the survey's std, flagged; the other not.
+    assert m.surveyed_only_ids == [full] and position not in m
+    e = m[full]
+    assert np.allclose(e.T_map_marker, truth.T_map_marker(full)) and e.observations == 0
+    assert np.allclose(e.position_std, [0.002, 0.002, 0.004]) and np.allclose(e.rotation_std, 0.01)
+    assert not any(x.surveyed_only for x in m if x.marker_id != full)
+    points = {p["marker"]: p for p in m.anchors["points"]}
+    assert points[full].get("surveyed_only") is True and "residual" not in points[full]
+    assert points[position]["mapped"] is False
+    s = b.summary()
+    assert s["surveyed_only"] == [full] and s["surveyed_not_mapped"] == [position]
+    assert f"surveyed but never detected, NOT mapped: [{position}]" in b.format_summary()
+    # Saved and read back with its flag; the sanity checks pass (no residual to judge).
+    path = tmp_path / "map.yaml"
+    m.save(str(path))
+    back = MarkerMap.load(str(path))
+    assert back.surveyed_only_ids == [full] and np.allclose(back[full].position_std, e.position_std)
+    # The option off: only detected markers.
+    off = MapBuilder(ring, MarkerSizes(0.2), anchors=anchors, options=MappingOptions(surveyed_unseen=False))
+    for f in seen:
+        off.add_frame(f)
+    m_off = off.build()
+    assert full not in m_off and m_off.surveyed_only_ids == []
+    assert off.summary()["surveyed_not_mapped"] == [full, position]
+    # A surveyed marker the recording does see is mapped from its detections, never flagged.
+    both = MapBuilder(ring, MarkerSizes(0.2), anchors=anchors)
+    for f in frames:
+        both.add_frame(f)
+    assert both.build().surveyed_only_ids == [] and both.summary()["surveyed_only"] == []
+
+
+def test_the_localizer_uses_a_surveyed_only_marker(ring, frames, truth):
+    """A frame that sees only a marker placed from the survey localizes on it as on the true map
+    (the survey is the marker's true pose here); without the marker the map has nothing to offer."""
+    import dataclasses
+
+    from aruco_ring_localization.localization import LocalizationParams, RingLocalizer
+
+    spread = set(_spread_ids(truth))
+    full, position = [m for m in truth.ids if m not in spread][:2]
+    anchors = _with_unseen(truth, full, position, std=0.0005, rot_std=0.001)
+    b = MapBuilder(ring, MarkerSizes(0.2), anchors=anchors)
+    for f in _without(_without(frames, full), position):
+        b.add_frame(f)
+    m = b.build()
+    only = [dataclasses.replace(f, cameras={c: dataclasses.replace(cf, observations=[o for o in cf.observations
+                                                                                   if o.marker_id == full])
+                                            for c, cf in f.cameras.items()}) for f in frames]
+    only = [f for f in only if f.observation_count()]
+    assert only, "no frame sees the marker"
+    ours = RingLocalizer(ring, m, LocalizationParams(fusion="joint"))
+    true = RingLocalizer(ring, truth, LocalizationParams(fusion="joint"))
+    d = []
+    for f in only:
+        a, t = ours.process(f), true.process(f)
+        assert a.ok == t.ok
+        if a.ok:
+            d.append(float(np.linalg.norm(a.T_map_base[:3, 3] - t.T_map_base[:3, 3])))
+    assert d and max(d) < 1e-3, f"pose differences (m) {d}"
+    without = MapBuilder(ring, MarkerSizes(0.2), anchors=anchors, options=MappingOptions(surveyed_unseen=False))
+    for f in _without(_without(frames, full), position):
+        without.add_frame(f)
+    assert not RingLocalizer(ring, without.build(), LocalizationParams(fusion="joint")).process(only[0]).ok

@@ -353,3 +353,32 @@ def test_map_frame_from_reference_rejects_vertical_x_and_bad_poses():
         map_frame_from_reference(T)
     with pytest.raises(GeometryError, match="reference marker pose"):
         map_frame_from_reference(np.full((4, 4), np.nan))
+
+
+def test_surveyed_only_round_trips_on_both_readers(tmp_path):
+    """The ``surveyed_only`` flag survives a save and a load, on the fast (whole list) reader and the
+    per-marker one (taken when any marker of the list is unusual); a non-boolean names its key."""
+    entries = [MarkerEntry(i, geo.transform_from_se2(i, 0.5 * i, 0.1 * i, z=1.0), 0.2, np.full(3, 0.05),
+                           np.full(3, 0.01), 0 if i == 4 else 30, surveyed_only=(i == 4)) for i in (2, 4, 6)]
+    path = tmp_path / "map.yaml"
+    MarkerMap(entries).save(str(path))
+    data = yaml.safe_load(path.read_text())
+    assert [m.get("surveyed_only", False) for m in data["markers"]] == [False, True, False]
+    assert MarkerMap.load(str(path)).surveyed_only_ids == [4]
+    data["markers"][0]["observations"] = 30.0          # not an int: the per-marker reader names it ...
+    with pytest.raises(ConfigError, match="observations"):
+        MarkerMap.from_dict(data, source="m.yaml")
+    data["markers"][0]["observations"] = 30
+    data["markers"][0]["rms_px"] = None                 # ... here taken by the fast reader as well
+    assert MarkerMap.from_dict(data).surveyed_only_ids == [4]
+    data["markers"][2]["position_std"] = [0.05, 0.05]   # the fast reader declines: the per-marker one reads
+    with pytest.raises(ConfigError, match="position_std"):
+        MarkerMap.from_dict(data, source="m.yaml")
+    data["markers"][2]["position_std"] = [0.05, 0.05, 0.05]
+    data["markers"][2]["ambiguous"] = "no"
+    with pytest.raises(ConfigError, match=r"markers\[2\].ambiguous"):
+        MarkerMap.from_dict(data, source="m.yaml")
+    data["markers"][2]["ambiguous"] = False
+    data["markers"][1]["surveyed_only"] = "yes"
+    with pytest.raises(ConfigError, match=r"markers\[1\].surveyed_only"):
+        MarkerMap.from_dict(data, source="m.yaml")

@@ -239,7 +239,8 @@ def test_a_station_between_slow_odometry_messages_widens_its_links():
     stamps = np.arange(0.0, 2.01, 0.25)
     poses = np.stack([geo.make_transform(geo.rot_z(0.1 * t), [0.3 * t, 0.0, 0.0]) for t in stamps])
     track = OdometryTrack(stamps, poses)
-    opts = MappingOdometryOptions(topic="odom", max_acceleration=4.0, max_angular_acceleration=2.0)
+    opts = MappingOdometryOptions(topic="odom", max_acceleration=4.0, max_angular_acceleration=2.0,
+                                  noise_model="random_walk")
     on = track.links({0: 0.25, 1: 0.5, 2: 0.75}, opts)
     between = track.links({0: 0.25, 1: 0.625, 2: 0.75}, opts)       # station 1 midway between messages
     assert track.interpolation_error(0.5, 4.0, 2.0) == (0.0, 0.0)

@@ -67,6 +67,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--odom-extrinsics", metavar="'X Y Z RX RY RZ'",
                         help="mapping/odometry/base_to_odom: pose of the odometry's body frame (child_frame_id) in "
                              "the ring's base frame, m and rotation vector in rad (TagSLAM's T_body_odom)")
+    parser.add_argument("--no-surveyed-unseen", action="store_true",
+                        help="mapping/surveyed_unseen: false: surveyed markers (--anchors with a full pose) that the "
+                             "bag never shows are left out of the map instead of placed from the survey alone")
     parser.add_argument("--progress", action="store_true", help="progress bar on stderr even when it is not a terminal")
 
 
@@ -81,6 +84,7 @@ def load_config(args: argparse.Namespace) -> MapperConfig:
         "input.ignore_fiducials": args.ignore_fiducials, "input.slop": args.slop, "map.map_frame": args.map_frame,
         "map.anchors_file": args.anchors, "map.boards_file": getattr(args, "boards", None),
         "mapping.frame": args.frame, "mapping.odometry.topic": getattr(args, "odom_topic", None),
+        "mapping.surveyed_unseen": False if getattr(args, "no_surveyed_unseen", False) else None,
         "mapping.odometry.base_to_odom": _six_numbers(getattr(args, "odom_extrinsics", None), "--odom-extrinsics")})
 
 
@@ -182,7 +186,16 @@ def _print_summary(pipeline: MappingPipeline, m, path: str) -> None:
     for e in m:
         t = e.T_map_marker[:3, 3]
         out.write(f"{e.marker_id:>6} {t[0]:>9.3f} {t[1]:>9.3f} {t[2]:>9.3f} "
-                  f"{1000 * float(np.max(e.position_std)):>9.2f} {e.observations:>6}\n")
+                  f"{1000 * float(np.max(e.position_std)):>9.2f} {e.observations:>6}"
+                  f"{'  surveyed only' if e.surveyed_only else ''}\n")
+    if m.surveyed_only_ids:
+        out.write(f"surveyed only: {len(m.surveyed_only_ids)} surveyed marker(s) the bag never shows, in the map at "
+                  f"their surveyed pose with the survey's std (flagged surveyed_only; --no-surveyed-unseen leaves "
+                  f"them out): {m.surveyed_only_ids}\n")
+    if s.get("surveyed_not_mapped"):
+        out.write(f"WARNING: surveyed marker(s) the bag never shows and that are NOT in the map (a surveyed position "
+                  f"alone cannot place a marker's orientation, or --no-surveyed-unseen): "
+                  f"{s['surveyed_not_mapped']}\n")
     if s["ambiguous"]:
         out.write(f"seen from one viewpoint only, orientation ambiguous (mapped with the better solution and a "
                   f"large uncertainty; another view fixes it): {s['ambiguous']}\n")
@@ -192,6 +205,9 @@ def _print_summary(pipeline: MappingPipeline, m, path: str) -> None:
     if m.anchors is not None:
         out.write(f"{'anchor':>6} {'dx (mm)':>9} {'dy (mm)':>9} {'dz (mm)':>9} {'sigmas':>9}\n")
         for p in m.anchors["points"]:
+            if p.get("surveyed_only"):
+                out.write(f"{p['marker']:>6} never detected: placed from the survey alone\n")
+                continue
             if "residual" not in p:
                 out.write(f"{p['marker']:>6} not mapped\n")
                 continue

@@ -56,11 +56,14 @@ def run(args: argparse.Namespace) -> int:
             ambiguous = [e.marker_id for e in m if e.ambiguous]
             if ambiguous:
                 sys.stdout.write(f"  orientation ambiguous (one viewpoint; better IPPE solution kept): {ambiguous}\n")
+            if m.surveyed_only_ids:
+                sys.stdout.write(f"  surveyed only (never detected while mapping: the survey's pose and std, no "
+                                 f"observation behind them): {m.surveyed_only_ids}\n")
             for e in m:
                 t = e.T_map_marker[:3, 3]
                 sys.stdout.write(f"  marker {e.marker_id:4d} size {e.size:.3f} m at ({t[0]:+.3f}, {t[1]:+.3f}, "
                                  f"{t[2]:+.3f}) m, position std {1000 * float(np.max(e.position_std)):.1f} mm, "
-                                 f"{e.observations} observations\n")
+                                 + ("surveyed only\n" if e.surveyed_only else f"{e.observations} observations\n"))
         except ConfigError as exc:
             sys.stdout.write(f"map: ERROR {exc}\n")
             ok = False

@@ -9,7 +9,8 @@
 from __future__ import annotations
 
 from .rig import ImportedCamera, ImportedRig, read_rig, write_ring_files
-from .tagslam import TagslamTags, read_tagslam_tags, tagslam_anchors, tagslam_boards, tagslam_odometry
+from .tagslam import TagslamOdometry, TagslamTags, read_tagslam_tags, tagslam_anchors, tagslam_boards, tagslam_odometry
 
 __all__ = ["ImportedCamera", "ImportedRig", "read_rig", "write_ring_files", "TagslamTags", "read_tagslam_tags",
-           "tagslam_anchors", "tagslam_boards", "tagslam_odometry"]
+           "tagslam_anchors", "tagslam_boards", "tagslam_odometry",
+           "TagslamOdometry"]

@@ -157,12 +157,46 @@ def _override_noise(body: Mapping[str, Any], path: str, key: str) -> Optional[Tu
     return np.full(3, float(p)), float(r)
 
 
-def tagslam_odometry(path: str, rig_body: str) -> Optional[Tuple[str, np.ndarray, float, float]]:
-    """``(odom_topic, T_body_odom, odom_acceleration, odom_angular_acceleration)`` of the rig body of
-    a ``tagslam.yaml``, or None when it has no odometry: the topic of its nav_msgs/Odometry, the
-    pose of the odometry's frame in the rig body (``mapping.odometry.base_to_odom`` when the ring's
-    base frame is the rig body; identity when the file omits it, as TagSLAM assumes), and TagSLAM's
-    noise parameters (m/s^2, rad/s^2; its default 5 when omitted)."""
+@dataclass(frozen=True)
+class TagslamOdometry:
+    """The odometry of a ``tagslam.yaml``'s rig body (:func:`tagslam_odometry`).
+
+    Attributes:
+        topic: its nav_msgs/Odometry topic (``odom_topic``).
+        T_body_odom: (4, 4) the pose of the odometry's frame in the rig body (identity when omitted).
+        acceleration, acceleration_max: TagSLAM's adaptive noise bounds, m/s^2
+            (``odom_acceleration_noise_min`` or the older ``odom_acceleration``, default 5;
+            ``odom_acceleration_noise_max``, default 10 x the minimum).
+        angular_acceleration, angular_acceleration_max: the same for the rotation, rad/s^2.
+        translation_noise, rotation_noise: TagSLAM's fixed per-message sigmas (``odom_translation_noise``,
+            ``odom_rotation_noise``, m and rad; 0 when omitted: TagSLAM then uses the adaptive noise,
+            as it does unless both are set).
+    """
+
+    topic: str
+    T_body_odom: np.ndarray
+    acceleration: float = 5.0
+    acceleration_max: float = 50.0
+    angular_acceleration: float = 5.0
+    angular_acceleration_max: float = 50.0
+    translation_noise: float = 0.0
+    rotation_noise: float = 0.0
+
+    def link_noise(self) -> Dict[str, Any]:
+        """``mapping.odometry`` keys for TagSLAM's noise of these messages (``noise_model:
+        per_message``: a sigma per message, summed over the messages a link spans)."""
+        return {"noise_model": "per_message", "message_acceleration": self.acceleration,
+                "message_acceleration_max": self.acceleration_max,
+                "message_angular_acceleration": self.angular_acceleration,
+                "message_angular_acceleration_max": self.angular_acceleration_max,
+                "message_translation_noise": self.translation_noise, "message_rotation_noise": self.rotation_noise}
+
+
+def tagslam_odometry(path: str, rig_body: str) -> Optional[TagslamOdometry]:
+    """The odometry of the rig body of a ``tagslam.yaml`` (:class:`TagslamOdometry`), or None when it
+    has none: the topic of its nav_msgs/Odometry, the pose of the odometry's frame in the rig body
+    (``mapping.odometry.base_to_odom`` when the ring's base frame is the rig body; identity when the
+    file omits it, as TagSLAM assumes), and TagSLAM's noise parameters with TagSLAM's defaults."""
     data = load_yaml_file(path)
     if not isinstance(data, Mapping):
         raise ConfigError("expected a mapping", path=path)
@@ -172,13 +206,24 @@ def tagslam_odometry(path: str, rig_body: str) -> Optional[Tuple[str, np.ndarray
         T = np.eye(4)
         if body.get("T_body_odom") is not None:
             T = _pose(body["T_body_odom"], path, f"bodies[{i}].{name}.T_body_odom")
-        acc = []
-        for name_ in ("odom_acceleration", "odom_angular_acceleration"):
-            v = body.get(name_, 5.0)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v <= 0:
-                raise ConfigError(f"expected a positive number, got {v!r}", path=path, key=f"bodies[{i}].{name}.{name_}")
-            acc.append(float(v))
-        return str(body["odom_topic"]), T, acc[0], acc[1]
+
+        def value(key: str, default: float, positive: bool = True) -> float:
+            v = body.get(key, default)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) \
+                    or (v <= 0 if positive else False):
+                raise ConfigError(f"expected a {'positive ' if positive else ''}number, got {v!r}", path=path,
+                                  key=f"bodies[{i}].{name}.{key}")
+            return float(v)
+
+        # TagSLAM's rules: the older name gives the minimum's default, the maximum is 10 x the
+        # minimum unless set; a fixed noise (<= 0: not set) replaces the adaptive one only when both are set.
+        acc = value("odom_acceleration_noise_min", value("odom_acceleration", 5.0))
+        ang = value("odom_angular_acceleration_noise_min", value("odom_angular_acceleration", 5.0))
+        fixed = [max(value(k, -1.0, positive=False), 0.0) for k in ("odom_translation_noise", "odom_rotation_noise")]
+        if not (fixed[0] > 0 and fixed[1] > 0):
+            fixed = [0.0, 0.0]
+        return TagslamOdometry(str(body["odom_topic"]), T, acc, value("odom_acceleration_noise_max", 10.0 * acc),
+                               ang, value("odom_angular_acceleration_noise_max", 10.0 * ang), fixed[0], fixed[1])
     return None
 
 

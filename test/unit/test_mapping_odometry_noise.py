@@ -1,0 +1,99 @@
+"""mapping_odometry's per_message noise model (TagSLAM's odometry noise): a sigma per odometry
+message, summed over the messages a link between two stations spans."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from aruco_ring_localization import geometry as geo
+from aruco_ring_localization.errors import ConfigError
+from aruco_ring_localization.mapping_odometry import MappingOdometryOptions, OdometryTrack
+
+
+def _track(accelerate_at: float = 1.0):
+    """Odometry at 10 Hz moving along x at 0.5 m/s, turning at 0.2 rad/s, speeding up to 1 m/s at
+    ``accelerate_at`` s."""
+    stamps = np.round(np.arange(0.0, 2.001, 0.1), 6)
+    x = np.where(stamps <= accelerate_at, 0.5 * stamps, 0.5 * accelerate_at + 1.0 * (stamps - accelerate_at))
+    poses = np.stack([geo.make_transform(geo.rot_z(0.2 * t), [xi, 0.0, 0.0]) for t, xi in zip(stamps, x)])
+    return stamps, OdometryTrack(stamps, poses)
+
+
+def test_a_message_sigma_is_its_departure_from_constant_velocity_clamped():
+    stamps, track = _track()
+    opts = MappingOdometryOptions(topic="odom", noise_model="per_message", message_acceleration=1.0,
+                                  message_acceleration_max=30.0, message_angular_acceleration=0.5)
+    var = track.message_variances(np.eye(4), opts)
+    dt = 0.1
+    assert var[0].tolist() == [0.0, 0.0]
+    # First motion: TagSLAM starts from zero velocity, so its whole step departs (0.05 m; 0.02 rad).
+    assert np.sqrt(var[1, 0]) == pytest.approx(0.05, rel=1e-3)
+    assert np.sqrt(var[1, 1]) == pytest.approx(0.02, rel=1e-3)
+    # Constant velocity: the floor, message_acceleration x dt^2 (message_angular_acceleration's for the turn).
+    assert np.sqrt(var[5, 0]) == pytest.approx(1.0 * dt ** 2, rel=1e-6)
+    assert np.sqrt(var[5, 1]) == pytest.approx(0.5 * dt ** 2, rel=1e-6)
+    # Speeding up from 0.5 to 1 m/s after t = 1 s: the step to 1.1 s departs by 0.05 m (the turn
+    # changes its direction a little), the next one is at constant velocity again.
+    k = int(np.argmin(np.abs(stamps - 1.1)))
+    assert np.sqrt(var[k, 0]) == pytest.approx(0.05, rel=0.02)
+    assert np.sqrt(var[k + 1, 0]) == pytest.approx(1.0 * dt ** 2, rel=1e-6)
+    # The ceiling: message_acceleration_max x dt^2.
+    tight = MappingOdometryOptions(topic="odom", noise_model="per_message", message_acceleration=1.0,
+                                   message_acceleration_max=2.0)
+    assert np.sqrt(track.message_variances(np.eye(4), tight)[k, 0]) == pytest.approx(2.0 * dt ** 2, rel=1e-6)
+
+
+def test_fixed_noise_replaces_the_adaptive_one_only_with_both():
+    _, track = _track()
+    both = MappingOdometryOptions(topic="odom", noise_model="per_message", message_translation_noise=0.02,
+                                  message_rotation_noise=0.01)
+    var = track.message_variances(np.eye(4), both)
+    assert np.allclose(var[1:, 0], 0.02 ** 2) and np.allclose(var[1:, 1], 0.01 ** 2)
+    one = MappingOdometryOptions(topic="odom", noise_model="per_message", message_translation_noise=0.02)
+    assert not np.allclose(track.message_variances(np.eye(4), one)[1:, 0], 0.02 ** 2)
+
+
+def test_a_link_sums_the_messages_it_spans():
+    stamps, track = _track()
+    opts = MappingOdometryOptions(topic="odom", noise_model="per_message", message_acceleration=1.0,
+                                  message_angular_acceleration=0.5, robust_scale=0.0)
+    X = geo.make_transform(geo.rot_z(0.3), [0.1, 0.05, 0.0])      # the odometry's body off the base frame
+    var = track.message_variances(X, opts)
+    f = track.links({0: 0.3, 1: 0.8, 2: 1.5}, opts)
+    for k, (a, b) in enumerate([(0.3, 0.8), (0.8, 1.5)]):
+        inside = (stamps > a + 1e-9) & (stamps <= b + 1e-9)
+        assert f.sigma[k, 3] == pytest.approx(np.sqrt(var[inside, 0].sum()), rel=1e-6)
+        assert f.sigma[k, 0] == pytest.approx(np.sqrt(var[inside, 1].sum()), rel=1e-6)
+    # A station between two messages takes the part of the message's interval it spans (plus the
+    # interpolation's own term, as in the random-walk model).
+    half = track.links({0: 0.3, 1: 0.35}, opts)
+    it = opts.max_acceleration * 0.05 * 0.05 / 2
+    assert half.sigma[0, 3] == pytest.approx(np.sqrt(0.5 * var[4, 0] + it ** 2), rel=1e-6)
+    # The random-walk model of the same links is another noise.
+    rw = track.links({0: 0.3, 1: 0.8, 2: 1.5}, MappingOdometryOptions(topic="odom", robust_scale=0.0))
+    assert not np.allclose(rw.sigma, f.sigma)
+
+
+def test_bad_noise_options_are_refused():
+    with pytest.raises(ConfigError, match="noise_model"):
+        MappingOdometryOptions(noise_model="tagslam")
+    with pytest.raises(ConfigError, match="message_acceleration"):
+        MappingOdometryOptions(message_acceleration=0.0)
+    with pytest.raises(ConfigError, match="message_rotation_noise"):
+        MappingOdometryOptions(message_rotation_noise=-1.0)
+
+
+def test_jumps_are_judged_on_the_steps_not_on_the_positions():
+    """A smooth turn at constant speed far from the odom frame's origin has no jump (the steps are
+    equal in the body frame); one step displaced by 0.3 m is one, of that size less the allowance.
+    (A product of the 4x4 poses' transposes puts R^T t, the position, where the step belongs, and
+    flags every message of a turn 20 m from the origin.)"""
+    stamps = np.arange(0.0, 3.001, 0.05)
+    centre = np.array([20.0, 5.0, 0.0])
+    poses = np.stack([geo.make_transform(geo.rot_z(0.3 * t), centre + [0.5 * np.cos(0.3 * t), 0.5 * np.sin(0.3 * t), 0])
+                      for t in stamps])
+    track = OdometryTrack(stamps, poses)
+    assert np.all(track.jumps(5.0, 5.0) == 0.0)
+    poses[30, :3, 3] += [0.3, 0.0, 0.0]
+    j = OdometryTrack(stamps, poses).jumps(5.0, 5.0)
+    assert np.count_nonzero(j[:, 0]) >= 1 and j[30, 0] == pytest.approx(0.3 - 5.0 * 0.05 ** 2, abs=0.01)
