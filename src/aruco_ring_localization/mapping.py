@@ -63,13 +63,13 @@ from typing import Any, Dict, Hashable, List, Optional, Sequence, Tuple
 import numpy as np
 
 from . import geometry as geo
-from .anchors import (AnchorSet, Measurements, anchor_report, check_measurement_report, fit_frame, frame_definition,
+from .anchors import (AnchorSet, Measurements, anchor_report, fit_frame, frame_definition,
                       frame_kind, measurement_report)
 from .boards import BoardSet, collapse, expand_covariances, expand_poses, fit_board_pose, solve_board_view
 from .bundle_adjustment import (BAOptions, BAProblem, BAResult, MarkerPriors, RelativePoseFactors, bundle_adjust,
                                 camera_cov_in_optical_frames, marker_std_in_frame, observation_rms_px)
 from .config import in_radians, param, section
-from .errors import ArucoRingError, ConfigError, GeometryError, MapSanityError, MeasurementError
+from .errors import ArucoRingError, ConfigError, GeometryError, MeasurementError
 from .detections import RingFrame, simultaneous_parts
 from .mapping_odometry import MappingOdometryOptions, OdometryTrack
 from .marker_map import MapSanityLimits, MarkerEntry, MarkerMap, map_frame_from_reference
@@ -1567,9 +1567,6 @@ class MapBuilder:
             it, the markers and what to do); ConfigError: the file cannot be written.
         """
         m = self.build(method)
-        problems = check_measurement_report(m.quality.get("survey_measurements"), self.options.sanity.max_anchor_sigmas)
-        if problems:
-            raise MapSanityError(problems, path=str(path))
         m.save(path, self.options.sanity, backups=backups)
         return m
 

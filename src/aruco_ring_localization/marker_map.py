@@ -64,7 +64,7 @@ from .config import param
 from .errors import ConfigError, GeometryError, MapSanityError
 from .fileio import atomic_write_text
 from .markers import marker_corners
-from .anchors import check_anchor_report
+from .anchors import check_anchor_report, check_measurement_report
 
 logger = logging.getLogger(__name__)
 
@@ -644,6 +644,8 @@ def check_map(m: "MarkerMap", limits: Optional[MapSanityLimits] = None, ring: An
       every marker's (``rms_px``) are within ``max_rms_px``;
     * ``anchors``: every surveyed marker is mapped within ``max_anchor_sigmas`` of its survey std
       from its surveyed position (:func:`anchors.check_anchor_report`);
+    * ``measurements``: every surveyed distance and plane (``quality.survey_measurements``) is met
+      within ``max_anchor_sigmas`` of its std (:func:`anchors.check_measurement_report`);
     * ``extrinsics``: refined ring extrinsics moved at most ``max_extrinsics_sigmas`` prior standard
       deviations from the calibration (recorded ``moved``; and against ``ring``'s calibration,
       a :class:`~aruco_ring_localization.ring.CameraRing`, when given: what ``check-config`` does).
@@ -693,6 +695,8 @@ def check_map(m: "MarkerMap", limits: Optional[MapSanityLimits] = None, ring: An
                             f"with refine_extrinsics: false")
     if m.anchors is not None:
         problems += check_anchor_report(m.anchors, lim.max_anchor_sigmas)
+    if isinstance(m.quality, Mapping):
+        problems += check_measurement_report(m.quality.get("survey_measurements"), lim.max_anchor_sigmas)
     return problems
 
 

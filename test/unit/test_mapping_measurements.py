@@ -7,7 +7,7 @@ import pytest
 from aruco_ring_localization.anchors import anchors_from_dict, noisy_anchors
 from aruco_ring_localization.errors import ConfigError, MapSanityError
 from aruco_ring_localization.mapping import MapBuilder
-from aruco_ring_localization.marker_map import MarkerMap
+from aruco_ring_localization.marker_map import MarkerMap, check_map
 from aruco_ring_localization.markers import MarkerSizes, marker_corners
 from aruco_ring_localization.simulation.ring_sim import RingSimulator
 from aruco_ring_localization.simulation.scene import Scene
@@ -75,6 +75,12 @@ def test_a_mistyped_distance_stops_the_save(ring, frames, truth, tmp_path):
     with pytest.raises(MapSanityError) as exc:
         builder.save_map(str(path))
     assert "distances[0]" in str(exc.value) and "tape.yaml" in str(exc.value)
+    assert not path.exists()
+    # The check is the map's own (check_map): a direct MarkerMap.save refuses it too.
+    m = builder.build("refined")
+    assert any(p.startswith("measurements: distances[0]") for p in check_map(m))
+    with pytest.raises(MapSanityError):
+        m.save(str(path))
     assert not path.exists()
 
 
