@@ -24,6 +24,17 @@ Steps:
    the hand-eye values (they only hold the ring's common motion, the gauge; the data decide the
    cameras relative to each other). Observations that still reproject badly are dropped and the
    adjustment redone once.
+4b. **A declared wiggle** (the ring file's per-camera ``wiggle``, e.g. TagSLAM's
+   ``wiggle_rotation`` / ``wiggle_translation`` through ``import-kalibr``; ``options.wiggle`` "off"
+   ignores it): such a camera is not rigid on the ring, and its extrinsics are the fixed pose it
+   wiggles about, not a rigid ring's best fit (which weighs the frames by what they see and is
+   pulled towards the poses of the frames that see most). On ``wiggle_max_frames`` robot poses of
+   the adjustment (evenly spread: the stage's unknowns grow with frames x cameras), every
+   (frame, wiggling camera) gets its own pose tied to the camera's fixed pose by a prior of the
+   declared std (:func:`wiggle_adjust`, 1 px corner noise and no robust loss: the model the
+   declared std belong to); the fixed poses by alternation from the rigid answer, each the
+   (over-relaxed) mean of its per-frame poses (:func:`solve_wiggle`). The rigid answer is kept
+   (:attr:`RingCalibration.rigid_ring`). The stage sees the observations the rigid adjustment kept.
 5. **base_link from the motion.** The ring is then placed in base_link: its z axis along the
    robot's rotation axis (turning), its origin (x, y) at the centre of the turns on the spot; with
    odometry the full pose by hand-eye against it (heading included), with a known map in a
@@ -35,7 +46,9 @@ gauge) projected out, in the camera's optical frame (the ring file's ``extrinsic
 convention): how well each camera is known relative to the others (the ring's common
 motion, i.e. base_link's definition, is what the warnings are about). Scaled by the measured
 corner noise and inflated for the correlation of a marker's residuals from one frame to the next
-(:func:`residual_lag1_correlation`): a detector errs alike on near-identical views.
+(:func:`residual_lag1_correlation`): a detector errs alike on near-identical views. A wiggling
+camera's adds the declared wiggle over the square root of its frames in the wiggle stage (the
+fixed pose is the mean of that many per-frame poses).
 """
 from __future__ import annotations
 
