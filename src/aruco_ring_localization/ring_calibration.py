@@ -29,7 +29,8 @@ Steps:
    ignores it): such a camera is not rigid on the ring, and its extrinsics are the fixed pose it
    wiggles about, not a rigid ring's best fit (which weighs the frames by what they see and is
    pulled towards the poses of the frames that see most). On ``wiggle_max_frames`` robot poses of
-   the adjustment (evenly spread: the stage's unknowns grow with frames x cameras), every
+   the adjustment, fewer when they would make more than ``wiggle_max_poses`` (frame, wiggling
+   camera) poses (evenly spread: the stage's cost grows with those poses), every
    (frame, wiggling camera) gets its own pose tied to the camera's fixed pose by a prior of the
    declared std (:func:`wiggle_adjust`, 1 px corner noise and no robust loss: the model the
    declared std belong to); the fixed poses by alternation from the rigid answer, each the
@@ -98,6 +99,7 @@ class CalibrationOptions:
     # "off" calibrates a rigid ring whatever the ring file says.
     wiggle: str = "auto"
     wiggle_max_frames: int = 200     # robot poses of the rigid adjustment used by the wiggle stage (evenly spread)
+    wiggle_max_poses: int = 800      # and at most this many (frame, wiggling camera) poses: its cost grows with them
     wiggle_rounds: int = 4           # alternation rounds (per-frame poses, then the fixed poses)
     wiggle_relax: float = 2.0        # over-relaxation of the fixed poses' step (see relaxed_step)
     wiggle_pixel_noise: float = 1.0  # px; with the declared std it sets the model (TagSLAM's: 1 px)
@@ -106,9 +108,10 @@ class CalibrationOptions:
     def __post_init__(self) -> None:
         if self.wiggle not in ("auto", "off"):
             raise ConfigError(f"expected auto or off, got {self.wiggle!r}", key="wiggle")
-        if self.wiggle_max_frames < 3 or self.wiggle_rounds < 1 or not self.wiggle_relax > 0:
-            raise ConfigError(f"wiggle_max_frames >= 3, wiggle_rounds >= 1 and wiggle_relax > 0 expected, got "
-                              f"{self.wiggle_max_frames}, {self.wiggle_rounds}, {self.wiggle_relax}",
+        if self.wiggle_max_frames < 3 or self.wiggle_max_poses < 3 or self.wiggle_rounds < 1 or not self.wiggle_relax > 0:
+            raise ConfigError(f"wiggle_max_frames >= 3, wiggle_max_poses >= 3, wiggle_rounds >= 1 and wiggle_relax > 0 "
+                              f"expected, got {self.wiggle_max_frames}, {self.wiggle_max_poses}, {self.wiggle_rounds}, "
+                              f"{self.wiggle_relax}",
                               key="wiggle_max_frames")
 
 
@@ -545,7 +548,8 @@ def _wiggle_stage(res: BAResult, names: List[str], wiggling: List[bool], rot: fl
     c0 = time.process_time()
     prob = res.problem        # type: ignore[attr-defined]
     S = len(res.T_W_stations)
-    stations = np.unique(np.linspace(0, S - 1, min(opts.wiggle_max_frames, S)).round().astype(int))
+    n_frames = min(opts.wiggle_max_frames, max(3, opts.wiggle_max_poses // max(1, sum(wiggling))), S)
+    stations = np.unique(np.linspace(0, S - 1, n_frames).round().astype(int))
     rigid = list(res.T_base_cams)
     fixed, fits = solve_wiggle(res, prob, rigid, wiggling, rot, trans, rounds=opts.wiggle_rounds,
                                relax=opts.wiggle_relax, pixel_noise=opts.wiggle_pixel_noise, loss=opts.wiggle_loss,

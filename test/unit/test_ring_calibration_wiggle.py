@@ -116,3 +116,5 @@ def test_declared_wiggle_and_its_option():
         rc.CalibrationOptions(wiggle="on")
     with pytest.raises(ConfigError, match="wiggle_max_frames"):
         rc.CalibrationOptions(wiggle_max_frames=1)
+    with pytest.raises(ConfigError, match="wiggle_max_poses"):
+        rc.CalibrationOptions(wiggle_max_poses=2)
