@@ -1,5 +1,7 @@
 """Is the gap to TagSLAM's camera poses its per-frame "wiggle"? A re-enactment of its camera model.
 
+The model itself is the package's (``calibrate-ring``'s wiggle stage: :func:`ring_calibration.wiggle_adjust`,
+:func:`ring_calibration.solve_wiggle`); this script measures its walk against TagSLAM's poses.
 TagSLAM's cameras.yaml of tests 5 and 6 gives every camera ``wiggle_rotation: 0.01`` (rad) and
 ``wiggle_translation: 0.01`` (m): each frame gets its own camera pose, tied to the camera's nominal
 pose (the one in reference.bag) by a prior with those sigmas, with a corner noise of 1 px and no
@@ -26,40 +28,15 @@ sys.path.insert(0, os.path.join(os.path.dirname(HERE), "src"))
 sys.path.insert(0, HERE)
 
 from aruco_ring_localization import geometry as geo  # noqa: E402
-from aruco_ring_localization.bundle_adjustment import BAOptions, BAProblem, bundle_adjust  # noqa: E402
+from aruco_ring_localization.ring_calibration import CalibrationOptions, solve_wiggle, wiggle_adjust  # noqa: E402
 
 
 def wiggle_fit(cal, nominal: Sequence[np.ndarray], rot_sigma: float = 0.01, trans_sigma: float = 0.01,
                pixel_noise: float = 1.0, max_nfev: int = 60) -> Dict[str, object]:
-    """TagSLAM's wiggle model on the calibration's observations around the ``nominal`` ring (camera 0
-    kept where our adjustment has it): per-frame camera poses with priors ``rot_sigma`` (rad),
-    ``trans_sigma`` (m); returns the per-frame poses by camera, the corner RMS (px) and the cost
-    split into corners and priors (in sigmas squared)."""
-    res, prob = cal.ba, cal.ba.problem
-    nominal = np.asarray(nominal)
-    C = len(nominal)
-    D = res.T_base_cams[0] @ geo.inverse(nominal[0])
-    pairs, inv = np.unique(prob.obs_station * C + prob.obs_camera, return_inverse=True)
-    cams = np.stack([nominal[p % C] for p in pairs])
-    sub = BAProblem(T_W_markers=res.T_W_markers, sizes=prob.sizes, T_W_stations=res.T_W_stations @ D,
-                    T_base_cams=cams, obs_marker=prob.obs_marker, obs_station=prob.obs_station,
-                    obs_camera=inv.astype(int), obs_xy=prob.obs_xy, obs_focal=prob.obs_focal,
-                    fixed_marker=prob.fixed_marker, fixed_station=None, obs_lens=prob.obs_lens)
-    out = bundle_adjust(sub, BAOptions(pixel_noise=pixel_noise, loss="linear", refine_extrinsics=True,
-                                       extrinsics_trans_sigma=trans_sigma,
-                                       extrinsics_rot_sigma_deg=float(np.degrees(rot_sigma)),
-                                       covariance=False, max_nfev=max_nfev))
-    per_cam: Dict[int, List[np.ndarray]] = {}
-    prior = 0.0
-    for k, p in enumerate(pairs):
-        T = out.T_base_cams[k]
-        per_cam.setdefault(int(p % C), []).append(T)
-        d = geo.inverse(nominal[p % C]) @ T
-        w = geo.rotation_angle(d[:3, :3])
-        prior += (w / rot_sigma) ** 2 + float(np.sum(((T[:3, 3] - nominal[p % C][:3, 3]) / trans_sigma) ** 2))
-    corners = float(np.sum((out.per_obs_rms_px ** 2) * 8) / pixel_noise ** 2)
-    return {"per_cam": per_cam, "rms_px": float(out.rms_px_after), "cost_corners": corners, "cost_priors": prior,
-            "cost": corners + prior}
+    """TagSLAM's wiggle model on the calibration's observations around the ``nominal`` ring, every
+    camera wiggling (:func:`ring_calibration.wiggle_adjust`, the package's wiggle stage)."""
+    return wiggle_adjust(cal.ba, cal.ba.problem, nominal, [True] * len(nominal), rot_sigma, trans_sigma,
+                         pixel_noise=pixel_noise, loss="linear", max_nfev=max_nfev)
 
 
 def rel_errors(a: Sequence[np.ndarray], b: Sequence[np.ndarray]) -> List[tuple]:
@@ -71,28 +48,20 @@ def rel_errors(a: Sequence[np.ndarray], b: Sequence[np.ndarray]) -> List[tuple]:
     return out
 
 
-def relaxed_step(nominal: np.ndarray, mean: np.ndarray, relax: float) -> np.ndarray:
-    """``nominal`` moved ``relax`` times its way to ``mean`` (1: onto it; 2: over-relaxed, twice as
-    far: the alternation's error shrinks by roughly half a round, so a step of 2 lands near the
-    fixed point), on SE(3) as rotation vector and translation."""
-    d = geo.inverse(nominal) @ mean
-    r, t = geo.rvec_tvec_from_transform(d)
-    return nominal @ geo.transform_from_rvec_tvec(relax * np.asarray(r), relax * np.asarray(t))
-
-
 def walk(cal, start: Sequence[np.ndarray], tagslam: Sequence[np.ndarray], ours: Sequence[np.ndarray], rounds: int,
          relax: float = 1.0) -> List[Dict[str, object]]:
-    """The alternation from ``start``: per round the wiggle fit's cost and the nominal ring's
-    distance to TagSLAM's and to ours (``relax``: :func:`relaxed_step`)."""
-    nominal = [np.asarray(T) for T in start]
-    steps = []
-    for _ in range(rounds):
-        f = wiggle_fit(cal, nominal)
+    """The alternation from ``start`` (:func:`ring_calibration.solve_wiggle`, TagSLAM's 0.01 rad / 0.01 m,
+    1 px, no robust loss): per round the wiggle fit's cost and the nominal ring's distance to
+    TagSLAM's and to ours (``relax``: :func:`ring_calibration.relaxed_step`)."""
+    steps: List[Dict[str, object]] = []
+
+    def measure(_round, nominal, f) -> None:
         steps.append({"cost": round(f["cost"], 1), "cost_corners": round(f["cost_corners"], 1),
                       "cost_priors": round(f["cost_priors"], 1), "rms_px": round(f["rms_px"], 4),
                       "vs_tagslam": rel_errors(nominal, tagslam), "vs_ours": rel_errors(nominal, ours)})
-        nominal = [relaxed_step(nominal[k], geo.average_transforms(f["per_cam"][k]), relax) if k in f["per_cam"]
-                   else nominal[k] for k in range(len(nominal))]
+
+    nominal, _ = solve_wiggle(cal.ba, cal.ba.problem, start, [True] * len(start), 0.01, 0.01, rounds=rounds,
+                              relax=relax, pixel_noise=1.0, loss="linear", callback=measure)
     steps.append({"vs_tagslam": rel_errors(nominal, tagslam), "vs_ours": rel_errors(nominal, ours)})
     return steps
 
@@ -110,7 +79,7 @@ if __name__ == "__main__":
     relax = float(sys.argv[4]) if len(sys.argv) > 4 else 1.0
     bcr.OUT = os.path.join(bcr.ROOT, "results", "bench", "real_calibration_wiggle")
     c0 = time.process_time()
-    r = bcr.calibrate_test(test, max_frames=n)
+    r = bcr.calibrate_test(test, max_frames=n, options=CalibrationOptions(wiggle="off"))
     names = r["ring"].names
     tagslam = [r["ring"][c].T_base_cam for c in names]
     ours = list(r["cal"].ba.T_base_cams)

@@ -22,6 +22,13 @@ or a list of three). Given at the top level it applies to every camera without i
 everywhere it is :data:`DEFAULT_EXTRINSICS_STD_TRANSLATION` / :data:`DEFAULT_EXTRINSICS_STD_ROTATION_DEG`
 (a ring measured by hand or calibrated once). The joint estimator (``fusion: joint``) uses it to
 weigh what each camera says; ``0`` declares the calibration exact.
+
+``wiggle`` (optional, per camera or at the top level for every camera without its own;
+``wiggle: null`` on a camera overrides a top-level one) declares a camera that is *not* rigid on
+the ring: ``{translation: m, rotation_deg: deg}``, both positive, the 1-sigma of its per-frame
+motion about its fixed pose (TagSLAM's ``wiggle_translation`` / ``wiggle_rotation``). Absent: the
+camera is rigid. ``aruco_ring calibrate-ring`` then estimates the fixed pose the camera wiggles
+about (:mod:`ring_calibration`); :attr:`RingCamera.wiggle` holds it as (rotation rad, translation m).
 """
 from __future__ import annotations
 
@@ -63,6 +70,8 @@ class RingCamera:
         extrinsics_std: (6,) 1-sigma calibration error of ``T_base_cam``: rotation about the
             optical frame's x, y, z (rad), then translation along them (m). The true pose is
             ``T_base_cam @ D`` with ``D`` such a small motion (the simulator's ``perturb_ring``).
+        wiggle: declared per-frame freedom of the camera about ``T_base_cam``, (rotation rad,
+            translation m) 1-sigma, or None (rigid; the ring file's ``wiggle``).
     """
 
     name: str
@@ -71,6 +80,7 @@ class RingCamera:
     T_base_cam: np.ndarray
     namespace: str = ""
     extrinsics_std: Tuple[float, ...] = _DEFAULT_STD
+    wiggle: Optional[Tuple[float, float]] = None
 
     @property
     def extrinsics_covariance(self) -> np.ndarray:
@@ -129,13 +139,13 @@ class CameraRing:
     def with_extrinsics(self, extrinsics: Mapping[str, np.ndarray]) -> "CameraRing":
         """A copy with some cameras' ``T_base_cam`` replaced (e.g. the simulator's true rig)."""
         cams = [RingCamera(c.name, c.frame_id, c.model, np.asarray(extrinsics.get(c.name, c.T_base_cam)),
-                           c.namespace, c.extrinsics_std) for c in self.cameras]
+                           c.namespace, c.extrinsics_std, c.wiggle) for c in self.cameras]
         return CameraRing(cams, self.base_frame)
 
     def with_extrinsics_std(self, translation: float, rotation_deg: float) -> "CameraRing":
         """A copy whose every camera claims this calibration error (0, 0: exact extrinsics)."""
         std = tuple([float(np.radians(rotation_deg))] * 3 + [float(translation)] * 3)
-        cams = [RingCamera(c.name, c.frame_id, c.model, c.T_base_cam, c.namespace, std) for c in self.cameras]
+        cams = [RingCamera(c.name, c.frame_id, c.model, c.T_base_cam, c.namespace, std, c.wiggle) for c in self.cameras]
         return CameraRing(cams, self.base_frame)
 
     # --- files ------------------------------------------------------------------------------
@@ -162,7 +172,8 @@ class CameraRing:
         if not isinstance(cams, list) or not cams:
             raise ConfigError("expected a non-empty list of cameras", path=source, key="cameras")
         default_std = _read_extrinsics_std(data.get("extrinsics_std"), source, "extrinsics_std", _DEFAULT_STD)
-        cameras = [_camera_from_dict(c, i, source, base_dir, default_std) for i, c in enumerate(cams)]
+        default_wiggle = read_wiggle(data.get("wiggle"), source, "wiggle")
+        cameras = [_camera_from_dict(c, i, source, base_dir, default_std, default_wiggle) for i, c in enumerate(cams)]
         try:
             return cls(cameras, base_frame)
         except ConfigError as exc:
@@ -174,13 +185,16 @@ class CameraRing:
         for c in self.cameras:
             q = geo.quaternion_from_matrix(c.T_base_cam)
             info: Any = (camera_info_files or {}).get(c.name) or c.model.to_dict()
-            cams.append({
+            cam = {
                 "name": c.name, "frame_id": c.frame_id, "namespace": c.namespace, "camera_info": info,
                 "T_base_camera": {"translation": [float(v) for v in c.T_base_cam[:3, 3]],
                                   "rotation": [float(v) for v in q]},
                 "extrinsics_std": {"translation": [float(v) for v in c.extrinsics_std[3:]],
                                    "rotation_deg": [float(np.degrees(v)) for v in c.extrinsics_std[:3]]},
-            })
+            }
+            if c.wiggle is not None:
+                cam["wiggle"] = {"translation": float(c.wiggle[1]), "rotation_deg": float(np.degrees(c.wiggle[0]))}
+            cams.append(cam)
         return {"format_version": RING_FORMAT_VERSION, "base_frame": self.base_frame, "cameras": cams}
 
     def save(self, path: str, camera_info_files: Optional[Mapping[str, str]] = None) -> None:
@@ -189,7 +203,8 @@ class CameraRing:
 
 
 def _camera_from_dict(c: Any, i: int, source: str, base_dir: str,
-                      default_std: Tuple[float, ...] = _DEFAULT_STD) -> RingCamera:
+                      default_std: Tuple[float, ...] = _DEFAULT_STD,
+                      default_wiggle: Optional[Tuple[float, float]] = None) -> RingCamera:
     key = f"cameras[{i}]"
     if not isinstance(c, Mapping):
         raise ConfigError("expected a mapping", path=source, key=key)
@@ -218,8 +233,33 @@ def _camera_from_dict(c: Any, i: int, source: str, base_dir: str,
         raise ConfigError("expected a file name or a camera_info mapping", path=source, key=f"{key}.camera_info")
     T = read_transform(c.get("T_base_camera"), source, f"{key}.T_base_camera")
     std = _read_extrinsics_std(c.get("extrinsics_std"), source, f"{key}.extrinsics_std", default_std)
+    # ``wiggle: null`` on a camera: rigid, whatever the top level declares.
+    wiggle = None if ("wiggle" in c and c["wiggle"] is None) else (
+        read_wiggle(c["wiggle"], source, f"{key}.wiggle") if "wiggle" in c else default_wiggle)
     return RingCamera(name=name, frame_id=frame_id.lstrip("/"), model=model, T_base_cam=T, namespace=namespace,
-                      extrinsics_std=std)
+                      extrinsics_std=std, wiggle=wiggle)
+
+
+def read_wiggle(node: Any, source: str, key: str) -> Optional[Tuple[float, float]]:
+    """``{translation: m, rotation_deg: deg}`` (both positive numbers) -> (rotation rad, translation m);
+    None for an absent node."""
+    if node is None:
+        return None
+    if not isinstance(node, Mapping):
+        raise ConfigError(f"expected {{translation: m, rotation_deg: deg}}, got {node!r}", path=source, key=key)
+    unknown = sorted(set(node) - {"translation", "rotation_deg"})
+    if unknown:
+        raise ConfigError(f"unknown keys {unknown} (expected translation, rotation_deg)", path=source, key=key)
+    out = []
+    for sub, scale in (("rotation_deg", np.pi / 180.0), ("translation", 1.0)):
+        if sub not in node:
+            raise ConfigError("missing (a wiggle needs both translation, m, and rotation_deg, deg)", path=source,
+                              key=f"{key}.{sub}")
+        value = node[sub]
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
+            raise ConfigError(f"expected a positive number, got {value!r}", path=source, key=f"{key}.{sub}")
+        out.append(float(value) * scale)
+    return out[0], out[1]
 
 
 def _read_extrinsics_std(node: Any, source: str, key: str, default: Tuple[float, ...]) -> Tuple[float, ...]:

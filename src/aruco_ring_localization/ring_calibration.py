@@ -24,6 +24,18 @@ Steps:
    the hand-eye values (they only hold the ring's common motion, the gauge; the data decide the
    cameras relative to each other). Observations that still reproject badly are dropped and the
    adjustment redone once.
+4b. **A declared wiggle** (the ring file's per-camera ``wiggle``, e.g. TagSLAM's
+   ``wiggle_rotation`` / ``wiggle_translation`` through ``import-kalibr``; ``options.wiggle`` "off"
+   ignores it): such a camera is not rigid on the ring, and its extrinsics are the fixed pose it
+   wiggles about, not a rigid ring's best fit (which weighs the frames by what they see and is
+   pulled towards the poses of the frames that see most). On ``wiggle_max_frames`` robot poses of
+   the adjustment, fewer when they would make more than ``wiggle_max_poses`` (frame, wiggling
+   camera) poses (evenly spread: the stage's cost grows with those poses), every
+   (frame, wiggling camera) gets its own pose tied to the camera's fixed pose by a prior of the
+   declared std (:func:`wiggle_adjust`, 1 px corner noise and no robust loss: the model the
+   declared std belong to); the fixed poses by alternation from the rigid answer, each the
+   (over-relaxed) mean of its per-frame poses (:func:`solve_wiggle`). The rigid answer is kept
+   (:attr:`RingCalibration.rigid_ring`). The stage sees the observations the rigid adjustment kept.
 5. **base_link from the motion.** The ring is then placed in base_link: its z axis along the
    robot's rotation axis (turning), its origin (x, y) at the centre of the turns on the spot; with
    odometry the full pose by hand-eye against it (heading included), with a known map in a
@@ -35,7 +47,9 @@ gauge) projected out, in the camera's optical frame (the ring file's ``extrinsic
 convention): how well each camera is known relative to the others (the ring's common
 motion, i.e. base_link's definition, is what the warnings are about). Scaled by the measured
 corner noise and inflated for the correlation of a marker's residuals from one frame to the next
-(:func:`residual_lag1_correlation`): a detector errs alike on near-identical views.
+(:func:`residual_lag1_correlation`): a detector errs alike on near-identical views. A wiggling
+camera's adds the declared wiggle over the square root of its frames in the wiggle stage (the
+fixed pose is the mean of that many per-frame poses).
 """
 from __future__ import annotations
 
@@ -50,7 +64,7 @@ from scipy.spatial.transform import Rotation
 from . import geometry as geo
 from .bundle_adjustment import BAOptions, BAProblem, BAResult, bundle_adjust, camera_cov_in_optical_frames
 from .detections import RingFrame
-from .errors import GeometryError, MeasurementError
+from .errors import ConfigError, GeometryError, MeasurementError
 from .marker_map import MarkerMap
 from .markers import MarkerSizes
 from .pnp import solve_marker_ippe_undistorted
@@ -81,6 +95,24 @@ class CalibrationOptions:
     handeye_max_trans: float = 0.10  # m; a hand-eye answer farther from the rough value is not kept
     handeye_max_rot_deg: float = 15.0  # deg; idem
     loss: str = "huber"              # the adjustment's robust loss (BAOptions.loss), scale 3 x pixel_noise
+    # Declared wiggle (the ring's per-camera ``wiggle``): "auto" solves it when a camera declares one,
+    # "off" calibrates a rigid ring whatever the ring file says.
+    wiggle: str = "auto"
+    wiggle_max_frames: int = 200     # robot poses of the rigid adjustment used by the wiggle stage (evenly spread)
+    wiggle_max_poses: int = 800      # and at most this many (frame, wiggling camera) poses: its cost grows with them
+    wiggle_rounds: int = 4           # alternation rounds (per-frame poses, then the fixed poses)
+    wiggle_relax: float = 2.0        # over-relaxation of the fixed poses' step (see relaxed_step)
+    wiggle_pixel_noise: float = 1.0  # px; with the declared std it sets the model (TagSLAM's: 1 px)
+    wiggle_loss: str = "linear"      # the wiggle stage's loss (TagSLAM's: none)
+
+    def __post_init__(self) -> None:
+        if self.wiggle not in ("auto", "off"):
+            raise ConfigError(f"expected auto or off, got {self.wiggle!r}", key="wiggle")
+        if self.wiggle_max_frames < 3 or self.wiggle_max_poses < 3 or self.wiggle_rounds < 1 or not self.wiggle_relax > 0:
+            raise ConfigError(f"wiggle_max_frames >= 3, wiggle_max_poses >= 3, wiggle_rounds >= 1 and wiggle_relax > 0 "
+                              f"expected, got {self.wiggle_max_frames}, {self.wiggle_max_poses}, {self.wiggle_rounds}, "
+                              f"{self.wiggle_relax}",
+                              key="wiggle_max_frames")
 
 
 @dataclass
@@ -98,6 +130,10 @@ class RingCalibration:
         rms_px_before, rms_px_after: the adjustment's corner RMS.
         ba: the adjustment's result.
         station_stamps: the stamp of each of the adjustment's robot poses (``ba.T_W_stations``).
+        rigid_ring: the rigid ring's answer when the wiggle stage ran (``ring`` is then the fixed
+            poses the cameras wiggle about), else None (``ring`` is the rigid answer).
+        wiggle: the wiggle stage (:class:`WiggleFit`), or None when no camera declares wiggle
+            (or ``options.wiggle`` is "off").
     """
 
     ring: CameraRing
@@ -113,6 +149,8 @@ class RingCalibration:
     ba: Optional[BAResult] = None
     extra: Dict[str, float] = field(default_factory=dict)
     station_stamps: List[float] = field(default_factory=list)
+    rigid_ring: Optional[CameraRing] = None
+    wiggle: Optional["WiggleFit"] = None
 
 
 @dataclass
@@ -380,6 +418,153 @@ def _odometry_at(odometry: Sequence[Tuple[float, np.ndarray]], stamps: Sequence[
     return out
 
 
+# --- 4b. declared wiggle ---------------------------------------------------------------------------
+
+@dataclass
+class WiggleFit:
+    """The wiggle stage of :func:`calibrate_ring` (cameras that declare ``wiggle`` in the ring file).
+
+    Attributes:
+        fixed: {camera: T_base_cam} the fixed pose each camera wiggles about, in the rigid
+            adjustment's base frame (the ring's common motion as the rigid answer's).
+        wiggling: the cameras that declared wiggle (the others keep one pose for every frame).
+        sigma: (rotation rad, translation m) of the priors tying each per-frame pose to the fixed one.
+        frames: robot poses used (a subsample of the rigid adjustment's); camera_frames: per camera.
+        rounds: per round the model's cost (corners + priors, in sigmas squared), its parts and the
+            corner RMS (px) of the per-frame adjustment.
+        cpu_s: CPU time of the stage (utime + stime).
+    """
+
+    fixed: Dict[str, np.ndarray]
+    wiggling: List[str]
+    sigma: Tuple[float, float]
+    frames: int
+    camera_frames: Dict[str, int]
+    rounds: List[Dict[str, float]]
+    cpu_s: float
+
+
+def wiggle_adjust(res: BAResult, prob: BAProblem, fixed: Sequence[np.ndarray], wiggling: Sequence[bool],
+                  rot_sigma: float, trans_sigma: float, pixel_noise: float = 1.0, loss: str = "linear",
+                  stations: Optional[Sequence[int]] = None, max_nfev: int = 60) -> Dict[str, object]:
+    """One adjustment of the wiggle model on an adjustment's observations (``res`` solved ``prob``).
+
+    Every (robot pose, camera) of a wiggling camera gets its own ``T_base_cam``, tied to the camera's
+    ``fixed`` pose by a prior of std ``rot_sigma`` (rad) / ``trans_sigma`` (m); a camera that does
+    not wiggle keeps one pose for every frame (same prior: loose, the data decide it). Markers and
+    robot poses are free, started from ``res`` (the robot poses moved so that the cameras start
+    where ``res`` has them on average). ``stations``: the robot poses used (default all).
+
+    Returns {"per_cam": {camera index: [T_base_cam per frame]}, "rms_px", "cost_corners",
+    "cost_priors", "cost"} (costs in sigmas squared).
+    """
+    fixed = np.asarray(fixed, dtype=float)
+    C = len(fixed)
+    wig = np.asarray(wiggling, dtype=bool)
+    keep = np.ones(len(prob.obs_station), dtype=bool) if stations is None else np.isin(prob.obs_station, stations)
+    st_u, st_i = np.unique(prob.obs_station[keep], return_inverse=True)
+    m_u, m_i = np.unique(prob.obs_marker[keep], return_inverse=True)
+    cam = prob.obs_camera[keep]
+    key = np.where(wig[cam], st_i * C + cam, -1 - cam)
+    pairs, inv = np.unique(key, return_inverse=True)
+    pair_cam = np.where(pairs >= 0, pairs % C, -1 - pairs).astype(int)
+    D = geo.average_transforms([res.T_base_cams[k] @ geo.inverse(fixed[k]) for k in range(C)])
+    fm = prob.fixed_marker
+    fixed_marker = int(np.searchsorted(m_u, fm)) if fm is not None and fm in m_u else 0
+    sub = BAProblem(T_W_markers=res.T_W_markers[m_u], sizes=np.asarray(prob.sizes)[m_u],
+                    T_W_stations=res.T_W_stations[st_u] @ D, T_base_cams=fixed[pair_cam],
+                    obs_marker=m_i.astype(int), obs_station=st_i.astype(int), obs_camera=inv.astype(int),
+                    obs_xy=prob.obs_xy[keep], obs_focal=prob.obs_focal[keep], fixed_marker=fixed_marker,
+                    fixed_station=None, obs_lens=None if prob.obs_lens is None else prob.obs_lens[keep])
+    out = bundle_adjust(sub, BAOptions(pixel_noise=pixel_noise, loss=loss, refine_extrinsics=True,
+                                       extrinsics_trans_sigma=trans_sigma,
+                                       extrinsics_rot_sigma_deg=float(np.degrees(rot_sigma)),
+                                       covariance=False, max_nfev=max_nfev))
+    per_cam: Dict[int, List[np.ndarray]] = {}
+    prior = 0.0
+    for k, c in enumerate(pair_cam):
+        T = out.T_base_cams[k]
+        per_cam.setdefault(int(c), []).append(T)
+        d = geo.inverse(fixed[c]) @ T
+        prior += (geo.rotation_angle(d[:3, :3]) / rot_sigma) ** 2 + float(
+            np.sum(((T[:3, 3] - fixed[c][:3, 3]) / trans_sigma) ** 2))
+    corners = float(np.sum(out.per_obs_rms_px ** 2) * 8 / pixel_noise ** 2)
+    return {"per_cam": per_cam, "rms_px": float(out.rms_px_after), "cost_corners": corners, "cost_priors": prior,
+            "cost": corners + prior}
+
+
+def relaxed_step(fixed: np.ndarray, mean: np.ndarray, relax: float) -> np.ndarray:
+    """``fixed`` moved ``relax`` times its way to ``mean`` (1: onto it; 2: over-relaxed, twice as far:
+    the alternation's error shrinks by roughly half a round, so a step of 2 lands near its fixed
+    point), on SE(3) as rotation vector and translation."""
+    d = geo.inverse(fixed) @ mean
+    r, t = geo.rvec_tvec_from_transform(d)
+    return fixed @ geo.transform_from_rvec_tvec(relax * np.asarray(r), relax * np.asarray(t))
+
+
+def solve_wiggle(res: BAResult, prob: BAProblem, start: Sequence[np.ndarray], wiggling: Sequence[bool],
+                 rot_sigma: float, trans_sigma: float, rounds: int = 4, relax: float = 2.0, pixel_noise: float = 1.0,
+                 loss: str = "linear", stations: Optional[Sequence[int]] = None, callback=None
+                 ) -> Tuple[List[np.ndarray], List[Dict[str, object]]]:
+    """The fixed poses of the wiggle model by alternation from ``start``: the per-frame poses given
+    the fixed ones (:func:`wiggle_adjust`), then each camera's fixed pose moved to the mean of its
+    per-frame poses (their optimum given them; :func:`relaxed_step`). Block coordinate descent on
+    the joint problem. ``callback(round, fixed, fit)`` is called with each round's fit (a bench
+    measures the walk). Returns (fixed poses, each round's fit)."""
+    fixed = [np.asarray(T, dtype=float) for T in start]
+    fits = []
+    for r in range(rounds):
+        f = wiggle_adjust(res, prob, fixed, wiggling, rot_sigma, trans_sigma, pixel_noise, loss, stations)
+        if callback is not None:
+            callback(r, fixed, f)
+        fits.append(f)
+        fixed = [relaxed_step(fixed[k], geo.average_transforms(f["per_cam"][k]), relax) if k in f["per_cam"]
+                 else fixed[k] for k in range(len(fixed))]
+    return fixed, fits
+
+
+def declared_wiggle(ring: CameraRing) -> Optional[Tuple[List[bool], float, float]]:
+    """(wiggling flag per camera, rotation rad, translation m) of the ring's declared wiggle; None when
+    no camera declares one. The adjustment has one prior std for every camera: cameras declaring
+    different values get the median of the declared ones (a warning says so)."""
+    w = [c.wiggle for c in ring]
+    declared = [v for v in w if v is not None]
+    if not declared:
+        return None
+    rot = float(np.median([v[0] for v in declared]))
+    trans = float(np.median([v[1] for v in declared]))
+    if len(set(declared)) > 1:
+        logger.warning("calibrate-ring: the cameras declare different wiggles %s: the wiggle stage uses their median, "
+                       "%.4g rad / %.4g m, for every wiggling camera", sorted(set(declared)), rot, trans)
+    return [v is not None for v in w], rot, trans
+
+
+def _wiggle_stage(res: BAResult, names: List[str], wiggling: List[bool], rot: float, trans: float,
+                  opts: CalibrationOptions) -> WiggleFit:
+    """The wiggle stage on ``wiggle_max_frames`` robot poses of the rigid adjustment ``res``, from its
+    answer; the fixed poses aligned back on the rigid answer's common motion (the gauge)."""
+    import time
+
+    c0 = time.process_time()
+    prob = res.problem        # type: ignore[attr-defined]
+    S = len(res.T_W_stations)
+    n_frames = min(opts.wiggle_max_frames, max(3, opts.wiggle_max_poses // max(1, sum(wiggling))), S)
+    stations = np.unique(np.linspace(0, S - 1, n_frames).round().astype(int))
+    rigid = list(res.T_base_cams)
+    fixed, fits = solve_wiggle(res, prob, rigid, wiggling, rot, trans, rounds=opts.wiggle_rounds,
+                               relax=opts.wiggle_relax, pixel_noise=opts.wiggle_pixel_noise, loss=opts.wiggle_loss,
+                               stations=stations)
+    E = geo.average_transforms([rigid[k] @ geo.inverse(fixed[k]) for k in range(len(names))])
+    fixed = [E @ T for T in fixed]
+    in_st = np.isin(prob.obs_station, stations)
+    cam_frames = {c: int(len(np.unique(prob.obs_station[in_st & (prob.obs_camera == k)])))
+                  for k, c in enumerate(names)}
+    rounds = [{k: float(f[k]) for k in ("cost", "cost_corners", "cost_priors", "rms_px")} for f in fits]
+    return WiggleFit(fixed={c: fixed[k] for k, c in enumerate(names)},
+                     wiggling=[c for c, w in zip(names, wiggling) if w], sigma=(rot, trans), frames=len(stations),
+                     camera_frames=cam_frames, rounds=rounds, cpu_s=time.process_time() - c0)
+
+
 # --- the whole -------------------------------------------------------------------------------------
 
 def calibrate_ring(frames: Sequence[RingFrame], rough: CameraRing, sizes: MarkerSizes,
@@ -449,6 +634,13 @@ def calibrate_ring(frames: Sequence[RingFrame], rough: CameraRing, sizes: Marker
         T_W_m = _markers_from_map(T_W_m, marker_map)
     res, keep = _adjust(dets, X, {c: rough[c].T_base_cam for c in names}, T_W_s, T_W_m, sizes, names, opts)
     X_ba = {c: res.T_base_cams[k] for k, c in enumerate(names)}
+    # 4b. a declared wiggle: the fixed poses the cameras wiggle about (the rigid answer kept beside).
+    declared = declared_wiggle(rough) if opts.wiggle == "auto" else None
+    wfit = _wiggle_stage(res, names, *declared, opts) if declared is not None else None
+    if wfit is not None:
+        logger.info("calibrate-ring: wiggle (%s: %.3g rad / %.3g m) on %d frames, cost %s, %.0f s CPU",
+                    ", ".join(wfit.wiggling), wfit.sigma[0], wfit.sigma[1], wfit.frames,
+                    " -> ".join(f"{r['cost']:.1f}" for r in wfit.rounds), wfit.cpu_s)
     # Common motion of the ring against the rough values: the priors' pull only, taken out (what the
     # motion determines of it is put back below).
     D = geo.inverse(geo.average_transforms([X_ba[c] @ geo.inverse(rough[c].T_base_cam) for c in calibrated]))
@@ -479,23 +671,44 @@ def calibrate_ring(frames: Sequence[RingFrame], rough: CameraRing, sizes: Marker
         G = _height_from_map(G, T_W_st, res, marker_map, [m for m in sorted(T_W_m)])
     G_inv = geo.inverse(G)
     final = {c: G_inv @ X_ba[c] for c in names}
+    final_rigid = dict(final)
+    if wfit is not None:
+        # The fixed poses share the rigid answer's common motion (aligned in _wiggle_stage): the same D, G.
+        final = {c: G_inv @ D @ wfit.fixed[c] for c in names}
     # Cameras the recording does not calibrate keep their rough values.
     for c in names:
         if c not in calibrated:
             final[c] = rough[c].T_base_cam.copy()
+            final_rigid[c] = final[c]
     std = _camera_std(res, res.problem, names, calibrated, rough)
+    std_rigid = dict(std)
+    if wfit is not None:
+        # The fixed pose is the mean of the per-frame poses: at least the declared wiggle over the
+        # square root of the frames the camera was seen in (independent wiggles) on top.
+        w_var = np.square([wfit.sigma[0]] * 3 + [wfit.sigma[1]] * 3)
+        for c in wfit.wiggling:
+            if c in calibrated:
+                std[c] = np.sqrt(np.square(std[c]) + w_var / max(wfit.camera_frames[c], 1))
     rough_height = float(np.mean([rough[c].T_base_cam[2, 3] for c in names]))
     warnings = observability_warnings(turn_deg, travel, has_odo, floor_map, camera_frames, opts, rough_height)
     for w in warnings:
         logger.warning("calibrate-ring: %s", w)
-    cams = [RingCamera(c.name, c.frame_id, c.model, final[c.name], c.namespace, tuple(float(v) for v in std[c.name]))
-            for c in rough]
+    cams = [RingCamera(c.name, c.frame_id, c.model, final[c.name], c.namespace, tuple(float(v) for v in std[c.name]),
+                       c.wiggle) for c in rough]
+    rigid_ring = None
+    if wfit is not None:
+        rigid_ring = CameraRing([RingCamera(c.name, c.frame_id, c.model, final_rigid[c.name], c.namespace,
+                                            tuple(float(v) for v in std_rigid[c.name])) for c in rough],
+                                rough.base_frame)
+    extra = {k: float(res.extra[k]) for k in ("residual_lag1_correlation", "std_inflation") if k in res.extra}
+    if wfit is not None:
+        extra.update(wiggle_frames=float(wfit.frames), wiggle_cpu_s=wfit.cpu_s,
+                     wiggle_rms_px=wfit.rounds[-1]["rms_px"])
     return RingCalibration(ring=CameraRing(cams, rough.base_frame), std=std, warnings=warnings, handeye=handeye,
                            frames_used=len(stations), camera_frames=camera_frames, turn_deg=turn_deg,
                            travel_m=travel, rms_px_before=res.rms_px_before, rms_px_after=res.rms_px_after, ba=res,
                            station_stamps=[float(used[keep[i]].stamp) for i in stations],
-                           extra={k: float(res.extra[k]) for k in ("residual_lag1_correlation", "std_inflation")
-                                  if k in res.extra})
+                           extra=extra, rigid_ring=rigid_ring, wiggle=wfit)
 
 
 def _initial_world(dets: Sequence[_Det], X: Dict[str, np.ndarray], n_frames: int, odo: Dict[int, np.ndarray]

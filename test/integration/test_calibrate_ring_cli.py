@@ -3,6 +3,7 @@ turns again; the ring file given is the true rig off by up to 5 cm and 10 deg pe
 The bag is written here from the simulator (corners mode: fiducial_vertices, camera_info, odom)."""
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import fiducial_msgs.msg as fiducial_msgs
@@ -105,3 +106,30 @@ def test_calibrate_ring_without_odometry_warns_about_the_heading(lab, capsys):
     _, rel, _ = _errors(true, CameraRing.load(str(out)))
     assert rel[0] < 1.0 and rel[1] < 0.05, rel
     assert "no odometry: base_link's heading" in text, text
+
+
+def test_calibrate_ring_honours_a_declared_wiggle_unless_told_off(lab, capsys):
+    """A rough ring declaring two cameras' wiggle: by default their fixed poses are calibrated (and
+    the declaration written back, the line says so); ``--wiggle off``: the rigid calibration. The lab's
+    ring is rigid: both agree with it."""
+    tmp, true, rough, rough_path, bag = lab
+    wiggling = ("cam0", "cam1")
+    declared = CameraRing([replace(c, wiggle=(np.radians(0.2), 0.002) if c.name in wiggling else None) for c in rough],
+                          rough.base_frame)
+    declared_path = tmp / "rough_wiggle.yaml"
+    declared.save(str(declared_path))
+    off, auto = tmp / "ring_wiggle_off.yaml", tmp / "ring_wiggle_auto.yaml"
+    assert main(["calibrate-ring", str(bag), "--ring", str(declared_path), "--out", str(off), "--wiggle", "off"]) == 0
+    assert "wiggle:" not in capsys.readouterr().out
+    assert main(["calibrate-ring", str(bag), "--ring", str(declared_path), "--out", str(auto)]) == 0
+    text = capsys.readouterr().out
+    assert "wiggle: cam0, cam1 declare" in text and "--wiggle off" in text, text
+    est_off, est = CameraRing.load(str(off)), CameraRing.load(str(auto))
+    assert all((c.wiggle == pytest.approx((np.radians(0.2), 0.002))) if c.name in wiggling else c.wiggle is None
+               for c in est)
+    _, rel_off, _ = _errors(true, est_off)
+    _, rel, _ = _errors(true, est)
+    assert rel_off[0] < 1.0 and rel_off[1] < 0.05, rel_off
+    assert rel[0] < 1.0 and rel[1] < 0.05, rel
+    with pytest.raises(SystemExit):
+        main(["calibrate-ring", str(bag), "--ring", str(declared_path), "--out", str(auto), "--wiggle", "on"])

@@ -86,6 +86,28 @@ def test_tagslam_wiggle_is_kept_and_said(tmp_path):
     assert any("cam0, cam1, cam2, cam3" in n for n in test5.notes)
 
 
+def test_import_writes_the_declared_wiggle_to_the_ring_file(tmp_path):
+    """The ring (and the ring file import-kalibr writes) carries TagSLAM's wiggle as the ring file's
+    ``wiggle`` (rotation in deg there); an undeclared one (or TagSLAM's rigid 1e-5) stays rigid."""
+    path = _camchain(tmp_path, {"cam0": _cam(wiggle_rotation=0.01, wiggle_translation=0.02),
+                                "cam1": _cam(rostopic="/rig/right/image_raw", wiggle_rotation=1e-5,
+                                             wiggle_translation=1e-5),
+                                "cam2": _cam(rostopic="/rig/back/image_raw")})
+    poses = tmp_path / "camera_poses.yaml"
+    poses.write_text(yaml.safe_dump({c: {"pose": {"position": {"x": 0.1 * k, "y": 0.0, "z": 0.0},
+                                                  "rotation": {"x": 0.0, "y": 0.0, "z": 0.0}}}
+                                     for k, c in enumerate(("cam0", "cam1", "cam2"))}))
+    ring = read_rig(path, camera_poses=str(poses)).ring()
+    assert ring["cam0"].wiggle == pytest.approx((0.01, 0.02))
+    assert ring["cam1"].wiggle is None and ring["cam2"].wiggle is None
+    out = tmp_path / "ring.yaml"
+    write_ring_files(ring, str(out))
+    data = yaml.safe_load(out.read_text())
+    assert data["cameras"][0]["wiggle"] == pytest.approx({"translation": 0.02, "rotation_deg": np.degrees(0.01)})
+    assert "wiggle" not in data["cameras"][1] and "wiggle" not in data["cameras"][2]
+    assert CameraRing.load(str(out))["cam0"].wiggle == pytest.approx((0.01, 0.02))
+
+
 @pytest.mark.parametrize("value", [-0.01, 0.0, "a lot"])
 def test_a_bad_wiggle_is_refused_by_key(tmp_path, value):
     with pytest.raises(ConfigError) as err:

@@ -196,6 +196,15 @@ BAD_RINGS = {
     "camera-not-mapping": (_set(["cameras", 0], "cam0"), "cameras[0]"),
     "bad-version": (_set(["format_version"], 2), "format_version"),
     "bad-base-frame": (_set(["base_frame"], ""), "base_frame"),
+    "wiggle-not-mapping": (_set(["cameras", 2, "wiggle"], 0.01), "cameras[2].wiggle"),
+    "wiggle-missing-rotation": (_set(["cameras", 2, "wiggle"], {"translation": 0.01}), "cameras[2].wiggle.rotation_deg"),
+    "wiggle-zero": (_set(["cameras", 2, "wiggle"], {"translation": 0.0, "rotation_deg": 0.5}),
+                    "cameras[2].wiggle.translation"),
+    "wiggle-negative": (_set(["cameras", 2, "wiggle"], {"translation": 0.01, "rotation_deg": -0.5}),
+                        "cameras[2].wiggle.rotation_deg"),
+    "wiggle-text": (_set(["cameras", 2, "wiggle"], {"translation": "1 cm", "rotation_deg": 0.5}),
+                    "cameras[2].wiggle.translation"),
+    "wiggle-unknown-key": (_set(["wiggle"], {"translation": 0.01, "rotation_deg": 0.5, "rotation": 0.01}), "wiggle"),
 }
 
 
@@ -296,3 +305,31 @@ def test_bad_extrinsics_std_names_file_and_key(node, key, tmp_path):
     with pytest.raises(ConfigError) as info:
         CameraRing.load(str(path))
     assert_config_error_names(info, path, "cameras[2]." + key)
+
+
+def test_wiggle_is_optional_per_camera_or_for_the_ring_and_round_trips(tmp_path):
+    """``wiggle``: absent = rigid (None); at the top level for every camera without its own; ``null``
+    on a camera = rigid whatever the top level says; the file written reads back the same."""
+    rigid = CameraRing.load(str(write_text(tmp_path, "rigid.yaml", _ring_text())))
+    assert all(c.wiggle is None for c in rigid)
+    assert all("wiggle" not in c for c in rigid.to_dict()["cameras"])
+
+    def mutate(data):
+        data["wiggle"] = {"translation": 0.01, "rotation_deg": 0.5}
+        data["cameras"][1]["wiggle"] = {"translation": 0.002, "rotation_deg": 0.1}
+        data["cameras"][2]["wiggle"] = None
+    ring = CameraRing.load(str(write_text(tmp_path, "wiggle.yaml", _ring_text(mutate))))
+    assert ring["cam0"].wiggle == pytest.approx((math.radians(0.5), 0.01))
+    assert ring["cam1"].wiggle == pytest.approx((math.radians(0.1), 0.002))
+    assert ring["cam2"].wiggle is None
+    out = str(tmp_path / "saved.yaml")
+    ring.save(out)
+    again = CameraRing.load(out)
+    for c in ring:
+        if c.wiggle is None:
+            assert again[c.name].wiggle is None, c.name
+        else:
+            assert again[c.name].wiggle == pytest.approx(c.wiggle, rel=1e-12), c.name
+    # Copies with other extrinsics keep the declared wiggle.
+    moved = ring.with_extrinsics({"cam0": np.eye(4)}).with_extrinsics_std(0.001, 0.1)
+    assert [c.wiggle for c in moved] == [c.wiggle for c in ring]

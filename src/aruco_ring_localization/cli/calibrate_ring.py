@@ -42,6 +42,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fiducial-len-override", help='markers/fiducial_len_override: "1-10: 0.05, 12: 0.06"')
     parser.add_argument("--max-frames", type=int, default=CalibrationOptions.max_frames,
                         help="frames used, evenly spread over the bag (default %(default)s)")
+    parser.add_argument("--wiggle", choices=("auto", "off"), default=CalibrationOptions.wiggle,
+                        help="auto: when the ring file declares a camera's wiggle (its per-frame freedom on the ring, "
+                             "e.g. imported from TagSLAM), calibrate the fixed pose it wiggles about; off: a rigid "
+                             "ring whatever the file declares (default %(default)s)")
     parser.add_argument("--progress", action="store_true", help="progress bar on stderr even when it is not a terminal")
 
 
@@ -89,6 +93,14 @@ def _read_odometry(args: argparse.Namespace, topics):
     return list(zip([float(t) for t in stamps], list(poses)))
 
 
+def _largest_difference(a: CameraRing, b: CameraRing) -> str:
+    """The largest difference of a camera's pose relative to camera 0 between two rings (mm / deg)."""
+    c0 = a.names[0]
+    d = [geo.pose_distance(geo.inverse(a[c0].T_base_cam) @ a[c].T_base_cam,
+                           geo.inverse(b[c0].T_base_cam) @ b[c].T_base_cam) for c in a.names[1:]] or [(0.0, 0.0)]
+    return f"{1000 * max(t for t, _ in d):.1f} mm / {np.degrees(max(r for _, r in d)):.2f} deg (relative to {c0})"
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         from ..ros import bag_source  # noqa: F401  (needs rosbag)
@@ -102,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
     odometry = _read_odometry(args, topics)
     known = MarkerMap.load(args.map) if args.map else None
     cal = calibrate_ring(frames, rough, sizes, odometry=odometry, marker_map=known,
-                         options=CalibrationOptions(max_frames=args.max_frames))
+                         options=CalibrationOptions(max_frames=args.max_frames, wiggle=args.wiggle))
     cal.ring.save(args.out)
     out = sys.stdout
     out.write(f"ring: {args.out} ({cal.frames_used} frames, turned {cal.turn_deg:.0f} deg, drove {cal.travel_m:.1f} m; "
@@ -113,6 +125,12 @@ def run(args: argparse.Namespace) -> int:
         s = cal.std[c.name]
         out.write(f"{c.name:>8} {cal.camera_frames[c.name]:>7} {1000 * dt:>11.1f} {np.degrees(dr):>13.2f} "
                   f"{1000 * float(np.max(s[3:])):>9.2f} {float(np.degrees(np.max(s[:3]))):>10.3f}\n")
+    if cal.wiggle is not None:
+        w = cal.wiggle
+        out.write(f"wiggle: {', '.join(w.wiggling)} declare {np.degrees(w.sigma[0]):.2g} deg / {1000 * w.sigma[1]:.2g} mm "
+                  f"per frame: the extrinsics written are the fixed poses they wiggle about ({w.frames} frames, "
+                  f"{len(w.rounds)} rounds, {w.cpu_s:.0f} s CPU; --wiggle off for a rigid ring); the rigid answer "
+                  f"differs by up to {_largest_difference(cal.rigid_ring, cal.ring)}\n")
     for w in cal.warnings:
         out.write(f"warning: {w}\n")
     return 0

@@ -8,6 +8,8 @@ naming it. With ``--tagslam tagslam.yaml`` it also prints the marker sizes and i
 aruco_detect's ``fiducial_len`` / ``fiducial_len_override`` / ``ignore_fiducials`` syntax, and with
 ``--anchors-out FILE`` writes the tag poses it fixes (surveyed) as an anchors file for
 ``build-map --anchors`` (:func:`importers.tagslam_anchors`: full poses with TagSLAM's noise).
+TagSLAM's ``wiggle_rotation`` / ``wiggle_translation`` go to the ring file as each camera's
+``wiggle`` (a note says so: ``calibrate-ring`` then calibrates the fixed pose each wiggles about).
 """
 from __future__ import annotations
 

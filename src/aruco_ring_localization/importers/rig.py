@@ -44,8 +44,10 @@ rigid on its rig: TagSLAM gives it its own pose in every frame, tied to the came
 (the one camera_poses.yaml and TagSLAM's output hold) by an identity prior of those std (its
 camera.cpp / tag_slam.cpp; 1e-5 when not given: rigid). The fixed pose is then the mean pose
 the camera wiggles about, not a rigid rig's best fit: the two differ by more than either's
-noise on TagSLAM's tests 5 and 6 (docs/benchmarks.md). The ring is rigid; the importer keeps
-the declared values (:attr:`ImportedCamera.wiggle`) and says so (:attr:`ImportedRig.notes`).
+noise on TagSLAM's tests 5 and 6 (docs/benchmarks.md). The importer keeps the declared values
+(:attr:`ImportedCamera.wiggle`), writes them to the ring (:attr:`RingCamera.wiggle`, the ring
+file's ``wiggle``: ``calibrate-ring`` then estimates the fixed pose) and says so
+(:attr:`ImportedRig.notes`).
 """
 from __future__ import annotations
 
@@ -112,6 +114,15 @@ class ImportedCamera:
 TAGSLAM_DEFAULT_WIGGLE = 1e-5
 
 
+def ring_wiggle(wiggle: Optional[Tuple[float, float]]) -> Optional[Tuple[float, float]]:
+    """The ring file's wiggle (:attr:`RingCamera.wiggle`) of a declared TagSLAM one: None (rigid) when
+    absent or no larger than TagSLAM's default for a rigid camera, else the declared (rotation rad,
+    translation m)."""
+    if wiggle is None or max(wiggle) <= TAGSLAM_DEFAULT_WIGGLE:
+        return None
+    return float(wiggle[0]), float(wiggle[1])
+
+
 def _wiggle(entry: Mapping, name: str, path: str) -> Optional[Tuple[float, float]]:
     """(rotation rad, translation m): TagSLAM's ``wiggle_rotation`` / ``wiggle_translation``; None without either."""
     keys = ("wiggle_rotation", "wiggle_translation")
@@ -157,9 +168,9 @@ class ImportedRig:
             raise ConfigError(f"no pose for camera(s) {', '.join(missing)} in the rig (give a TagSLAM "
                               f"camera_poses.yaml with --camera-poses, or a Kalibr camchain with T_cn_cnm1 / "
                               f"T_cam_imu): a camera's extrinsics are never guessed", path=self.source)
-        cams = [RingCamera(c.name, c.frame_id, c.model, np.asarray(c.T_base_cam), c.namespace)
-                if c.extrinsics_std is None else
-                RingCamera(c.name, c.frame_id, c.model, np.asarray(c.T_base_cam), c.namespace, c.extrinsics_std)
+        cams = [RingCamera(c.name, c.frame_id, c.model, np.asarray(c.T_base_cam), c.namespace,
+                           **({} if c.extrinsics_std is None else {"extrinsics_std": c.extrinsics_std}),
+                           wiggle=ring_wiggle(c.wiggle))
                 for c in self.cameras]
         try:
             return CameraRing(cams, self.base_frame)
@@ -363,8 +374,9 @@ def read_rig(path: str, camera_poses: Optional[str] = None, base_frame: str = "r
         notes.append(f"{path} declares wiggle for {', '.join(c.name for c in wiggling)} (largest "
                      f"{max(c.wiggle[0] for c in wiggling):g} rad / {max(c.wiggle[1] for c in wiggling):g} m): TagSLAM "
                      f"lets each camera move against the rig in every frame, and its camera poses are the mean pose "
-                     f"each wiggles about; the ring is rigid, and a rigid calibration of the same recording "
-                     f"(calibrate-ring) need not agree with those poses within their noise")
+                     f"each wiggles about; written to the ring file as each camera's wiggle (calibrate-ring then "
+                     f"estimates that mean pose too; a rigid calibration, --wiggle off, need not agree with those "
+                     f"poses within their noise)")
     invented = [c.name for c in cams if c.T_base_cam is not None and c.extrinsics_std is None]
     if invented:
         notes.append(f"no uncertainty is given for the pose of {', '.join(invented)}: the ring file's default "
