@@ -56,7 +56,6 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 from scipy.linalg import lapack as _lapack
-from scipy.spatial.transform import Rotation
 
 from . import geometry as geo
 from .camera import CameraModel
@@ -353,10 +352,34 @@ def _perturb(T: np.ndarray, delta: np.ndarray) -> np.ndarray:
     return out
 
 
+def _rotations_from_rotvecs(W: np.ndarray) -> np.ndarray:
+    """(C, 3, 3) ``exp([w]x)`` for (C, 3) rotation vectors: :func:`_rotation_from_rotvec` batched
+    (``R = (1 - b t^2) I + a [w]x + b w w^T``; SciPy's Rotation costs ~40 us a call here)."""
+    t2 = np.einsum("ci,ci->c", W, W)
+    small = t2 < 1e-16
+    t2s = np.where(small, 1.0, t2)
+    t = np.sqrt(t2s)
+    a = np.where(small, 1.0, np.sin(t) / t)
+    b = np.where(small, 0.5, (1.0 - np.cos(t)) / t2s)
+    R = (b[:, None] * W)[:, :, None] * W[:, None, :]
+    d = 1.0 - b * t2
+    R[:, 0, 0] += d
+    R[:, 1, 1] += d
+    R[:, 2, 2] += d
+    aw = a[:, None] * W
+    R[:, 0, 1] -= aw[:, 2]
+    R[:, 1, 0] += aw[:, 2]
+    R[:, 0, 2] += aw[:, 1]
+    R[:, 2, 0] -= aw[:, 1]
+    R[:, 1, 2] -= aw[:, 0]
+    R[:, 2, 1] += aw[:, 0]
+    return R
+
+
 def _per_camera_poses(T_base_map: np.ndarray, deltas: np.ndarray, T_base_cams: np.ndarray) -> np.ndarray:
     """(C, 4, 4) ``T_map_cam`` for C perturbations ``deltas`` (C, 6) of ``T_base_map`` (batched
     :func:`_perturb`, inverse and extrinsics: one pass of array operations for all cameras)."""
-    R = Rotation.from_rotvec(deltas[:, :3]).as_matrix()
+    R = _rotations_from_rotvecs(deltas[:, :3])
     R_bm = R @ T_base_map[:3, :3]                          # rotation of the perturbed T_base_map
     t_bm = R @ T_base_map[:3, 3] + deltas[:, 3:]
     out = np.zeros((len(deltas), 4, 4))
@@ -600,42 +623,57 @@ class JointProblem:
             self.map_factor = np.concatenate([np.zeros((v.X.shape[0], 3, 6)) if v.map_factor is None
                                               else v.map_factor for v in self.views])
         self.marker_ids = np.array([i for v in self.views for i in v.ids], dtype=np.int64)
+        self._Axy = np.matmul(self.A, self.xy[:, :, None])[:, :, 0]
+        # :meth:`_rows`' (N, 3, 7) right factor [-[p_b]x | I | 0]: only the skew part changes per call.
+        self._skew = np.zeros((self.n, 3, 7))
+        self._skew[:, [0, 1, 2], [3, 4, 5]] = 1.0
 
     def residuals(self, T_base_map: np.ndarray, jacobian: bool = True):
         """Pixel residuals (N, 2) and, if asked, their Jacobian (N, 2, 6) w.r.t. ``delta``.
 
         Points at or behind a camera get a zero Jacobian and an infinite residual.
         """
+        r, Ja = self._rows(T_base_map, jacobian)
+        return r, (None if Ja is None else Ja[:, :, :6])
+
+    def _rows(self, T_base_map: np.ndarray, jacobian: bool = True) -> Tuple[np.ndarray, Optional[np.ndarray]]:
+        """(r (N, 2), ``[J | r]`` (N, 2, 7) or None): :meth:`residuals` with the Jacobian and the
+        residual side by side, as the per-camera normal equations read them (one product for
+        ``J^T D J``, ``J^T D r`` and ``r^T D r``). Few array operations: at ~80 corners each costs
+        about as much as its arithmetic (issue 16)."""
         p_b = self.X @ T_base_map[:3, :3].T + T_base_map[:3, 3]
         p_c = np.matmul(self.R, p_b[:, :, None])[:, :, 0] + self.t
         z = p_c[:, 2]
         bad = z <= 1e-6
-        inv_z = 1.0 / np.where(bad, 1.0, z)
+        any_bad = bool(bad.any())
+        inv_z = 1.0 / (np.where(bad, 1.0, z) if any_bad else z)
         u = p_c[:, :2] * inv_z[:, None]
-        d = u - self.xy
         A = self.A
-        r = A[:, :, 0] * d[:, 0:1] + A[:, :, 1] * d[:, 1:2]
-        if bad.any():
+        # A (u - xy) = A u - A xy (A xy: once per problem); A u is the Jacobian's third column below.
+        Au = np.matmul(A, u[:, :, None])[:, :, 0]
+        r = Au - self._Axy
+        if any_bad:
             r[bad] = np.inf
         if not jacobian:
             return r, None
-        # d u / d p_c = [[1, 0, -u], [0, 1, -v]] / z  (u = x/z, v = y/z), so
-        # A · du/dp_c = [A[:, 0], A[:, 1], -(A[:, 0] u + A[:, 1] v)] / z (columns).
+        # d u / d p_c = [[1, 0, -u], [0, 1, -v]] / z (u = x/z, v = y/z), so
+        # A · du/dp_c = [A[:, 0], A[:, 1], -A u] / z (columns); d p_c / d delta = R [-[p_b]x | I].
         AJ = np.empty((self.n, 2, 3))
-        AJ[:, :, 0] = A[:, :, 0] * inv_z[:, None]
-        AJ[:, :, 1] = A[:, :, 1] * inv_z[:, None]
-        AJ[:, :, 2] = -(AJ[:, :, 0] * u[:, 0:1] + AJ[:, :, 1] * u[:, 1:2])
-        M = np.matmul(AJ, self.R)  # d r / d p_b, (N, 2, 3)
-        J = np.empty((self.n, 2, 6))
-        # d p_b / d w = -[p_b]x, and m^T (-[p]x) = (p x m)^T for each row m of M.
-        pb = p_b[:, None, :]
-        J[:, :, 0] = pb[:, :, 1] * M[:, :, 2] - pb[:, :, 2] * M[:, :, 1]
-        J[:, :, 1] = pb[:, :, 2] * M[:, :, 0] - pb[:, :, 0] * M[:, :, 2]
-        J[:, :, 2] = pb[:, :, 0] * M[:, :, 1] - pb[:, :, 1] * M[:, :, 0]
-        J[:, :, 3:] = M
-        if bad.any():
-            J[bad] = 0.0
-        return r, J
+        AJ[:, :, :2] = A * inv_z[:, None, None]
+        AJ[:, :, 2] = Au * -inv_z[:, None]
+        B = self._skew   # (N, 3, 7): [-[p_b]x | I | 0], the identity and the zeros kept across calls
+        B[:, 0, 1] = p_b[:, 2]
+        B[:, 1, 2] = p_b[:, 0]
+        B[:, 2, 0] = p_b[:, 1]
+        B[:, 1, 0] = -p_b[:, 2]
+        B[:, 2, 1] = -p_b[:, 0]
+        B[:, 0, 2] = -p_b[:, 1]
+        Ja = np.matmul(np.matmul(AJ, self.R), B)   # (N, 2, 7), last column zero: the residual's slot
+        Ja[:, :, 6] = r
+        if any_bad:
+            Ja[bad] = 0.0
+            Ja[bad, :, 6] = np.inf
+        return r, Ja
 
     @staticmethod
     def _huber(r: np.ndarray, scale: float) -> Tuple[float, np.ndarray]:
@@ -652,19 +690,24 @@ class JointProblem:
 
     def fit(self, T_base_map: np.ndarray, scale: float) -> JointFit:
         """Residuals, Jacobian, weights and the (whitened) normal equations at ``T_base_map``."""
-        r, J = self.residuals(T_base_map)
-        huber, w = self._huber(r, scale)
-        rr = r if np.isfinite(huber) else np.where(np.isfinite(r), r, 0.0)   # finite cost: every r finite
+        r, Ja = self._rows(T_base_map)
+        J = Ja[:, :, :6]
+        e2 = np.einsum("ni,ni->n", r, r)
+        if e2.size and float(e2.max()) <= scale * scale:
+            # Every corner within the Huber scale (the usual frame; NaN-safe): unit weights, no
+            # weighting pass ([J r]^T [J r] directly).
+            huber, w, Jw = 0.5 * float(e2.sum()), np.ones(self.n), Ja
+        else:
+            huber, w = self._huber(r, scale)
+            if not np.isfinite(huber):   # finite cost: every r finite; else the non-finite rows out
+                Ja[:, :, 6] = np.where(np.isfinite(r), r, 0.0)
+            Jw = Ja * w[:, None, None]
         s2 = self.sigma ** 2
         if self.extrinsics_cov is None:
-            Jw = J * w[:, None, None]
-            H = np.einsum("nia,nib->ab", Jw, J) / s2
-            g = np.einsum("nia,ni->a", Jw, rr) / s2
-            chi2 = float(np.sum(w * np.sum(rr * rr, axis=1))) / s2
-            return JointFit(r, J, w, H, g, chi2, huber)
+            A7 = np.matmul(Jw.reshape(-1, 7).T, Ja.reshape(-1, 7)) / s2
+            return JointFit(r, J, w, A7[:6, :6], A7[:6, 6], float(A7[6, 6]), huber)
         # Per camera, [J_c r_c]^T D_c [J_c r_c] in one pass: J_c^T D_c J_c, J_c^T D_c r_c, r_c^T D_c r_c.
-        Ja = np.concatenate([J, rr[:, :, None]], axis=2)
-        A7 = np.add.reduceat(np.matmul(np.transpose(Ja * w[:, None, None], (0, 2, 1)), Ja), self.offsets[:-1], axis=0)
+        A7 = np.add.reduceat(np.matmul(np.transpose(Jw, (0, 2, 1)), Ja), self.offsets[:-1], axis=0)
         return self._whitened(r, J, w, A7[:, :6, :6], A7[:, :6, 6], A7[:, 6, 6], huber)
 
     def refit(self, fit: JointFit) -> JointFit:
