@@ -512,26 +512,27 @@ class JointFit:
 @dataclass
 class _Spectrum:
     """Per camera, the eigen-decomposition ``L_c^T G_c L_c = U_c diag(lam_c) U_c^T`` of the blocks
-    of one fit (``L``: the extrinsics factors it was taken with), as ``LU = L U`` and ``P = G L U``:
-    with ``M_c = sigma^2 I + L_c^T G_c L_c = U (sigma^2 + lam) U^T`` the whitening at any pixel
+    of one fit (``L``: the extrinsics factors it was taken with), as ``LUT = (L U)^T``: with
+    ``M_c = sigma^2 I + L_c^T G_c L_c = U (sigma^2 + lam) U^T`` the whitening at any pixel
     noise is diagonal (:meth:`JointProblem._whitened`), so the pixel-noise search and every refit
     at another sigma cost no 6x6 solve. Depends on ``G`` (the pose and Huber weights) and ``L``
     only, not on ``b`` (a linear step keeps it)."""
 
     L: np.ndarray       # the (C, 6, 6) factors it belongs to (identity-checked before reuse)
     lam: np.ndarray     # (C, 6), clipped at 0
-    LU: np.ndarray      # (C, 6, 6)
-    P: np.ndarray       # (C, 6, 6)
+    LUT: np.ndarray     # (C, 6, 6) (L U)^T = U^T L^T
 
     @staticmethod
-    def of(G: np.ndarray, L: np.ndarray) -> "_Spectrum":
-        lam, U = np.linalg.eigh(np.transpose(L, (0, 2, 1)) @ G @ L)
-        LU = L @ U
-        return _Spectrum(L, np.clip(lam, 0.0, None), LU, G @ LU)
+    def of(G: np.ndarray, L: np.ndarray, LT: Optional[np.ndarray] = None) -> "_Spectrum":
+        """``LT``: ``L`` transposed per camera, when the caller keeps it."""
+        if LT is None:
+            LT = np.transpose(L, (0, 2, 1))
+        lam, U = np.linalg.eigh(LT @ G @ L)
+        return _Spectrum(L, np.clip(lam, 0.0, None), np.matmul(np.transpose(U, (0, 2, 1)), LT))
 
     def beta(self, b: np.ndarray) -> np.ndarray:
         """(C, 6) ``U^T L^T b`` per camera."""
-        return np.matmul(b[:, None, :], self.LU)[:, 0, :]
+        return np.matmul(self.LUT, b[:, :, None])[:, :, 0]
 
 
 class JointProblem:
@@ -585,15 +586,20 @@ class JointProblem:
         counts = [v.X.shape[0] for v in views]
         self.cam_index = np.repeat(np.arange(len(views)), counts)
         self.offsets = np.concatenate([[0], np.cumsum(counts)])
+        #: (C,) corners per camera.
+        self.counts = np.diff(self.offsets)
         # Per corner, the 2x2 map from normalised to pixel errors: K2 = [[fx, s], [0, fy]], or a
         # fisheye's local lens Jacobian.
-        Ks = [v.model.K for v in views]
-        A = np.array([[[K[0, 0], K[0, 1]], [0.0, K[1, 1]]] for K in Ks], dtype=np.float64)
+        A = np.stack([v.model.K for v in views])[:, :2, :2]
+        A[:, 1, 0] = 0.0
         self.A = A[self.cam_index]
         for k, v in enumerate(views):
             if v.pixel_jacobian is not None:
                 self.A[self.offsets[k]:self.offsets[k + 1]] = v.pixel_jacobian
-        T_cb = np.stack([v.T_cam_base for v in views])[self.cam_index]
+        #: (C, 4, 4) the views' T_cam_base and T_base_cam.
+        self.T_cam_bases = np.stack([v.T_cam_base for v in views])
+        self.T_base_cams = np.stack([v.T_base_cam for v in views])
+        T_cb = self.T_cam_bases[self.cam_index]
         self.R = T_cb[:, :3, :3]
         self.t = T_cb[:, :3, 3]
         self.n = self.X.shape[0]
@@ -624,6 +630,7 @@ class JointProblem:
                                               else v.map_factor for v in self.views])
         self.marker_ids = np.array([i for v in self.views for i in v.ids], dtype=np.int64)
         self._Axy = np.matmul(self.A, self.xy[:, :, None])[:, :, 0]
+        self._LT: Optional[np.ndarray] = None   # the extrinsics factors transposed (:meth:`_spectrum`)
         # :meth:`_rows`' (N, 3, 7) right factor [-[p_b]x | I | 0]: only the skew part changes per call.
         self._skew = np.zeros((self.n, 3, 7))
         self._skew[:, [0, 1, 2], [3, 4, 5]] = 1.0
@@ -708,7 +715,7 @@ class JointProblem:
             return JointFit(r, J, w, A7[:6, :6], A7[:6, 6], float(A7[6, 6]), huber)
         # Per camera, [J_c r_c]^T D_c [J_c r_c] in one pass: J_c^T D_c J_c, J_c^T D_c r_c, r_c^T D_c r_c.
         A7 = np.add.reduceat(np.matmul(np.transpose(Jw, (0, 2, 1)), Ja), self.offsets[:-1], axis=0)
-        return self._whitened(r, J, w, A7[:, :6, :6], A7[:, :6, 6], A7[:, 6, 6], huber)
+        return self._whitened(r, J, w, A7[:, :6, :6], A7[:, :6, 6], A7[:, 6, 6], huber, Gb=A7[:, :6, :])
 
     def refit(self, fit: JointFit) -> JointFit:
         """``fit`` (of these cameras' rows, at any pixel noise, with a calibration model) at this
@@ -727,10 +734,12 @@ class JointProblem:
         """``spectrum`` when it belongs to these blocks' extrinsics factors, else computed."""
         if spectrum is not None and spectrum.L is self.extrinsics_factor:
             return spectrum
-        return _Spectrum.of(G, self.extrinsics_factor)
+        if self._LT is None:
+            self._LT = np.ascontiguousarray(np.transpose(self.extrinsics_factor, (0, 2, 1)))
+        return _Spectrum.of(G, self.extrinsics_factor, self._LT)
 
     def _whitened(self, r: np.ndarray, J: np.ndarray, w: np.ndarray, G: np.ndarray, b: np.ndarray, q: np.ndarray,
-                  huber: float, spectrum: Optional[_Spectrum] = None) -> JointFit:
+                  huber: float, spectrum: Optional[_Spectrum] = None, Gb: Optional[np.ndarray] = None) -> JointFit:
         """The fit from the per-camera blocks ``G_c = J_c^T D_c J_c``, ``b_c = J_c^T D_c r_c``,
         ``q_c = r_c^T D_c r_c``, the extrinsics marginalised at this problem's ``sigma``.
 
@@ -740,19 +749,22 @@ class JointProblem:
         ``g_c = (b - P d beta) / s2``, ``chi2 = sum_c (q_c - beta^T d beta) / s2``. Raises
         LinAlgError when ``M`` is not numerically positive definite (its condition beyond
         1 / machine epsilon: what the Cholesky solves this replaced refused, e.g. a trial pose far
-        off, seen on a real recording with eigenvalues 0.04 .. 2e15)."""
+        off, seen on a real recording with eigenvalues 0.04 .. 2e15). ``Gb``: ``[G | b]`` (C, 6, 7)
+        when the caller has it side by side already."""
         s2 = self.sigma ** 2
         sp = self._spectrum(G, spectrum)
         m = s2 + sp.lam
         if not m.min() > np.finfo(np.float64).eps * m.max():
             raise np.linalg.LinAlgError("whitening: the 6x6 normal matrix is not positive definite")
         d = 1.0 / m
-        beta = sp.beta(b)
-        Pd = sp.P * d[:, None, :]
-        H_cam = (G - Pd @ np.transpose(sp.P, (0, 2, 1))) / s2
-        H_cam = 0.5 * (H_cam + np.transpose(H_cam, (0, 2, 1)))
-        g = (b - np.matmul(Pd, beta[:, :, None])[:, :, 0]) / s2
-        chi2 = float(np.sum(q) - np.sum(d * beta * beta)) / s2
+        # [G | b] and Q = U^T L^T [G | b] = [P^T | beta] (P = G L U: G is symmetric): then
+        # [H_c | g_c] s2 = [G | b] - P d [P^T | beta] in one product.
+        Gb = np.concatenate([G, b[:, :, None]], axis=2) if Gb is None else Gb
+        Q = np.matmul(sp.LUT, Gb)
+        Qd = Q * d[:, :, None]
+        Y = (Gb - np.matmul(np.transpose(Q[:, :, :6], (0, 2, 1)), Qd)) / s2
+        H_cam, g = Y[:, :, :6], Y[:, :, 6]
+        chi2 = float(np.sum(q) - np.sum(Qd[:, :, 6] * Q[:, :, 6])) / s2
         if not np.isfinite(huber):
             chi2 = np.inf
         return JointFit(r, J, w, H_cam.sum(axis=0), g.sum(axis=0), chi2, chi2, H_cam, G, b, sp)
@@ -1221,6 +1233,9 @@ class RingLocalizer:
         #: px: the pixel noise the joint estimate is solved at (``estimate_pixel_noise``): the noise
         #: measured in the last frame posed by the joint estimator, ``pixel_noise`` before it.
         self.pixel_noise_guess = float(self.params.pixel_noise)
+        #: name -> :class:`CameraView` of the last frame processed (the moved-marker check reuses
+        #: its corners: :meth:`marker_check.MarkerCheck.update`).
+        self.last_views: Dict[str, CameraView] = {}
         self.set_ring(ring)
 
     def set_ring(self, ring: CameraRing) -> None:
@@ -1516,6 +1531,7 @@ class RingLocalizer:
         p = self.params
         result = LocalizationResult(stamp=float(ring_frame.stamp))
         views = self._gather(ring_frame, result.rejected, motion)
+        self.last_views = views
         result.marker_ids = sorted({i for v in views.values() for i in v.ids})
         if not views:
             return result
@@ -1861,47 +1877,62 @@ class RingLocalizer:
         p = self.params
         starts = prob.offsets[:-1]
         if sol.fit.G_cam is not None:  # the joint fit's own per-camera blocks (Huber-weighted)
-            Hc, gc = sol.fit.G_cam + 1e-9 * np.eye(6), sol.fit.b_cam
+            Hc, gc = sol.fit.G_cam + _EYE6_TINY, sol.fit.b_cam
         else:
-            Hc = np.add.reduceat(np.einsum("nia,nib->nab", sol.J, sol.J), starts, axis=0) + 1e-9 * np.eye(6)
+            Hc = np.add.reduceat(np.einsum("nia,nib->nab", sol.J, sol.J), starts, axis=0) + _EYE6_TINY
             gc = np.add.reduceat(np.einsum("nia,ni->na", sol.J, sol.r), starts, axis=0)
         try:
             deltas = -_solve_spd_batch(Hc, gc[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:
             return
         r_lin = sol.r + np.matmul(sol.J, deltas[prob.cam_index][:, :, None])[:, :, 0]
-        counts = np.diff(prob.offsets)
-        errs = np.sqrt(np.add.reduceat(r_lin[:, 0] * r_lin[:, 0] + r_lin[:, 1] * r_lin[:, 1], starts) / counts)
-        T_map_cams = _per_camera_poses(sol.T_base_map, deltas, np.stack([v.T_base_cam for v in prob.views]))
+        counts = prob.counts
+        errs = np.sqrt(np.add.reduceat(np.einsum("ni,ni->n", r_lin, r_lin), starts) / counts)
+        T_map_cams = _per_camera_poses(sol.T_base_map, deltas, prob.T_base_cams)
         # Distance and angle per marker (4 rows each, cameras' markers in order), averaged per camera
         # (paper's Ac inputs).
         n_per = counts // 4
         cam_of = prob.cam_index[::4]
-        centres, normals = self._marker_axes(prob.marker_ids.tolist())
+        axes = self._marker_axes_of(prob)
         Tc = T_map_cams[cam_of]
-        dists = np.linalg.norm(centres - Tc[:, :3, 3], axis=1)
-        angles = np.arccos(np.clip(-np.sum(normals * Tc[:, :3, 2], axis=1), -1.0, 1.0))
+        dists = np.linalg.norm(axes[:, :3] - Tc[:, :3, 3], axis=1)
+        angles = np.arccos(np.clip(-np.einsum("ki,ki->k", axes[:, 3:], Tc[:, :3, 2]), -1.0, 1.0))
         mstarts = starts // 4
         mean_d = np.add.reduceat(dists, mstarts) / n_per
         mean_a = np.add.reduceat(angles, mstarts) / n_per
-        ac_d = np.clip((p.th_distance - mean_d) / p.th_distance, 0.0, None)
-        ac_or = np.clip((p.th_orientation - mean_a) / p.th_orientation, 0.0, None)
+        ac_d = np.maximum((p.th_distance - mean_d) / p.th_distance, 0.0)
+        ac_or = np.maximum((p.th_orientation - mean_a) / p.th_orientation, 0.0)
         acc = 0.5 * (ac_d + ac_or)
-        big = (np.sum(deltas * deltas, axis=1) > 0.25).tolist()
-        T_map_bases = T_map_cams @ np.stack([v.T_cam_base for v in prob.views])
+        big = (np.einsum("ca,ca->c", deltas, deltas) > 0.25).tolist()
+        T_map_bases = T_map_cams @ prob.T_cam_bases
         errs_l, d_l, a_l, acc_l = errs.tolist(), mean_d.tolist(), mean_a.tolist(), acc.tolist()
+        max_err = p.max_reprojection_error
         for k, view in enumerate(prob.views):
             if big[k]:
                 continue  # not a small correction (above 0.5): this camera alone is not well determined
             est = CameraEstimate(camera=view.name, marker_ids=list(view.ids), T_map_cam=T_map_cams[k],
                                  T_map_base=T_map_bases[k], reprojection_error=errs_l[k],
                                  distance=d_l[k], angle=a_l[k], accuracy=acc_l[k])
-            if not errs_l[k] <= p.max_reprojection_error:
+            if not errs_l[k] <= max_err:
                 est.valid = False
                 est.reject_reason = REJECT_REPROJECTION
             result.estimates[view.name] = est
 
+    def _marker_axes_of(self, prob: JointProblem) -> np.ndarray:
+        """(k, 6) centres and z axes of ``prob``'s markers (in its order), in the map frame."""
+        cache = self._axes_cache
+        rows = []
+        for i in prob.marker_ids.tolist():
+            row = cache.get(i)
+            if row is None:
+                T = self.marker_map.T_map_marker(i)
+                row = cache[i] = np.concatenate([T[:3, 3], T[:3, 2]])
+            rows.append(row)
+        return np.array(rows)
 
+
+#: The per-camera steps' damping (:meth:`RingLocalizer._per_camera_from_joint`).
+_EYE6_TINY = 1e-9 * np.eye(6)
 #: The consistency test's F from the linearised exact-extrinsics step above this many times its
 #: quantile is taken as the verdict (inconsistent) without solving the exact problem.
 _F_CLEAR = 2.0

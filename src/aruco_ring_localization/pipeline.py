@@ -933,7 +933,8 @@ class LocalizationPipeline(_RingPipeline):
             if self.filter.initialized:
                 twist = self.filter.body_twist
                 speed, yaw_rate = max(speed, float(np.hypot(twist[0], twist[1]))), max(yaw_rate, abs(float(twist[2])))
-            if check.update(ring_frame, loc.T_map_base, self.localizer.ring, stamp, motion, (speed, yaw_rate)):
+            if check.update(ring_frame, loc.T_map_base, self.localizer.ring, stamp, motion, (speed, yaw_rate),
+                            known_views=self.localizer.last_views):
                 loc = self.localizer.process(check.strip(ring_frame), pred, motion)
             check.warn_moved(stamp if self._clock is None else self._clock)
         for k, v in loc.rejected.items():
