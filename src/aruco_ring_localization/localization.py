@@ -535,6 +535,47 @@ class _Spectrum:
         return np.matmul(self.LUT, b[:, :, None])[:, :, 0]
 
 
+_SKEW_TEMPLATE = np.zeros((0, 3, 7))
+
+
+def _skew_template(n: int) -> np.ndarray:
+    """A fresh (n, 3, 7) ``[0 | I | 0]`` (:meth:`JointProblem._rows`' right factor before its skew
+    part is written): a copy of a template kept at the largest size asked for."""
+    global _SKEW_TEMPLATE
+    if _SKEW_TEMPLATE.shape[0] < n:
+        t = np.zeros((max(n, 2 * _SKEW_TEMPLATE.shape[0]), 3, 7))
+        t[:, [0, 1, 2], [3, 4, 5]] = 1.0
+        _SKEW_TEMPLATE = t
+    return _SKEW_TEMPLATE[:n].copy()
+
+
+#: (id of each view's extrinsics covariance and factor, ...) -> (the views' arrays, kept so that
+#: the ids stay theirs; stacked covariances, factors, factors transposed): the same cameras'
+#: calibration frame after frame is stacked once (:func:`_extrinsics_stacks`).
+_EXT_STACKS: Dict[tuple, tuple] = {}
+
+
+def _extrinsics_stacks(views: Sequence["CameraView"], covs: Sequence[Optional[np.ndarray]]):
+    """(C, 6, 6) covariances (zero for an exact view), their factors ``L`` (the view's own, else
+    :func:`_psd_factor`) and ``L`` transposed, for ``views``; cached by the arrays' identity (the
+    cache holds them, so an id cannot be reused while its entry lives). Read-only."""
+    key = tuple((id(c), id(v.extrinsics_factor)) for v, c in zip(views, covs))
+    hit = _EXT_STACKS.get(key)
+    if hit is not None:
+        return hit[1]
+    cov = np.stack([np.zeros((6, 6)) if c is None else np.asarray(c) for c in covs])
+    factor = np.stack([v.extrinsics_factor if v.extrinsics_factor is not None else _psd_factor(c)
+                       for v, c in zip(views, cov)])
+    LT = np.ascontiguousarray(np.transpose(factor, (0, 2, 1)))
+    for a in (cov, factor, LT):
+        a.flags.writeable = False
+    if len(_EXT_STACKS) >= 64:
+        _EXT_STACKS.clear()
+    out = (cov, factor, LT)
+    _EXT_STACKS[key] = ([(c, v.extrinsics_factor) for v, c in zip(views, covs)], out)
+    return out
+
+
 class JointProblem:
     """Corners of several cameras, ready for Gauss-Newton on ``T_base_map``.
 
@@ -587,7 +628,7 @@ class JointProblem:
         self.cam_index = np.repeat(np.arange(len(views)), counts)
         self.offsets = np.concatenate([[0], np.cumsum(counts)])
         #: (C,) corners per camera.
-        self.counts = np.diff(self.offsets)
+        self.counts = np.array(counts)
         # Per corner, the 2x2 map from normalised to pixel errors: K2 = [[fx, s], [0, fy]], or a
         # fisheye's local lens Jacobian.
         A = np.stack([v.model.K for v in views])[:, :2, :2]
@@ -606,11 +647,9 @@ class JointProblem:
         covs = [v.extrinsics_cov for v in self.views]
         self.extrinsics_cov: Optional[np.ndarray] = None
         self.extrinsics_factor: Optional[np.ndarray] = None
+        self._LT: Optional[np.ndarray] = None   # the extrinsics factors transposed (:meth:`_spectrum`)
         if any(c is not None for c in covs):
-            self.extrinsics_cov = np.stack([np.zeros((6, 6)) if c is None else np.asarray(c) for c in covs])
-            self.extrinsics_factor = np.stack([
-                v.extrinsics_factor if v.extrinsics_factor is not None else _psd_factor(c)
-                for v, c in zip(self.views, self.extrinsics_cov)])
+            self.extrinsics_cov, self.extrinsics_factor, self._LT = _extrinsics_stacks(self.views, covs)
         self.cross_covariance = cross_covariance
         # The part of the cameras' eta they have in common (free-running cameras moved with one
         # velocity): (C, 6, k) factors, zero for a view without one.
@@ -630,10 +669,8 @@ class JointProblem:
                                               else v.map_factor for v in self.views])
         self.marker_ids = np.array([i for v in self.views for i in v.ids], dtype=np.int64)
         self._Axy = np.matmul(self.A, self.xy[:, :, None])[:, :, 0]
-        self._LT: Optional[np.ndarray] = None   # the extrinsics factors transposed (:meth:`_spectrum`)
         # :meth:`_rows`' (N, 3, 7) right factor [-[p_b]x | I | 0]: only the skew part changes per call.
-        self._skew = np.zeros((self.n, 3, 7))
-        self._skew[:, [0, 1, 2], [3, 4, 5]] = 1.0
+        self._skew = _skew_template(self.n)
 
     def residuals(self, T_base_map: np.ndarray, jacobian: bool = True):
         """Pixel residuals (N, 2) and, if asked, their Jacobian (N, 2, 6) w.r.t. ``delta``.
