@@ -888,10 +888,12 @@ class JointProblem:
             delta = -_solve_spd_batch(H[None], g[None, :, None])[0, :, 0]
         except np.linalg.LinAlgError:
             raise MeasurementError("joint estimator: singular normal equations (degenerate geometry)") from None
-        r = fit.r + np.einsum("nia,a->ni", fit.J, delta)
+        r = fit.r + fit.J @ delta
         b_cam = fit.b_cam + fit.G_cam @ delta
-        chi2 = float(np.sum(fit.w * np.sum(r * r, axis=1))) / s2
-        huber = self._huber(r, scale)[0]
+        e2 = np.einsum("ni,ni->n", r, r)
+        chi2 = float(fit.w @ e2) / s2
+        # The Huber cost (_huber's): every corner within the scale, the usual case, from e2 directly.
+        huber = 0.5 * float(e2.sum()) if e2.size and float(e2.max()) <= scale * scale else self._huber(r, scale)[0]
         out = JointFit(r, fit.J, fit.w, H, b_cam.sum(axis=0) / s2, chi2, huber, None, fit.G_cam, b_cam)
         return _perturb(T_base_map, delta), out, float(np.sqrt(delta @ delta))
 
