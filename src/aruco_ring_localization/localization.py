@@ -56,7 +56,6 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 from scipy.linalg import lapack as _lapack
-from scipy.spatial.transform import Rotation
 
 from . import geometry as geo
 from .camera import CameraModel
@@ -353,10 +352,34 @@ def _perturb(T: np.ndarray, delta: np.ndarray) -> np.ndarray:
     return out
 
 
+def _rotations_from_rotvecs(W: np.ndarray) -> np.ndarray:
+    """(C, 3, 3) ``exp([w]x)`` for (C, 3) rotation vectors: :func:`_rotation_from_rotvec` batched
+    (``R = (1 - b t^2) I + a [w]x + b w w^T``; SciPy's Rotation costs ~40 us a call here)."""
+    t2 = np.einsum("ci,ci->c", W, W)
+    small = t2 < 1e-16
+    t2s = np.where(small, 1.0, t2)
+    t = np.sqrt(t2s)
+    a = np.where(small, 1.0, np.sin(t) / t)
+    b = np.where(small, 0.5, (1.0 - np.cos(t)) / t2s)
+    R = (b[:, None] * W)[:, :, None] * W[:, None, :]
+    d = 1.0 - b * t2
+    R[:, 0, 0] += d
+    R[:, 1, 1] += d
+    R[:, 2, 2] += d
+    aw = a[:, None] * W
+    R[:, 0, 1] -= aw[:, 2]
+    R[:, 1, 0] += aw[:, 2]
+    R[:, 0, 2] += aw[:, 1]
+    R[:, 2, 0] -= aw[:, 1]
+    R[:, 1, 2] -= aw[:, 0]
+    R[:, 2, 1] += aw[:, 0]
+    return R
+
+
 def _per_camera_poses(T_base_map: np.ndarray, deltas: np.ndarray, T_base_cams: np.ndarray) -> np.ndarray:
     """(C, 4, 4) ``T_map_cam`` for C perturbations ``deltas`` (C, 6) of ``T_base_map`` (batched
     :func:`_perturb`, inverse and extrinsics: one pass of array operations for all cameras)."""
-    R = Rotation.from_rotvec(deltas[:, :3]).as_matrix()
+    R = _rotations_from_rotvecs(deltas[:, :3])
     R_bm = R @ T_base_map[:3, :3]                          # rotation of the perturbed T_base_map
     t_bm = R @ T_base_map[:3, 3] + deltas[:, 3:]
     out = np.zeros((len(deltas), 4, 4))
@@ -489,26 +512,68 @@ class JointFit:
 @dataclass
 class _Spectrum:
     """Per camera, the eigen-decomposition ``L_c^T G_c L_c = U_c diag(lam_c) U_c^T`` of the blocks
-    of one fit (``L``: the extrinsics factors it was taken with), as ``LU = L U`` and ``P = G L U``:
-    with ``M_c = sigma^2 I + L_c^T G_c L_c = U (sigma^2 + lam) U^T`` the whitening at any pixel
+    of one fit (``L``: the extrinsics factors it was taken with), as ``LUT = (L U)^T``: with
+    ``M_c = sigma^2 I + L_c^T G_c L_c = U (sigma^2 + lam) U^T`` the whitening at any pixel
     noise is diagonal (:meth:`JointProblem._whitened`), so the pixel-noise search and every refit
     at another sigma cost no 6x6 solve. Depends on ``G`` (the pose and Huber weights) and ``L``
     only, not on ``b`` (a linear step keeps it)."""
 
     L: np.ndarray       # the (C, 6, 6) factors it belongs to (identity-checked before reuse)
     lam: np.ndarray     # (C, 6), clipped at 0
-    LU: np.ndarray      # (C, 6, 6)
-    P: np.ndarray       # (C, 6, 6)
+    LUT: np.ndarray     # (C, 6, 6) (L U)^T = U^T L^T
 
     @staticmethod
-    def of(G: np.ndarray, L: np.ndarray) -> "_Spectrum":
-        lam, U = np.linalg.eigh(np.transpose(L, (0, 2, 1)) @ G @ L)
-        LU = L @ U
-        return _Spectrum(L, np.clip(lam, 0.0, None), LU, G @ LU)
+    def of(G: np.ndarray, L: np.ndarray, LT: Optional[np.ndarray] = None) -> "_Spectrum":
+        """``LT``: ``L`` transposed per camera, when the caller keeps it."""
+        if LT is None:
+            LT = np.transpose(L, (0, 2, 1))
+        lam, U = np.linalg.eigh(LT @ G @ L)
+        return _Spectrum(L, np.clip(lam, 0.0, None), np.matmul(np.transpose(U, (0, 2, 1)), LT))
 
     def beta(self, b: np.ndarray) -> np.ndarray:
         """(C, 6) ``U^T L^T b`` per camera."""
-        return np.matmul(b[:, None, :], self.LU)[:, 0, :]
+        return np.matmul(self.LUT, b[:, :, None])[:, :, 0]
+
+
+_SKEW_TEMPLATE = np.zeros((0, 3, 7))
+
+
+def _skew_template(n: int) -> np.ndarray:
+    """A fresh (n, 3, 7) ``[0 | I | 0]`` (:meth:`JointProblem._rows`' right factor before its skew
+    part is written): a copy of a template kept at the largest size asked for."""
+    global _SKEW_TEMPLATE
+    if _SKEW_TEMPLATE.shape[0] < n:
+        t = np.zeros((max(n, 2 * _SKEW_TEMPLATE.shape[0]), 3, 7))
+        t[:, [0, 1, 2], [3, 4, 5]] = 1.0
+        _SKEW_TEMPLATE = t
+    return _SKEW_TEMPLATE[:n].copy()
+
+
+#: (id of each view's extrinsics covariance and factor, ...) -> (the views' arrays, kept so that
+#: the ids stay theirs; stacked covariances, factors, factors transposed): the same cameras'
+#: calibration frame after frame is stacked once (:func:`_extrinsics_stacks`).
+_EXT_STACKS: Dict[tuple, tuple] = {}
+
+
+def _extrinsics_stacks(views: Sequence["CameraView"], covs: Sequence[Optional[np.ndarray]]):
+    """(C, 6, 6) covariances (zero for an exact view), their factors ``L`` (the view's own, else
+    :func:`_psd_factor`) and ``L`` transposed, for ``views``; cached by the arrays' identity (the
+    cache holds them, so an id cannot be reused while its entry lives). Read-only."""
+    key = tuple((id(c), id(v.extrinsics_factor)) for v, c in zip(views, covs))
+    hit = _EXT_STACKS.get(key)
+    if hit is not None:
+        return hit[1]
+    cov = np.stack([np.zeros((6, 6)) if c is None else np.asarray(c) for c in covs])
+    factor = np.stack([v.extrinsics_factor if v.extrinsics_factor is not None else _psd_factor(c)
+                       for v, c in zip(views, cov)])
+    LT = np.ascontiguousarray(np.transpose(factor, (0, 2, 1)))
+    for a in (cov, factor, LT):
+        a.flags.writeable = False
+    if len(_EXT_STACKS) >= 64:
+        _EXT_STACKS.clear()
+    out = (cov, factor, LT)
+    _EXT_STACKS[key] = ([(c, v.extrinsics_factor) for v, c in zip(views, covs)], out)
+    return out
 
 
 class JointProblem:
@@ -562,26 +627,29 @@ class JointProblem:
         counts = [v.X.shape[0] for v in views]
         self.cam_index = np.repeat(np.arange(len(views)), counts)
         self.offsets = np.concatenate([[0], np.cumsum(counts)])
+        #: (C,) corners per camera.
+        self.counts = np.array(counts)
         # Per corner, the 2x2 map from normalised to pixel errors: K2 = [[fx, s], [0, fy]], or a
         # fisheye's local lens Jacobian.
-        Ks = [v.model.K for v in views]
-        A = np.array([[[K[0, 0], K[0, 1]], [0.0, K[1, 1]]] for K in Ks], dtype=np.float64)
+        A = np.stack([v.model.K for v in views])[:, :2, :2]
+        A[:, 1, 0] = 0.0
         self.A = A[self.cam_index]
         for k, v in enumerate(views):
             if v.pixel_jacobian is not None:
                 self.A[self.offsets[k]:self.offsets[k + 1]] = v.pixel_jacobian
-        T_cb = np.stack([v.T_cam_base for v in views])[self.cam_index]
+        #: (C, 4, 4) the views' T_cam_base and T_base_cam.
+        self.T_cam_bases = np.stack([v.T_cam_base for v in views])
+        self.T_base_cams = np.stack([v.T_base_cam for v in views])
+        T_cb = self.T_cam_bases[self.cam_index]
         self.R = T_cb[:, :3, :3]
         self.t = T_cb[:, :3, 3]
         self.n = self.X.shape[0]
         covs = [v.extrinsics_cov for v in self.views]
         self.extrinsics_cov: Optional[np.ndarray] = None
         self.extrinsics_factor: Optional[np.ndarray] = None
+        self._LT: Optional[np.ndarray] = None   # the extrinsics factors transposed (:meth:`_spectrum`)
         if any(c is not None for c in covs):
-            self.extrinsics_cov = np.stack([np.zeros((6, 6)) if c is None else np.asarray(c) for c in covs])
-            self.extrinsics_factor = np.stack([
-                v.extrinsics_factor if v.extrinsics_factor is not None else _psd_factor(c)
-                for v, c in zip(self.views, self.extrinsics_cov)])
+            self.extrinsics_cov, self.extrinsics_factor, self._LT = _extrinsics_stacks(self.views, covs)
         self.cross_covariance = cross_covariance
         # The part of the cameras' eta they have in common (free-running cameras moved with one
         # velocity): (C, 6, k) factors, zero for a view without one.
@@ -600,42 +668,56 @@ class JointProblem:
             self.map_factor = np.concatenate([np.zeros((v.X.shape[0], 3, 6)) if v.map_factor is None
                                               else v.map_factor for v in self.views])
         self.marker_ids = np.array([i for v in self.views for i in v.ids], dtype=np.int64)
+        self._Axy = np.matmul(self.A, self.xy[:, :, None])[:, :, 0]
+        # :meth:`_rows`' (N, 3, 7) right factor [-[p_b]x | I | 0]: only the skew part changes per call.
+        self._skew = _skew_template(self.n)
 
     def residuals(self, T_base_map: np.ndarray, jacobian: bool = True):
         """Pixel residuals (N, 2) and, if asked, their Jacobian (N, 2, 6) w.r.t. ``delta``.
 
         Points at or behind a camera get a zero Jacobian and an infinite residual.
         """
+        r, Ja = self._rows(T_base_map, jacobian)
+        return r, (None if Ja is None else Ja[:, :, :6])
+
+    def _rows(self, T_base_map: np.ndarray, jacobian: bool = True) -> Tuple[np.ndarray, Optional[np.ndarray]]:
+        """(r (N, 2), ``[J | r]`` (N, 2, 7) or None): :meth:`residuals` with the Jacobian and the
+        residual side by side, as the per-camera normal equations read them (one product for
+        ``J^T D J``, ``J^T D r`` and ``r^T D r``). Few array operations: at ~80 corners each costs
+        about as much as its arithmetic (issue 16)."""
         p_b = self.X @ T_base_map[:3, :3].T + T_base_map[:3, 3]
         p_c = np.matmul(self.R, p_b[:, :, None])[:, :, 0] + self.t
         z = p_c[:, 2]
         bad = z <= 1e-6
-        inv_z = 1.0 / np.where(bad, 1.0, z)
+        any_bad = bool(bad.any())
+        inv_z = 1.0 / (np.where(bad, 1.0, z) if any_bad else z)
         u = p_c[:, :2] * inv_z[:, None]
-        d = u - self.xy
         A = self.A
-        r = A[:, :, 0] * d[:, 0:1] + A[:, :, 1] * d[:, 1:2]
-        if bad.any():
+        # A (u - xy) = A u - A xy (A xy: once per problem); A u is the Jacobian's third column below.
+        Au = np.matmul(A, u[:, :, None])[:, :, 0]
+        r = Au - self._Axy
+        if any_bad:
             r[bad] = np.inf
         if not jacobian:
             return r, None
-        # d u / d p_c = [[1, 0, -u], [0, 1, -v]] / z  (u = x/z, v = y/z), so
-        # A · du/dp_c = [A[:, 0], A[:, 1], -(A[:, 0] u + A[:, 1] v)] / z (columns).
+        # d u / d p_c = [[1, 0, -u], [0, 1, -v]] / z (u = x/z, v = y/z), so
+        # A · du/dp_c = [A[:, 0], A[:, 1], -A u] / z (columns); d p_c / d delta = R [-[p_b]x | I].
         AJ = np.empty((self.n, 2, 3))
-        AJ[:, :, 0] = A[:, :, 0] * inv_z[:, None]
-        AJ[:, :, 1] = A[:, :, 1] * inv_z[:, None]
-        AJ[:, :, 2] = -(AJ[:, :, 0] * u[:, 0:1] + AJ[:, :, 1] * u[:, 1:2])
-        M = np.matmul(AJ, self.R)  # d r / d p_b, (N, 2, 3)
-        J = np.empty((self.n, 2, 6))
-        # d p_b / d w = -[p_b]x, and m^T (-[p]x) = (p x m)^T for each row m of M.
-        pb = p_b[:, None, :]
-        J[:, :, 0] = pb[:, :, 1] * M[:, :, 2] - pb[:, :, 2] * M[:, :, 1]
-        J[:, :, 1] = pb[:, :, 2] * M[:, :, 0] - pb[:, :, 0] * M[:, :, 2]
-        J[:, :, 2] = pb[:, :, 0] * M[:, :, 1] - pb[:, :, 1] * M[:, :, 0]
-        J[:, :, 3:] = M
-        if bad.any():
-            J[bad] = 0.0
-        return r, J
+        AJ[:, :, :2] = A * inv_z[:, None, None]
+        AJ[:, :, 2] = Au * -inv_z[:, None]
+        B = self._skew   # (N, 3, 7): [-[p_b]x | I | 0], the identity and the zeros kept across calls
+        B[:, 0, 1] = p_b[:, 2]
+        B[:, 1, 2] = p_b[:, 0]
+        B[:, 2, 0] = p_b[:, 1]
+        B[:, 1, 0] = -p_b[:, 2]
+        B[:, 2, 1] = -p_b[:, 0]
+        B[:, 0, 2] = -p_b[:, 1]
+        Ja = np.matmul(np.matmul(AJ, self.R), B)   # (N, 2, 7), last column zero: the residual's slot
+        Ja[:, :, 6] = r
+        if any_bad:
+            Ja[bad] = 0.0
+            Ja[bad, :, 6] = np.inf
+        return r, Ja
 
     @staticmethod
     def _huber(r: np.ndarray, scale: float) -> Tuple[float, np.ndarray]:
@@ -652,20 +734,25 @@ class JointProblem:
 
     def fit(self, T_base_map: np.ndarray, scale: float) -> JointFit:
         """Residuals, Jacobian, weights and the (whitened) normal equations at ``T_base_map``."""
-        r, J = self.residuals(T_base_map)
-        huber, w = self._huber(r, scale)
-        rr = r if np.isfinite(huber) else np.where(np.isfinite(r), r, 0.0)   # finite cost: every r finite
+        r, Ja = self._rows(T_base_map)
+        J = Ja[:, :, :6]
+        e2 = np.einsum("ni,ni->n", r, r)
+        if e2.size and float(e2.max()) <= scale * scale:
+            # Every corner within the Huber scale (the usual frame; NaN-safe): unit weights, no
+            # weighting pass ([J r]^T [J r] directly).
+            huber, w, Jw = 0.5 * float(e2.sum()), np.ones(self.n), Ja
+        else:
+            huber, w = self._huber(r, scale)
+            if not np.isfinite(huber):   # finite cost: every r finite; else the non-finite rows out
+                Ja[:, :, 6] = np.where(np.isfinite(r), r, 0.0)
+            Jw = Ja * w[:, None, None]
         s2 = self.sigma ** 2
         if self.extrinsics_cov is None:
-            Jw = J * w[:, None, None]
-            H = np.einsum("nia,nib->ab", Jw, J) / s2
-            g = np.einsum("nia,ni->a", Jw, rr) / s2
-            chi2 = float(np.sum(w * np.sum(rr * rr, axis=1))) / s2
-            return JointFit(r, J, w, H, g, chi2, huber)
+            A7 = np.matmul(Jw.reshape(-1, 7).T, Ja.reshape(-1, 7)) / s2
+            return JointFit(r, J, w, A7[:6, :6], A7[:6, 6], float(A7[6, 6]), huber)
         # Per camera, [J_c r_c]^T D_c [J_c r_c] in one pass: J_c^T D_c J_c, J_c^T D_c r_c, r_c^T D_c r_c.
-        Ja = np.concatenate([J, rr[:, :, None]], axis=2)
-        A7 = np.add.reduceat(np.matmul(np.transpose(Ja * w[:, None, None], (0, 2, 1)), Ja), self.offsets[:-1], axis=0)
-        return self._whitened(r, J, w, A7[:, :6, :6], A7[:, :6, 6], A7[:, 6, 6], huber)
+        A7 = np.add.reduceat(np.matmul(np.transpose(Jw, (0, 2, 1)), Ja), self.offsets[:-1], axis=0)
+        return self._whitened(r, J, w, A7[:, :6, :6], A7[:, :6, 6], A7[:, 6, 6], huber, Gb=A7[:, :6, :])
 
     def refit(self, fit: JointFit) -> JointFit:
         """``fit`` (of these cameras' rows, at any pixel noise, with a calibration model) at this
@@ -684,10 +771,12 @@ class JointProblem:
         """``spectrum`` when it belongs to these blocks' extrinsics factors, else computed."""
         if spectrum is not None and spectrum.L is self.extrinsics_factor:
             return spectrum
-        return _Spectrum.of(G, self.extrinsics_factor)
+        if self._LT is None:
+            self._LT = np.ascontiguousarray(np.transpose(self.extrinsics_factor, (0, 2, 1)))
+        return _Spectrum.of(G, self.extrinsics_factor, self._LT)
 
     def _whitened(self, r: np.ndarray, J: np.ndarray, w: np.ndarray, G: np.ndarray, b: np.ndarray, q: np.ndarray,
-                  huber: float, spectrum: Optional[_Spectrum] = None) -> JointFit:
+                  huber: float, spectrum: Optional[_Spectrum] = None, Gb: Optional[np.ndarray] = None) -> JointFit:
         """The fit from the per-camera blocks ``G_c = J_c^T D_c J_c``, ``b_c = J_c^T D_c r_c``,
         ``q_c = r_c^T D_c r_c``, the extrinsics marginalised at this problem's ``sigma``.
 
@@ -697,19 +786,22 @@ class JointProblem:
         ``g_c = (b - P d beta) / s2``, ``chi2 = sum_c (q_c - beta^T d beta) / s2``. Raises
         LinAlgError when ``M`` is not numerically positive definite (its condition beyond
         1 / machine epsilon: what the Cholesky solves this replaced refused, e.g. a trial pose far
-        off, seen on a real recording with eigenvalues 0.04 .. 2e15)."""
+        off, seen on a real recording with eigenvalues 0.04 .. 2e15). ``Gb``: ``[G | b]`` (C, 6, 7)
+        when the caller has it side by side already."""
         s2 = self.sigma ** 2
         sp = self._spectrum(G, spectrum)
         m = s2 + sp.lam
         if not m.min() > np.finfo(np.float64).eps * m.max():
             raise np.linalg.LinAlgError("whitening: the 6x6 normal matrix is not positive definite")
         d = 1.0 / m
-        beta = sp.beta(b)
-        Pd = sp.P * d[:, None, :]
-        H_cam = (G - Pd @ np.transpose(sp.P, (0, 2, 1))) / s2
-        H_cam = 0.5 * (H_cam + np.transpose(H_cam, (0, 2, 1)))
-        g = (b - np.matmul(Pd, beta[:, :, None])[:, :, 0]) / s2
-        chi2 = float(np.sum(q) - np.sum(d * beta * beta)) / s2
+        # [G | b] and Q = U^T L^T [G | b] = [P^T | beta] (P = G L U: G is symmetric): then
+        # [H_c | g_c] s2 = [G | b] - P d [P^T | beta] in one product.
+        Gb = np.concatenate([G, b[:, :, None]], axis=2) if Gb is None else Gb
+        Q = np.matmul(sp.LUT, Gb)
+        Qd = Q * d[:, :, None]
+        Y = (Gb - np.matmul(np.transpose(Q[:, :, :6], (0, 2, 1)), Qd)) / s2
+        H_cam, g = Y[:, :, :6], Y[:, :, 6]
+        chi2 = float(np.sum(q) - np.sum(Qd[:, :, 6] * Q[:, :, 6])) / s2
         if not np.isfinite(huber):
             chi2 = np.inf
         return JointFit(r, J, w, H_cam.sum(axis=0), g.sum(axis=0), chi2, chi2, H_cam, G, b, sp)
@@ -796,10 +888,12 @@ class JointProblem:
             delta = -_solve_spd_batch(H[None], g[None, :, None])[0, :, 0]
         except np.linalg.LinAlgError:
             raise MeasurementError("joint estimator: singular normal equations (degenerate geometry)") from None
-        r = fit.r + np.einsum("nia,a->ni", fit.J, delta)
+        r = fit.r + fit.J @ delta
         b_cam = fit.b_cam + fit.G_cam @ delta
-        chi2 = float(np.sum(fit.w * np.sum(r * r, axis=1))) / s2
-        huber = self._huber(r, scale)[0]
+        e2 = np.einsum("ni,ni->n", r, r)
+        chi2 = float(fit.w @ e2) / s2
+        # The Huber cost (_huber's): every corner within the scale, the usual case, from e2 directly.
+        huber = 0.5 * float(e2.sum()) if e2.size and float(e2.max()) <= scale * scale else self._huber(r, scale)[0]
         out = JointFit(r, fit.J, fit.w, H, b_cam.sum(axis=0) / s2, chi2, huber, None, fit.G_cam, b_cam)
         return _perturb(T_base_map, delta), out, float(np.sqrt(delta @ delta))
 
@@ -1178,6 +1272,9 @@ class RingLocalizer:
         #: px: the pixel noise the joint estimate is solved at (``estimate_pixel_noise``): the noise
         #: measured in the last frame posed by the joint estimator, ``pixel_noise`` before it.
         self.pixel_noise_guess = float(self.params.pixel_noise)
+        #: name -> :class:`CameraView` of the last frame processed (the moved-marker check reuses
+        #: its corners: :meth:`marker_check.MarkerCheck.update`).
+        self.last_views: Dict[str, CameraView] = {}
         self.set_ring(ring)
 
     def set_ring(self, ring: CameraRing) -> None:
@@ -1473,6 +1570,7 @@ class RingLocalizer:
         p = self.params
         result = LocalizationResult(stamp=float(ring_frame.stamp))
         views = self._gather(ring_frame, result.rejected, motion)
+        self.last_views = views
         result.marker_ids = sorted({i for v in views.values() for i in v.ids})
         if not views:
             return result
@@ -1818,47 +1916,62 @@ class RingLocalizer:
         p = self.params
         starts = prob.offsets[:-1]
         if sol.fit.G_cam is not None:  # the joint fit's own per-camera blocks (Huber-weighted)
-            Hc, gc = sol.fit.G_cam + 1e-9 * np.eye(6), sol.fit.b_cam
+            Hc, gc = sol.fit.G_cam + _EYE6_TINY, sol.fit.b_cam
         else:
-            Hc = np.add.reduceat(np.einsum("nia,nib->nab", sol.J, sol.J), starts, axis=0) + 1e-9 * np.eye(6)
+            Hc = np.add.reduceat(np.einsum("nia,nib->nab", sol.J, sol.J), starts, axis=0) + _EYE6_TINY
             gc = np.add.reduceat(np.einsum("nia,ni->na", sol.J, sol.r), starts, axis=0)
         try:
             deltas = -_solve_spd_batch(Hc, gc[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:
             return
         r_lin = sol.r + np.matmul(sol.J, deltas[prob.cam_index][:, :, None])[:, :, 0]
-        counts = np.diff(prob.offsets)
-        errs = np.sqrt(np.add.reduceat(r_lin[:, 0] * r_lin[:, 0] + r_lin[:, 1] * r_lin[:, 1], starts) / counts)
-        T_map_cams = _per_camera_poses(sol.T_base_map, deltas, np.stack([v.T_base_cam for v in prob.views]))
+        counts = prob.counts
+        errs = np.sqrt(np.add.reduceat(np.einsum("ni,ni->n", r_lin, r_lin), starts) / counts)
+        T_map_cams = _per_camera_poses(sol.T_base_map, deltas, prob.T_base_cams)
         # Distance and angle per marker (4 rows each, cameras' markers in order), averaged per camera
         # (paper's Ac inputs).
         n_per = counts // 4
         cam_of = prob.cam_index[::4]
-        centres, normals = self._marker_axes(prob.marker_ids.tolist())
+        axes = self._marker_axes_of(prob)
         Tc = T_map_cams[cam_of]
-        dists = np.linalg.norm(centres - Tc[:, :3, 3], axis=1)
-        angles = np.arccos(np.clip(-np.sum(normals * Tc[:, :3, 2], axis=1), -1.0, 1.0))
+        dists = np.linalg.norm(axes[:, :3] - Tc[:, :3, 3], axis=1)
+        angles = np.arccos(np.clip(-np.einsum("ki,ki->k", axes[:, 3:], Tc[:, :3, 2]), -1.0, 1.0))
         mstarts = starts // 4
         mean_d = np.add.reduceat(dists, mstarts) / n_per
         mean_a = np.add.reduceat(angles, mstarts) / n_per
-        ac_d = np.clip((p.th_distance - mean_d) / p.th_distance, 0.0, None)
-        ac_or = np.clip((p.th_orientation - mean_a) / p.th_orientation, 0.0, None)
+        ac_d = np.maximum((p.th_distance - mean_d) / p.th_distance, 0.0)
+        ac_or = np.maximum((p.th_orientation - mean_a) / p.th_orientation, 0.0)
         acc = 0.5 * (ac_d + ac_or)
-        big = (np.sum(deltas * deltas, axis=1) > 0.25).tolist()
-        T_map_bases = T_map_cams @ np.stack([v.T_cam_base for v in prob.views])
+        big = (np.einsum("ca,ca->c", deltas, deltas) > 0.25).tolist()
+        T_map_bases = T_map_cams @ prob.T_cam_bases
         errs_l, d_l, a_l, acc_l = errs.tolist(), mean_d.tolist(), mean_a.tolist(), acc.tolist()
+        max_err = p.max_reprojection_error
         for k, view in enumerate(prob.views):
             if big[k]:
                 continue  # not a small correction (above 0.5): this camera alone is not well determined
             est = CameraEstimate(camera=view.name, marker_ids=list(view.ids), T_map_cam=T_map_cams[k],
                                  T_map_base=T_map_bases[k], reprojection_error=errs_l[k],
                                  distance=d_l[k], angle=a_l[k], accuracy=acc_l[k])
-            if not errs_l[k] <= p.max_reprojection_error:
+            if not errs_l[k] <= max_err:
                 est.valid = False
                 est.reject_reason = REJECT_REPROJECTION
             result.estimates[view.name] = est
 
+    def _marker_axes_of(self, prob: JointProblem) -> np.ndarray:
+        """(k, 6) centres and z axes of ``prob``'s markers (in its order), in the map frame."""
+        cache = self._axes_cache
+        rows = []
+        for i in prob.marker_ids.tolist():
+            row = cache.get(i)
+            if row is None:
+                T = self.marker_map.T_map_marker(i)
+                row = cache[i] = np.concatenate([T[:3, 3], T[:3, 2]])
+            rows.append(row)
+        return np.array(rows)
 
+
+#: The per-camera steps' damping (:meth:`RingLocalizer._per_camera_from_joint`).
+_EYE6_TINY = 1e-9 * np.eye(6)
 #: The consistency test's F from the linearised exact-extrinsics step above this many times its
 #: quantile is taken as the verdict (inconsistent) without solving the exact problem.
 _F_CLEAR = 2.0

@@ -99,6 +99,10 @@ def resolve_camera_names(ring: CameraRing, entries: Optional[Sequence[str]]) -> 
     return out
 
 
+#: (x, y, yaw)'s rows and columns in a 6x6 pose covariance (index arrays for one assignment).
+_SE2_ROWS, _SE2_COLS = np.ix_([0, 1, 5], [0, 1, 5])
+
+
 def pose_covariance_from_se2(cov3: np.ndarray, z_var: float = 1e6, rp_var: float = 1e6) -> np.ndarray:
     """(x, y, yaw) 3x3 covariance -> 6x6 over (x, y, z, roll, pitch, yaw) (PoseWithCovariance order).
 
@@ -106,8 +110,7 @@ def pose_covariance_from_se2(cov3: np.ndarray, z_var: float = 1e6, rp_var: float
     ignores them (its ``two_d_mode`` users configure them out anyway).
     """
     C = np.zeros((6, 6))
-    idx = [0, 1, 5]
-    C[np.ix_(idx, idx)] = np.asarray(cov3, dtype=np.float64).reshape(3, 3)
+    C[_SE2_ROWS, _SE2_COLS] = np.asarray(cov3, dtype=np.float64).reshape(3, 3)
     C[2, 2] = z_var
     C[3, 3] = C[4, 4] = rp_var
     return C
@@ -951,7 +954,8 @@ class LocalizationPipeline(_RingPipeline):
             if self.filter.initialized:
                 twist = self.filter.body_twist
                 speed, yaw_rate = max(speed, float(np.hypot(twist[0], twist[1]))), max(yaw_rate, abs(float(twist[2])))
-            if check.update(ring_frame, loc.T_map_base, self.localizer.ring, stamp, motion, (speed, yaw_rate)):
+            if check.update(ring_frame, loc.T_map_base, self.localizer.ring, stamp, motion, (speed, yaw_rate),
+                            known_views=self.localizer.last_views):
                 loc = self.localizer.process(check.strip(ring_frame), pred, motion)
             check.warn_moved(stamp if self._clock is None else self._clock)
         for k, v in loc.rejected.items():
@@ -1061,7 +1065,7 @@ class LocalizationPipeline(_RingPipeline):
                               from_odometry=from_odometry)
         x, y, yaw = track.pose
         T = geo.transform_from_se2(x, y, yaw, self._z)
-        T6 = geo.make_transform(geo.matrix_from_rpy(self._roll_pitch[0], self._roll_pitch[1], yaw), [x, y, self._z])
+        T6 = geo.transform_from_rpy(self._roll_pitch[0], self._roll_pitch[1], yaw, (x, y, self._z))
         estimates = {name: e.T_map_base for name, e in track.localization.estimates.items() if e.valid}
         return PoseOutput(stamp=track.stamp, T_map_base=T, T_map_base_6dof=T6,
                           covariance=pose_covariance_from_se2(track.covariance),
