@@ -11,12 +11,15 @@ localizing from the good cameras. A hypothesis fuzz does the same with arbitrary
 """
 from __future__ import annotations
 
+import io
 import logging
 import math
+import struct
 import time
 from typing import List
 from unittest import mock
 
+import genpy
 import numpy as np
 import pytest
 
@@ -24,6 +27,7 @@ import rospy  # noqa: E402
 import tf2_ros  # noqa: E402
 from fiducial_msgs.msg import Fiducial, FiducialArray  # noqa: E402
 from geometry_msgs.msg import PoseWithCovarianceStamped  # noqa: E402
+from sensor_msgs.msg import CameraInfo  # noqa: E402
 from hypothesis import given  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
@@ -129,6 +133,16 @@ def _each_problem_said_once_per_period(node) -> None:
         assert w.said[key] == 1, f"{key}: {w.said[key]} lines for {n} occurrences"
 
 
+def _raw(msg, md5sum=None, type_name=None) -> rospy.AnyMsg:
+    """``msg`` as rospy.AnyMsg delivers it: its bytes and the publisher's connection header."""
+    buff = io.BytesIO()
+    msg.serialize(buff)
+    raw = rospy.AnyMsg().deserialize(buff.getvalue())
+    raw._connection_header = {"md5sum": md5sum or msg._md5sum, "type": type_name or msg._type,
+                              "callerid": "/publisher"}
+    return raw
+
+
 def _info(ring, name, **changes):
     msg = model_to_camera_info(ring[name].model, ring[name].frame_id)
     for k, v in changes.items():
@@ -160,7 +174,15 @@ def _feed(node, world, n_frames=3, infos=None, extra=None, frame_ids=None):
         stamp = time.time()
         stamps.append(stamp)
         for name in ring.names:
-            node.ring_input._on_camera_info((infos or {}).get(name) or _info(ring, name), name)
+            # as rospy hands them over: bytes (the node subscribes with rospy.AnyMsg)
+            info = (infos or {}).get(name) or _info(ring, name)
+            info.header.seq, info.header.stamp = k + 1, rospy.Time.from_sec(stamp)
+            try:
+                raw = _raw(info)
+            except (struct.error, genpy.SerializationError):  # e.g. a K of 2 values: no publisher can send it
+                node.ring_input._on_camera_info(info, name)
+            else:
+                node.ring_input._on_camera_info_raw(raw, name)
         for name, msg in _frame_msgs(world, stamp, extra, frame_ids).items():
             node.ring_input._on_fiducials(msg, name)
         # a skipped camera: the assembler's timeout sends the frame without it
@@ -282,13 +304,100 @@ def test_bad_camera_info_ignores_the_camera(node, world, change):
     assert node.pipeline.input.skipped["cam0"], "the camera with bad camera_info was used"
 
 
+def test_repeated_camera_info_is_not_deserialised_and_a_change_is_applied(node, world, monkeypatch):
+    """camera_info arrives as bytes: the same bytes after seq and stamp are dropped before
+    deserialising; a new K (or a new frame_id with the same intrinsics) is read."""
+    from aruco_ring_localization.ros import ring_input
+
+    _, ring, _ = world
+    reads, applied = [], []
+    real_info, real_apply = ring_input.CameraInfo, node.pipeline.on_camera_info
+
+    class CountingInfo(real_info):
+        __slots__ = ()
+
+        def deserialize(self, buff):
+            reads.append(len(buff))
+            return super().deserialize(buff)
+
+    monkeypatch.setattr(ring_input, "CameraInfo", CountingInfo)
+    monkeypatch.setattr(node.pipeline, "on_camera_info", lambda cam, model: (applied.append(model), real_apply(cam, model))[1])
+    info = _info(ring, "cam0")
+    for seq in range(1, 6):  # what a camera sends with every image: same content, new seq and stamp
+        info.header.seq, info.header.stamp = seq, rospy.Time.from_sec(100.0 + 0.1 * seq)
+        node.ring_input._on_camera_info_raw(_raw(info), "cam0")
+    assert len(reads) == 1 and len(applied) == 1, (reads, applied)
+    info.header.frame_id = "cam0_other"  # other bytes, same intrinsics: read, not applied again
+    node.ring_input._on_camera_info_raw(_raw(info), "cam0")
+    assert len(reads) == 2 and len(applied) == 1, (reads, applied)
+    K = list(info.K)
+    K[0] *= 1.01
+    info.K = K
+    node.ring_input._on_camera_info_raw(_raw(info), "cam0")
+    node.ring_input._on_camera_info_raw(_raw(info), "cam0")
+    assert len(reads) == 3 and len(applied) == 2, (reads, applied)
+    assert node.pipeline.input.camera_model("cam0").K[0, 0] == pytest.approx(K[0])
+    assert not node.log.warnings(), node.log.calls
+
+
+def test_camera_info_of_another_type_or_unreadable_is_warned_and_ignored(node, world):
+    _, ring, _ = world
+    info = _info(ring, "cam0")
+    node.ring_input._on_camera_info_raw(_raw(info, md5sum=Fiducial._md5sum, type_name=Fiducial._type), "cam0")
+    assert any("camera_info" in w and Fiducial._type in w for w in node.log.warnings(throttled=True)), node.log.calls
+    truncated = _raw(info)
+    truncated._buff = truncated._buff[:40]
+    node.ring_input._on_camera_info_raw(truncated, "cam0")
+    assert any("unreadable camera_info" in w for w in node.log.warnings(throttled=True)), node.log.calls
+    assert node.pipeline.input.camera_model("cam0") is None
+    # an unusable camera_info is read (and warned about, throttled) every time, not remembered as seen
+    bad = _info(ring, "cam0", K=[0.0] * 9)
+    for seq in (1, 2):
+        bad.header.seq = seq
+        node.ring_input._on_camera_info_raw(_raw(bad), "cam0")
+    assert sum("unusable camera_info" in w for w in node.log.warnings(throttled=True)) == 2, node.log.calls
+    assert node.pipeline.input.camera_model("cam0") is None
+    node.ring_input._on_camera_info_raw(_raw(info), "cam0")  # then a good one is applied
+    assert node.pipeline.input.camera_model("cam0") is not None
+
+
+def test_periodic_tasks_run_on_the_poll_timer_and_a_failing_one_does_not_stop_it(node, world, monkeypatch):
+    """The diagnostics and the marker array go out from the ring input's poll timer (one timer thread)."""
+    clock = [1000.0]
+    monkeypatch.setattr(node.ring_input, "now", lambda: clock[0])
+    ran, polls = [], []
+    node.ring_input._periodic.clear()
+    node.ring_input.every(1.0, lambda: ran.append(("a", clock[0])))
+
+    def broken():
+        raise RuntimeError("boom")
+
+    node.ring_input.every(0.5, broken)
+    real_poll = node.pipeline.poll
+    monkeypatch.setattr(node.pipeline, "poll", lambda now: (polls.append(now), real_poll(now))[1])
+    for _ in range(25):  # 2.5 s at the 20 Hz poll timer
+        clock[0] += 0.1
+        node.ring_input._on_timer(None)
+    assert len(polls) == 25
+    assert [t for _, t in ran] == pytest.approx([1001.0, 1002.0]), ran
+    assert any("broken" in w and "boom" in w for w in node.log.warnings()), node.log.calls
+    clock[0] -= 60.0  # the clock went back (a bag loop): the tasks run at once and go on from there
+    node.ring_input._on_timer(None)
+    assert ran[-1][1] == pytest.approx(clock[0])
+
+
+def test_localizer_node_publishes_diagnostics_and_markers_from_the_poll_timer(node):
+    names = [getattr(fn, "__name__", "") for _, fn, _ in node.ring_input._periodic]
+    assert names == ["publish_diagnostics", "publish_markers"], names
+
+
 def test_missing_camera_info_and_tf_for_one_camera(node, world):
     _, ring, _ = world
     # No camera_info ever for cam5: skipped with a throttled hint, the others work.
     stamp = time.time()
     for name in ring.names:
         if name != "cam5":
-            node.ring_input._on_camera_info(_info(ring, name), name)
+            node.ring_input._on_camera_info_raw(_raw(_info(ring, name)), name)
     for name, msg in _frame_msgs(world, stamp).items():
         node.ring_input._on_fiducials(msg, name)
     time.sleep(node.config.input.timeout + 0.02)
@@ -350,7 +459,7 @@ def test_fuzz_node_callbacks_never_raise(world, data):
         base = time.time()
         for _ in range(data.draw(st.integers(1, 6), label="events")):
             name = data.draw(st.sampled_from(ring.names), label="camera")
-            kind = data.draw(st.sampled_from(["fid", "fid", "info", "initialpose", "timer"]), label="kind")
+            kind = data.draw(st.sampled_from(["fid", "fid", "info", "raw", "initialpose", "timer"]), label="kind")
             if kind == "fid":
                 msg = FiducialArray()
                 msg.header.stamp = rospy.Time.from_sec(base + data.draw(st.floats(-5, 5), label="dt"))
@@ -364,7 +473,17 @@ def test_fuzz_node_callbacks_never_raise(world, data):
                 info.width = data.draw(st.integers(0, 5000), label="w")
                 info.height = data.draw(st.integers(0, 5000), label="h")
                 info.distortion_model = data.draw(st.sampled_from(["plumb_bob", "equidistant", "", "bad"]))
-                n.ring_input._on_camera_info(info, name)
+                try:
+                    raw = _raw(info)
+                except (struct.error, genpy.SerializationError):
+                    n.ring_input._on_camera_info(info, name)
+                else:
+                    n.ring_input._on_camera_info_raw(raw, name)
+            elif kind == "raw":  # arbitrary bytes on camera_info, or a cut-off message
+                raw = _raw(model_to_camera_info(ring[name].model, ring[name].frame_id))
+                raw._buff = data.draw(st.binary(max_size=400) | st.integers(0, len(raw._buff)).map(
+                    lambda k, b=raw._buff: b[:k]), label="bytes")
+                n.ring_input._on_camera_info_raw(raw, name)
             elif kind == "initialpose":
                 msg = PoseWithCovarianceStamped()
                 msg.header.frame_id = data.draw(st.sampled_from(["map", "", "odom"]), label="frame")

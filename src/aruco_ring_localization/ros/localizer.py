@@ -102,8 +102,10 @@ class LocalizerNode:
         self._markers_seen: Optional[set] = None  # markers in view in the last ~markers array
         rospy.Service("~remap_marker", Trigger, self.on_remap_marker)
         rospy.Service("~save_map", Trigger, self.on_save_map)
-        rospy.Timer(rospy.Duration(out.diagnostics_period), self.publish_diagnostics, reset=True)
-        rospy.Timer(rospy.Duration(out.markers_period), self.publish_markers, reset=True)
+        # On the ring input's poll timer (one timer thread: under use_sim_time each rospy timer
+        # thread wakes at every /clock message).
+        self.ring_input.every(out.diagnostics_period, self.publish_diagnostics)
+        self.ring_input.every(out.markers_period, self.publish_markers)
         self._tf_child: Optional[str] = None   # the child frame we last put on tf
         # The tf listener's own /tf subscription: rospy deserializes each message once for both.
         rospy.Subscriber("/tf", TFMessage, self.check_tf_authority, queue_size=100)

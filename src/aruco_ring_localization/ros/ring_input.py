@@ -6,10 +6,17 @@
 so the node's namespace applies), converts the messages and calls the pipeline's events
 (:mod:`aruco_ring_localization.pipeline`) with ``now`` = ROS time:
 
-* camera_info -> ``on_camera_info`` once per change (an unusable one: throttled warning);
+* camera_info -> ``on_camera_info`` once per change (an unusable one: throttled warning). The
+  subscription takes the raw bytes (``rospy.AnyMsg``): a message whose bytes after the header's
+  seq and stamp are those of the last one applied is dropped without being deserialised (each
+  camera sends the same one with every image: 8 per ring frame); another is checked to be a
+  sensor_msgs/CameraInfo (the publisher's md5sum) and deserialised;
 * with ``use_tf``, ``T_base_cam`` looked up in tf once per (camera, header.frame_id) ->
   ``on_extrinsics``; until tf has it the pipeline skips that camera and says so;
-* fiducial_vertices -> ``on_detections``; a timer calls ``poll`` (timeouts, predict-only output).
+* fiducial_vertices -> ``on_detections``; a timer calls ``poll`` (timeouts, predict-only output),
+  and the node's own periodic tasks (:meth:`RingSubscriber.every`: the localizer's diagnostics
+  and marker array) on the same timer thread: under ``use_sim_time`` every /clock message wakes
+  every rospy timer thread, so one timer instead of three is two thread wake-ups less per /clock.
 
 Every pipeline call runs under one lock (:meth:`call`, also for the node's other inputs), in the
 order the calls arrived, with ``now`` read as they arrive: rospy runs each subscription's callback
@@ -28,9 +35,11 @@ is converted only up to ``input/max_detections`` + 1 quads (the pipeline drops a
 from __future__ import annotations
 
 import collections
+import struct
 import threading
 from typing import Any, Callable, Dict, List, Optional, Set
 
+import genpy
 import numpy as np
 import rospy
 import tf2_ros
@@ -105,6 +114,8 @@ class RingSubscriber:
         self._inbox_lock = threading.Lock()    # guards the inbox only (held for an append or a pop)
         self._inbox: "collections.deque[_Call]" = collections.deque()  # calls in arrival order
         self._info_keys: Dict[str, tuple] = {}
+        self._info_bytes: Dict[str, bytes] = {}  # camera -> camera_info bytes after seq and stamp, last applied
+        self._periodic: List[list] = []           # [period, function, last run (ROS time)] (every())
         #: camera -> ROS time its last fiducial_vertices message arrived (before waiting for the lock).
         self.last_arrival: Dict[str, float] = {}
         #: cameras whose message is being handled right now (waiting for the lock, typically).
@@ -121,7 +132,7 @@ class RingSubscriber:
             prefix = f"{ns}/" if ns else ""
             self._subs.append(rospy.Subscriber(f"{prefix}fiducial_vertices", FiducialArray, self._on_fiducials,
                                                callback_args=camera, queue_size=queue_size, buff_size=buff_size))
-            self._subs.append(rospy.Subscriber(f"{prefix}camera_info", CameraInfo, self._on_camera_info,
+            self._subs.append(rospy.Subscriber(f"{prefix}camera_info", rospy.AnyMsg, self._on_camera_info_raw,
                                                callback_args=camera, queue_size=1, buff_size=buff_size))
         # reset=True: a bag loop moves ROS time backwards, which would otherwise kill the timer thread.
         self._timer = rospy.Timer(rospy.Duration(poll_period), self._on_timer, reset=True)
@@ -168,6 +179,11 @@ class RingSubscriber:
             raise item.error
         return item.out
 
+    def every(self, period: float, fn: Callable[[], None]) -> None:
+        """Call ``fn()`` about every ``period`` s of ROS time from the poll timer's thread (within
+        one poll period; at once again when the clock went back), outside the pipeline lock."""
+        self._periodic.append([float(period), fn, self.now()])
+
     def silent_cameras(self, silence: float) -> List[str]:
         """Cameras from which no fiducial_vertices message arrived for ``silence`` s (or ever), and
         none is being handled.
@@ -197,17 +213,43 @@ class RingSubscriber:
 
     # --- callbacks --------------------------------------------------------------------------
 
-    def _on_camera_info(self, msg: CameraInfo, camera: str) -> None:
+    def _on_camera_info_raw(self, msg: rospy.AnyMsg, camera: str) -> None:
+        """camera_info as bytes: dropped at once when all but the header's seq and stamp (its first
+        12 bytes) are those of the last message applied; else type-checked, deserialised and
+        handed to :meth:`_on_camera_info`."""
+        buff = msg._buff
+        body = buff[12:]
+        if self._info_bytes.get(camera) == body:
+            return
+        header = getattr(msg, "_connection_header", None) or {}
+        if header.get("md5sum") != CameraInfo._md5sum:
+            rospy.logwarn_throttle(WARN_PERIOD, f"{self._name}: {camera}: camera_info from "
+                                                f"{header.get('callerid', '?')} is {header.get('type', '?')!r}, not "
+                                                f"{CameraInfo._type}: ignored")
+            return
+        try:
+            info = CameraInfo().deserialize(buff)
+        except (genpy.DeserializationError, struct.error, UnicodeDecodeError, ValueError) as exc:
+            rospy.logwarn_throttle(WARN_PERIOD, f"{self._name}: {camera}: unreadable camera_info "
+                                                f"({len(buff)} bytes): {exc}")
+            return
+        if self._on_camera_info(info, camera):
+            self._info_bytes[camera] = body
+
+    def _on_camera_info(self, msg: CameraInfo, camera: str) -> bool:
+        """Hand a changed camera_info to the pipeline; True when the camera's intrinsics in force
+        are this message's (applied now or before), False for an unusable one."""
         key = (tuple(msg.K), tuple(msg.D), msg.distortion_model, msg.width, msg.height)
         if self._info_keys.get(camera) == key:
-            return
+            return True
         try:
             model = camera_info_to_model(msg, name=camera)
         except ArucoRingError as exc:
             rospy.logwarn_throttle(WARN_PERIOD, f"{self._name}: {camera}: unusable camera_info: {exc}")
-            return
+            return False
         self.call(self.pipeline.on_camera_info, camera, model)
         self._info_keys[camera] = key
+        return True
 
     def _look_up_extrinsics(self, camera: str, frame_id: str) -> None:
         """Look T_base_cam up in tf once per (camera, frame_id) and hand it to the pipeline."""
@@ -249,6 +291,17 @@ class RingSubscriber:
             self.call(self.pipeline.poll, NOW)
         except ArucoRingError as exc:
             rospy.logwarn_throttle(WARN_PERIOD, f"{self._name}: {exc}")
+        if self._periodic:
+            now = self.now()
+            for task in self._periodic:
+                period, fn, last = task
+                if now - last >= period or now < last:
+                    task[2] = now
+                    try:
+                        fn()
+                    except Exception as exc:  # noqa: BLE001 - the poll timer must outlive a task's bug
+                        rospy.logerr_throttle(WARN_PERIOD, f"{self._name}: {getattr(fn, '__name__', fn)}: "
+                                                           f"{type(exc).__name__}: {exc}")
 
     def _drain(self) -> None:
         # Outputs were queued in call order under the lock; whichever thread drains delivers them in
