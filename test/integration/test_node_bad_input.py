@@ -184,7 +184,7 @@ def _feed(node, world, n_frames=3, infos=None, extra=None, frame_ids=None):
             else:
                 node.ring_input._on_camera_info_raw(raw, name)
         for name, msg in _frame_msgs(world, stamp, extra, frame_ids).items():
-            node.ring_input._on_fiducials(msg, name)
+            node.ring_input._on_fiducials_raw(_raw(msg), name)  # as the node's subscription hands them over
         # a skipped camera: the assembler's timeout sends the frame without it
         time.sleep(node.config.input.timeout + 0.01)
         node.ring_input._on_timer(None)
@@ -361,6 +361,31 @@ def test_camera_info_of_another_type_or_unreadable_is_warned_and_ignored(node, w
     assert node.pipeline.input.camera_model("cam0") is not None
 
 
+def test_fiducial_vertices_cut_short_or_of_another_type_are_warned_and_dropped(node, world):
+    _, ring, _ = world
+    _feed(node, world, n_frames=2)
+    poses = len(node.published_poses())
+    stamp = time.time()
+    msgs = _frame_msgs(world, stamp)
+    for name, msg in msgs.items():
+        raw = _raw(msg)
+        raw._buff = raw._buff[:-5]  # the last fiducial cut short
+        node.ring_input._on_fiducials_raw(raw, name)
+    assert any("unreadable fiducial_vertices" in w and "fiducials:" in w for w in node.log.warnings(throttled=True)), \
+        node.log.calls
+    node.ring_input._on_fiducials_raw(_raw(_info(ring, "cam0")), "cam0")  # a CameraInfo publisher on the topic
+    node.ring_input._on_fiducials_raw(_raw(msgs["cam1"], md5sum=CameraInfo._md5sum, type_name=CameraInfo._type),
+                                      "cam1")
+    assert sum(CameraInfo._type in w for w in node.log.warnings(throttled=True)) == 2, node.log.calls
+    time.sleep(node.config.input.timeout + 0.02)
+    node.ring_input._on_timer(None)
+    assert len(node.published_poses()) == poses, "a pose from unreadable messages"
+    assert "cam0" not in node.ring_input.last_arrival or node.ring_input.last_arrival["cam0"] < stamp
+    _feed(node, world, n_frames=1)  # and the next good messages localize
+    assert len(node.published_poses()) == poses + 1
+    assert _last_error(node) < 0.05
+
+
 def test_periodic_tasks_run_on_the_poll_timer_and_a_failing_one_does_not_stop_it(node, world, monkeypatch):
     """The diagnostics and the marker array go out from the ring input's poll timer (one timer thread)."""
     clock = [1000.0]
@@ -459,13 +484,22 @@ def test_fuzz_node_callbacks_never_raise(world, data):
         base = time.time()
         for _ in range(data.draw(st.integers(1, 6), label="events")):
             name = data.draw(st.sampled_from(ring.names), label="camera")
-            kind = data.draw(st.sampled_from(["fid", "fid", "info", "raw", "initialpose", "timer"]), label="kind")
+            kind = data.draw(st.sampled_from(["fid", "fid", "rawfid", "info", "raw", "initialpose", "timer"]), label="kind")
             if kind == "fid":
                 msg = FiducialArray()
                 msg.header.stamp = rospy.Time.from_sec(base + data.draw(st.floats(-5, 5), label="dt"))
                 msg.header.frame_id = data.draw(st.sampled_from([ring[name].frame_id, "", "x", "/base_link"]))
                 msg.fiducials = data.draw(st.lists(fiducial, max_size=6), label="fiducials")
-                n.ring_input._on_fiducials(msg, name)
+                if data.draw(st.booleans(), label="as bytes"):
+                    n.ring_input._on_fiducials_raw(_raw(msg), name)
+                else:
+                    n.ring_input._on_fiducials(msg, name)
+            elif kind == "rawfid":  # arbitrary bytes on fiducial_vertices, or a cut-off message
+                msg = _frame_msgs(world, base)[name]
+                raw = _raw(msg)
+                raw._buff = data.draw(st.binary(max_size=600) | st.integers(0, len(raw._buff)).map(
+                    lambda k, b=raw._buff: b[:k]), label="bytes")
+                n.ring_input._on_fiducials_raw(raw, name)
             elif kind == "info":
                 info = model_to_camera_info(ring[name].model, ring[name].frame_id)
                 info.K = data.draw(st.lists(floats, min_size=9, max_size=9) | st.just(list(info.K)), label="K")

@@ -13,7 +13,10 @@ so the node's namespace applies), converts the messages and calls the pipeline's
   sensor_msgs/CameraInfo (the publisher's md5sum) and deserialised;
 * with ``use_tf``, ``T_base_cam`` looked up in tf once per (camera, header.frame_id) ->
   ``on_extrinsics``; until tf has it the pipeline skips that camera and says so;
-* fiducial_vertices -> ``on_detections``; a timer calls ``poll`` (timeouts, predict-only output),
+* fiducial_vertices -> ``on_detections``, also taken as bytes (``rospy.AnyMsg``, type-checked by
+  md5sum): the fixed-size fiducial records are read with one ``numpy.frombuffer``
+  (:func:`conversions.fiducial_array_bytes_to_observations`), not a genpy object per fiducial; a
+  timer calls ``poll`` (timeouts, predict-only output),
   and the node's own periodic tasks (:meth:`RingSubscriber.every`: the localizer's diagnostics
   and marker array) on the same timer thread: under ``use_sim_time`` every /clock message wakes
   every rospy timer thread, so one timer instead of three is two thread wake-ups less per /clock.
@@ -47,7 +50,8 @@ from fiducial_msgs.msg import FiducialArray
 from sensor_msgs.msg import CameraInfo
 
 from ..errors import ArucoRingError
-from .conversions import camera_info_to_model, fiducial_array_to_observations, msg_to_transform, stamp_to_sec
+from .conversions import (camera_info_to_model, fiducial_array_bytes_to_observations, fiducial_array_to_observations,
+                          msg_to_transform, stamp_to_sec)
 
 WARN_PERIOD = 5.0  # s between repeats of one throttled warning
 
@@ -130,7 +134,7 @@ class RingSubscriber:
         for camera in pipeline.camera_names:
             ns = ring[camera].namespace.strip("/")
             prefix = f"{ns}/" if ns else ""
-            self._subs.append(rospy.Subscriber(f"{prefix}fiducial_vertices", FiducialArray, self._on_fiducials,
+            self._subs.append(rospy.Subscriber(f"{prefix}fiducial_vertices", rospy.AnyMsg, self._on_fiducials_raw,
                                                callback_args=camera, queue_size=queue_size, buff_size=buff_size))
             self._subs.append(rospy.Subscriber(f"{prefix}camera_info", rospy.AnyMsg, self._on_camera_info_raw,
                                                callback_args=camera, queue_size=1, buff_size=buff_size))
@@ -273,14 +277,42 @@ class RingSubscriber:
         rospy.loginfo("%s: %s extrinsics from tf %s -> %s (%.1f mm from the ring file)", self._name, camera, base,
                       frame_id, 1000.0 * drift)
 
+    def _on_fiducials_raw(self, msg: rospy.AnyMsg, camera: str) -> None:
+        """fiducial_vertices as bytes (what the subscription hands over): type-checked, read, handled
+        as :meth:`_on_fiducials`; a message cut short is warned about (throttled) and dropped."""
+        header = getattr(msg, "_connection_header", None) or {}
+        if header.get("md5sum") != FiducialArray._md5sum:
+            rospy.logwarn_throttle(WARN_PERIOD, f"{self._name}: {camera}: fiducial_vertices from "
+                                                f"{header.get('callerid', '?')} is {header.get('type', '?')!r}, not "
+                                                f"{FiducialArray._type}: ignored")
+            return
+        try:
+            stamp, frame_id, observations = fiducial_array_bytes_to_observations(
+                msg._buff, limit=self.pipeline.input.params.max_detections + 1)
+        except ArucoRingError as exc:
+            rospy.logwarn_throttle(WARN_PERIOD, f"{self._name}: {camera}: unreadable fiducial_vertices "
+                                                f"({len(msg._buff)} bytes): {exc}")
+            return
+        self._handle_detections(camera, stamp, frame_id, observations)
+
     def _on_fiducials(self, msg: FiducialArray, camera: str) -> None:
+        """A deserialised fiducial_vertices message (tests, tools): as :meth:`_on_fiducials_raw`."""
+        self._handle_detections(camera, msg.header.stamp, msg.header.frame_id, msg)
+
+    def _handle_detections(self, camera: str, stamp: Any, frame_id: str, observations: Any) -> None:
+        """``stamp``: s, or the message's header stamp; ``observations``: a list, or the FiducialArray
+        to convert (after the arrival is noted, as for the bytes)."""
         self.last_arrival[camera] = self.now()
         self._handling.add(camera)
         try:
             if self.use_tf:
-                self._look_up_extrinsics(camera, msg.header.frame_id)
-            observations = fiducial_array_to_observations(msg, limit=self.pipeline.input.params.max_detections + 1)
-            self.call(self.pipeline.on_detections, camera, stamp_to_sec(msg.header.stamp), observations, NOW)
+                self._look_up_extrinsics(camera, frame_id)
+            if isinstance(observations, FiducialArray):
+                observations = fiducial_array_to_observations(observations,
+                                                              limit=self.pipeline.input.params.max_detections + 1)
+            if not isinstance(stamp, float):
+                stamp = stamp_to_sec(stamp)
+            self.call(self.pipeline.on_detections, camera, stamp, observations, NOW)
         except ArucoRingError as exc:
             rospy.logwarn_throttle(WARN_PERIOD, f"{self._name}: {camera}: {exc}")
         finally:
