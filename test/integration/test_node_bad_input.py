@@ -321,7 +321,8 @@ def test_repeated_camera_info_is_not_deserialised_and_a_change_is_applied(node, 
             return super().deserialize(buff)
 
     monkeypatch.setattr(ring_input, "CameraInfo", CountingInfo)
-    monkeypatch.setattr(node.pipeline, "on_camera_info", lambda cam, model: (applied.append(model), real_apply(cam, model))[1])
+    monkeypatch.setattr(node.pipeline, "on_camera_info",
+                        lambda cam, model: (applied.append(model), real_apply(cam, model))[1])
     info = _info(ring, "cam0")
     for seq in range(1, 6):  # what a camera sends with every image: same content, new seq and stamp
         info.header.seq, info.header.stamp = seq, rospy.Time.from_sec(100.0 + 0.1 * seq)
@@ -484,7 +485,8 @@ def test_fuzz_node_callbacks_never_raise(world, data):
         base = time.time()
         for _ in range(data.draw(st.integers(1, 6), label="events")):
             name = data.draw(st.sampled_from(ring.names), label="camera")
-            kind = data.draw(st.sampled_from(["fid", "fid", "rawfid", "info", "raw", "initialpose", "timer"]), label="kind")
+            kind = data.draw(st.sampled_from(["fid", "fid", "rawfid", "info", "raw", "initialpose", "timer"]),
+                             label="kind")
             if kind == "fid":
                 msg = FiducialArray()
                 msg.header.stamp = rospy.Time.from_sec(base + data.draw(st.floats(-5, 5), label="dt"))
