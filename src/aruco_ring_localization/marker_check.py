@@ -205,6 +205,25 @@ def _statistics(A: np.ndarray, b: np.ndarray, sys_std: float) -> Tuple[np.ndarra
     return d, np.sum(kb * kb / (k + sys_std ** 2), axis=1)
 
 
+def _inv3(M: np.ndarray) -> np.ndarray:
+    """Batched inverse of (K, 3, 3) non-singular matrices by the adjugate (no LAPACK call per matrix)."""
+    a, b, c = M[:, 0, 0], M[:, 0, 1], M[:, 0, 2]
+    d, e, f = M[:, 1, 0], M[:, 1, 1], M[:, 1, 2]
+    g, h, i = M[:, 2, 0], M[:, 2, 1], M[:, 2, 2]
+    adj = np.empty_like(M)
+    adj[:, 0, 0] = e * i - f * h
+    adj[:, 0, 1] = c * h - b * i
+    adj[:, 0, 2] = b * f - c * e
+    adj[:, 1, 0] = f * g - d * i
+    adj[:, 1, 1] = a * i - c * g
+    adj[:, 1, 2] = c * d - a * f
+    adj[:, 2, 0] = d * h - e * g
+    adj[:, 2, 1] = b * g - a * h
+    adj[:, 2, 2] = a * e - b * d
+    det = a * adj[:, 0, 0] + b * adj[:, 1, 0] + c * adj[:, 2, 0]
+    return adj / det[:, None, None]
+
+
 def _farther(a: np.ndarray, b: np.ndarray, distance: float) -> bool:
     """|a - b| > distance for 3-vectors (np.linalg.norm's set-up costs more than the arithmetic:
     twice per (marker, camera) pair and frame)."""
@@ -245,7 +264,7 @@ def _rows(views: Sequence[_View], T_base_map: np.ndarray, pixel_noise: float):
     R_cm = np.repeat(np.stack([v.R_cam_map for v in views]), counts, axis=0)          # (n, 3, 3)
     t_cm = np.repeat(np.stack([v.t_cam_map for v in views]), counts, axis=0)
     R_cb = np.repeat(np.stack([v.T_cam_base[:3, :3] for v in views]), counts, axis=0)
-    P = np.einsum("nij,nj->ni", R_cm, X) + t_cm
+    P = np.matmul(R_cm, X[:, :, None])[:, :, 0] + t_cm
     z = P[:, 2:3]
     pred = P[:, :2] / z
     inv_z = 1.0 / z[:, 0]
@@ -423,18 +442,25 @@ class MarkerCheck:
         used = np.array([int(m) not in drop for m in mids])
         S = np.zeros((M, len(w)))                                    # marker <- block sums
         S[blk_m, np.arange(len(w))] = 1.0
+        Jpm = np.concatenate([Jp, Jm], axis=2)                       # (B, 8, 9)
         if self.extrinsic_jitter > 0:
-            # Each block's weight: the inverse of s^2 I + jitter^2 Jr Jr^T (8x8).
-            C = np.einsum("bri,bsi->brs", Jr, Jr) * self.extrinsic_jitter ** 2
-            C += (1.0 / w)[:, None, None] * np.eye(8)
-            W = np.linalg.inv(C)
-            wJp = W @ Jp
-            wJm = W @ Jm
+            # Each block's weight W: the inverse of s^2 I + jitter^2 Jr Jr^T (8x8; s^2 = 1 / w), by
+            # Woodbury on 3x3: W = w (I - Jr (s^2 / jitter^2 I + Jr^T Jr)^-1 Jr^T) (a batched 8x8
+            # inverse cost twice as much).
+            JrT = np.transpose(Jr, (0, 2, 1))
+            K = JrT @ Jr
+            k = 1.0 / (w * self.extrinsic_jitter ** 2)
+            K[:, 0, 0] += k
+            K[:, 1, 1] += k
+            K[:, 2, 2] += k
+            wJpm = (Jpm - Jr @ (_inv3(K) @ (JrT @ Jpm))) * w[:, None, None]
         else:
-            wJp = w[:, None, None] * Jp
-            wJm = w[:, None, None] * Jm
-        H_b = np.einsum("bri,brj->bij", wJp, Jp)
-        g_b = np.einsum("bri,br->bi", wJp, r)
+            wJpm = w[:, None, None] * Jpm
+        wJpmT = np.transpose(wJpm, (0, 2, 1))
+        # Per block, [Jp Jm]^T W [Jp Jm]: [[H_b, cross^T], [cross, A]] (pose, marker) in one product.
+        N = wJpmT @ Jpm                                               # (B, 9, 9)
+        H_b = N[:, :6, :6]
+        g_b = (wJpmT[:, :6] @ r[:, :, None])[:, :, 0]
         Hm = (S @ H_b.reshape(-1, 36)).reshape(M, 6, 6)
         gm = S @ g_b
         H_all = Hm[used].sum(axis=0)
@@ -459,7 +485,7 @@ class MarkerCheck:
                     delta[m] = np.linalg.solve(H_loo[m] + eye6, g_loo[m])
                 except np.linalg.LinAlgError:
                     eligible[m] = False
-        res = r - np.einsum("bri,bi->br", Jp, delta[blk_m])
+        res = r - np.matmul(Jp, delta[blk_m][:, :, None])[:, :, 0]
         # The (camera, marker) pairs that give the pose from the others: each camera's extrinsic
         # error pulls that pose its own way, and each marker seen weighs in, so the offset a
         # (marker, camera) pair shows holds for one set of others. A camera dropping out, or another
@@ -494,23 +520,21 @@ class MarkerCheck:
         # Schur complement): a displacement that the pose from a few markers can absorb is weak
         # evidence, so a frame with few cameras or markers does not declare a move.
         Sh = S * have[None, :]
-        M9 = Sh @ np.concatenate([np.einsum("bri,brj->bij", wJm, Jm).reshape(-1, 9),        # A
-                                  np.einsum("bri,br->bi", wJm, e),                           # b
-                                  np.einsum("bri,brj->bij", wJm, Jp).reshape(-1, 18),       # cross
-                                  np.einsum("bri,br->bi", wJp, e),                           # proj
-                                  H_b.reshape(-1, 36)], axis=1)
-        A = M9[:, :9].reshape(M, 3, 3)
-        b = M9[:, 9:12]
-        cross = M9[:, 12:30].reshape(M, 3, 6)
-        proj = M9[:, 30:36]
-        H_joint = H_loo + M9[:, 36:].reshape(M, 6, 6)
+        # Per marker, the sums over its judged blocks of N (H_b, cross, A) and [Jp Jm]^T W e (proj, b).
+        M9 = Sh @ np.concatenate([N.reshape(-1, 81), (wJpmT @ e[:, :, None])[:, :, 0]], axis=1)
+        N_m = M9[:, :81].reshape(M, 9, 9)
+        A = N_m[:, 6:, 6:]
+        b = M9[:, 87:]
+        cross = N_m[:, 6:, :6]
+        proj = M9[:, 81:87]
+        H_joint = H_loo + N_m[:, :6, :6]
         judged = np.flatnonzero(Sh.any(axis=1))
         try:
             K = np.linalg.solve(H_joint[judged] + eye6, np.transpose(cross[judged], (0, 2, 1)))   # (k, 6, 3)
         except np.linalg.LinAlgError:
             return self._judge(stamp, now)
-        A = A[judged] - np.einsum("kij,kjl->kil", cross[judged], K)
-        b = b[judged] - np.einsum("kji,kj->ki", K, proj[judged])
+        A = A[judged] - cross[judged] @ K
+        b = b[judged] - (np.transpose(K, (0, 2, 1)) @ proj[judged][:, :, None])[:, :, 0]
         for j, m in enumerate(judged):
             Aj = A[j]
             self._evidence.setdefault(int(mids[m]), _Evidence()).add(stamp, 0.5 * (Aj + Aj.T), b[j], p.window)
