@@ -501,17 +501,20 @@ class MarkerCheck:
         positions = [-v.R_cam_map.T @ v.t_cam_map for v in views]
         have = np.zeros(len(w), dtype=bool)
         e = np.zeros_like(res)
-        for b_ in range(len(w)):
-            m = blk_m[b_]
-            if not eligible[m]:
+        base_of = np.zeros_like(res)     # each judged block's baseline (e = res - base_of there)
+        eligible_l, mids_l, res_rows = eligible.tolist(), mids.tolist(), list(res)
+        for b_, m in enumerate(blk_m.tolist()):
+            if not eligible_l[m]:
                 continue
-            mid = int(mids[m])
-            v = views[blk_view[b_]]
+            mid = mids_l[m]
+            vi = blk_view[b_]
+            v = views[vi]
             self._record(mid, stamp, v, blk_k[b_], T_map_base, delta[m])
-            base = self._baseline_of(mid, v.camera, masks[m], stamp, res[b_], positions[blk_view[b_]])
+            base = self._baseline_of(mid, v.camera, masks[m], stamp, res_rows[b_], positions[vi])
             if base is not None:   # else a pair not seen long enough to know its own offset yet
                 have[b_] = True
-                e[b_] = res[b_] - base
+                base_of[b_] = base
+        e[have] = res[have] - base_of[have]
         if not have.any():
             return self._judge(stamp, now)
         # The pose from the others is uncertain too (few markers, one camera): the residual's
