@@ -188,12 +188,47 @@ class _Evidence:
 
 def _statistics(A: np.ndarray, b: np.ndarray, sys_std: float) -> Tuple[np.ndarray, np.ndarray]:
     """Batched: displacement ``d = A^+ b`` (K, 3) and ``T = d^T (A^+ + sys_std^2 I)^-1 d`` (K,)
-    for information matrices ``A`` (K, 3, 3) and vectors ``b`` (K, 3)."""
-    eye = np.eye(3)
-    cov = np.linalg.pinv(A + 1e-12 * eye)
-    d = np.einsum("kij,kj->ki", cov, b)
-    u = np.linalg.solve(cov + sys_std ** 2 * eye, d[:, :, None])[:, :, 0]
-    return d, np.einsum("ki,ki->k", d, u)
+    for symmetric positive semi-definite information matrices ``A`` (K, 3, 3) and vectors ``b`` (K, 3).
+
+    ``A^+`` is ``np.linalg.pinv``'s (eigenvalues within 1e-15 of the largest count as zero), from
+    one batched eigh (``A`` is symmetric: its singular values are its eigenvalues' magnitudes): half
+    the CPU of pinv's SVD, the same numbers to rounding. With ``A + 1e-12 I = V diag(lam) V^T`` and
+    ``k = 1 / lam`` (0 where cut), ``A^+ + s^2 I = V diag(k + s^2) V^T``, so
+    ``T = sum_i (V^T b)_i^2 k_i^2 / (k_i + s^2)``: no second solve."""
+    lam, V = np.linalg.eigh(A + 1e-12 * np.eye(3))
+    mag = np.abs(lam)
+    keep = mag > 1e-15 * mag.max(axis=1, keepdims=True)
+    k = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
+    beta = np.einsum("kji,kj->ki", V, b)            # V^T b
+    kb = k * beta
+    d = np.einsum("kij,kj->ki", V, kb)              # V diag(k) V^T b
+    return d, np.sum(kb * kb / (k + sys_std ** 2), axis=1)
+
+
+def _inv3(M: np.ndarray) -> np.ndarray:
+    """Batched inverse of (K, 3, 3) non-singular matrices by the adjugate (no LAPACK call per matrix)."""
+    a, b, c = M[:, 0, 0], M[:, 0, 1], M[:, 0, 2]
+    d, e, f = M[:, 1, 0], M[:, 1, 1], M[:, 1, 2]
+    g, h, i = M[:, 2, 0], M[:, 2, 1], M[:, 2, 2]
+    adj = np.empty_like(M)
+    adj[:, 0, 0] = e * i - f * h
+    adj[:, 0, 1] = c * h - b * i
+    adj[:, 0, 2] = b * f - c * e
+    adj[:, 1, 0] = f * g - d * i
+    adj[:, 1, 1] = a * i - c * g
+    adj[:, 1, 2] = c * d - a * f
+    adj[:, 2, 0] = d * h - e * g
+    adj[:, 2, 1] = b * g - a * h
+    adj[:, 2, 2] = a * e - b * d
+    det = a * adj[:, 0, 0] + b * adj[:, 1, 0] + c * adj[:, 2, 0]
+    return adj / det[:, None, None]
+
+
+def _farther(a: np.ndarray, b: np.ndarray, distance: float) -> bool:
+    """|a - b| > distance for 3-vectors (np.linalg.norm's set-up costs more than the arithmetic:
+    twice per (marker, camera) pair and frame)."""
+    x, y, z = (a - b).tolist()
+    return x * x + y * y + z * z > distance * distance
 
 
 @dataclass
@@ -229,7 +264,7 @@ def _rows(views: Sequence[_View], T_base_map: np.ndarray, pixel_noise: float):
     R_cm = np.repeat(np.stack([v.R_cam_map for v in views]), counts, axis=0)          # (n, 3, 3)
     t_cm = np.repeat(np.stack([v.t_cam_map for v in views]), counts, axis=0)
     R_cb = np.repeat(np.stack([v.T_cam_base[:3, :3] for v in views]), counts, axis=0)
-    P = np.einsum("nij,nj->ni", R_cm, X) + t_cm
+    P = np.matmul(R_cm, X[:, :, None])[:, :, 0] + t_cm
     z = P[:, 2:3]
     pred = P[:, :2] / z
     inv_z = 1.0 / z[:, 0]
@@ -407,18 +442,25 @@ class MarkerCheck:
         used = np.array([int(m) not in drop for m in mids])
         S = np.zeros((M, len(w)))                                    # marker <- block sums
         S[blk_m, np.arange(len(w))] = 1.0
+        Jpm = np.concatenate([Jp, Jm], axis=2)                       # (B, 8, 9)
         if self.extrinsic_jitter > 0:
-            # Each block's weight: the inverse of s^2 I + jitter^2 Jr Jr^T (8x8).
-            C = np.einsum("bri,bsi->brs", Jr, Jr) * self.extrinsic_jitter ** 2
-            C += (1.0 / w)[:, None, None] * np.eye(8)
-            W = np.linalg.inv(C)
-            wJp = W @ Jp
-            wJm = W @ Jm
+            # Each block's weight W: the inverse of s^2 I + jitter^2 Jr Jr^T (8x8; s^2 = 1 / w), by
+            # Woodbury on 3x3: W = w (I - Jr (s^2 / jitter^2 I + Jr^T Jr)^-1 Jr^T) (a batched 8x8
+            # inverse cost twice as much).
+            JrT = np.transpose(Jr, (0, 2, 1))
+            K = JrT @ Jr
+            k = 1.0 / (w * self.extrinsic_jitter ** 2)
+            K[:, 0, 0] += k
+            K[:, 1, 1] += k
+            K[:, 2, 2] += k
+            wJpm = (Jpm - Jr @ (_inv3(K) @ (JrT @ Jpm))) * w[:, None, None]
         else:
-            wJp = w[:, None, None] * Jp
-            wJm = w[:, None, None] * Jm
-        H_b = np.einsum("bri,brj->bij", wJp, Jp)
-        g_b = np.einsum("bri,br->bi", wJp, r)
+            wJpm = w[:, None, None] * Jpm
+        wJpmT = np.transpose(wJpm, (0, 2, 1))
+        # Per block, [Jp Jm]^T W [Jp Jm]: [[H_b, cross^T], [cross, A]] (pose, marker) in one product.
+        N = wJpmT @ Jpm                                               # (B, 9, 9)
+        H_b = N[:, :6, :6]
+        g_b = (wJpmT[:, :6] @ r[:, :, None])[:, :, 0]
         Hm = (S @ H_b.reshape(-1, 36)).reshape(M, 6, 6)
         gm = S @ g_b
         H_all = Hm[used].sum(axis=0)
@@ -443,7 +485,7 @@ class MarkerCheck:
                     delta[m] = np.linalg.solve(H_loo[m] + eye6, g_loo[m])
                 except np.linalg.LinAlgError:
                     eligible[m] = False
-        res = r - np.einsum("bri,bi->br", Jp, delta[blk_m])
+        res = r - np.matmul(Jp, delta[blk_m][:, :, None])[:, :, 0]
         # The (camera, marker) pairs that give the pose from the others: each camera's extrinsic
         # error pulls that pose its own way, and each marker seen weighs in, so the offset a
         # (marker, camera) pair shows holds for one set of others. A camera dropping out, or another
@@ -459,17 +501,20 @@ class MarkerCheck:
         positions = [-v.R_cam_map.T @ v.t_cam_map for v in views]
         have = np.zeros(len(w), dtype=bool)
         e = np.zeros_like(res)
-        for b_ in range(len(w)):
-            m = blk_m[b_]
-            if not eligible[m]:
+        base_of = np.zeros_like(res)     # each judged block's baseline (e = res - base_of there)
+        eligible_l, mids_l, res_rows = eligible.tolist(), mids.tolist(), list(res)
+        for b_, m in enumerate(blk_m.tolist()):
+            if not eligible_l[m]:
                 continue
-            mid = int(mids[m])
-            v = views[blk_view[b_]]
+            mid = mids_l[m]
+            vi = blk_view[b_]
+            v = views[vi]
             self._record(mid, stamp, v, blk_k[b_], T_map_base, delta[m])
-            base = self._baseline_of(mid, v.camera, masks[m], stamp, res[b_], positions[blk_view[b_]])
+            base = self._baseline_of(mid, v.camera, masks[m], stamp, res_rows[b_], positions[vi])
             if base is not None:   # else a pair not seen long enough to know its own offset yet
                 have[b_] = True
-                e[b_] = res[b_] - base
+                base_of[b_] = base
+        e[have] = res[have] - base_of[have]
         if not have.any():
             return self._judge(stamp, now)
         # The pose from the others is uncertain too (few markers, one camera): the residual's
@@ -478,23 +523,21 @@ class MarkerCheck:
         # Schur complement): a displacement that the pose from a few markers can absorb is weak
         # evidence, so a frame with few cameras or markers does not declare a move.
         Sh = S * have[None, :]
-        M9 = Sh @ np.concatenate([np.einsum("bri,brj->bij", wJm, Jm).reshape(-1, 9),        # A
-                                  np.einsum("bri,br->bi", wJm, e),                           # b
-                                  np.einsum("bri,brj->bij", wJm, Jp).reshape(-1, 18),       # cross
-                                  np.einsum("bri,br->bi", wJp, e),                           # proj
-                                  H_b.reshape(-1, 36)], axis=1)
-        A = M9[:, :9].reshape(M, 3, 3)
-        b = M9[:, 9:12]
-        cross = M9[:, 12:30].reshape(M, 3, 6)
-        proj = M9[:, 30:36]
-        H_joint = H_loo + M9[:, 36:].reshape(M, 6, 6)
+        # Per marker, the sums over its judged blocks of N (H_b, cross, A) and [Jp Jm]^T W e (proj, b).
+        M9 = Sh @ np.concatenate([N.reshape(-1, 81), (wJpmT @ e[:, :, None])[:, :, 0]], axis=1)
+        N_m = M9[:, :81].reshape(M, 9, 9)
+        A = N_m[:, 6:, 6:]
+        b = M9[:, 87:]
+        cross = N_m[:, 6:, :6]
+        proj = M9[:, 81:87]
+        H_joint = H_loo + N_m[:, :6, :6]
         judged = np.flatnonzero(Sh.any(axis=1))
         try:
             K = np.linalg.solve(H_joint[judged] + eye6, np.transpose(cross[judged], (0, 2, 1)))   # (k, 6, 3)
         except np.linalg.LinAlgError:
             return self._judge(stamp, now)
-        A = A[judged] - np.einsum("kij,kjl->kil", cross[judged], K)
-        b = b[judged] - np.einsum("kji,kj->ki", K, proj[judged])
+        A = A[judged] - cross[judged] @ K
+        b = b[judged] - (np.transpose(K, (0, 2, 1)) @ proj[judged][:, :, None])[:, :, 0]
         for j, m in enumerate(judged):
             Aj = A[j]
             self._evidence.setdefault(int(mids[m]), _Evidence()).add(stamp, 0.5 * (Aj + Aj.T), b[j], p.window)
@@ -531,8 +574,7 @@ class MarkerCheck:
             t, r, pos = bl.pending.popleft()
             if frozen:
                 continue
-            if bl.value is None or t - bl.stamp > p.baseline_time or \
-                    float(np.linalg.norm(pos - bl.position)) > p.baseline_distance:
+            if bl.value is None or t - bl.stamp > p.baseline_time or _farther(pos, bl.position, p.baseline_distance):
                 bl.value, bl.position, bl.count, bl.stamp = r.copy(), pos.copy(), 1, t
                 continue
             bl.count += 1
@@ -541,7 +583,7 @@ class MarkerCheck:
             bl.position = bl.position + alpha * (pos - bl.position)
             bl.stamp = t
         if bl.value is None or stamp - bl.stamp > p.window + p.baseline_time or \
-                float(np.linalg.norm(position - bl.position)) > p.baseline_distance:
+                _farther(position, bl.position, p.baseline_distance):
             return None
         return bl.value
 
@@ -570,17 +612,17 @@ class MarkerCheck:
                 fresh.append(len(ids) - 1)
         if not ids:
             return []
-        d_all, T_all = _statistics(np.stack(As), np.stack(bs), p.systematic_std)
-        if fresh:   # the latest frame alone
-            last = [self._evidence[ids[j]].items[-1] for j in fresh]
-            d1_all, T1_all = _statistics(np.stack([a for _, a, _ in last]), np.stack([v for _, _, v in last]),
-                                         p.systematic_std)
-            instant = dict(zip(fresh, zip(d1_all, T1_all)))
-        else:
-            instant = {}
+        # The window sums and the latest frame alone (``fresh``) in one batch.
+        last = [self._evidence[ids[j]].items[-1] for j in fresh]
+        d_both, T_both = _statistics(np.stack(As + [a for _, a, _ in last]), np.stack(bs + [v for _, _, v in last]),
+                                     p.systematic_std)
+        k = len(ids)
+        d_all, T_all = d_both[:k], T_both[:k].tolist()
+        dist = np.sqrt(np.einsum("ki,ki->k", d_both, d_both)).tolist()
+        instant = {j: (d_both[k + i], T_both[k + i], dist[k + i]) for i, j in enumerate(fresh)}
         worst: Optional[Tuple[int, np.ndarray, float]] = None
         for j, mid in enumerate(ids):
-            d, T, n = d_all[j], float(T_all[j]), counts[j]
+            d, T, n = d_all[j], T_all[j], counts[j]
             self.latest[mid] = (d, T, n)
             if mid in self.moved:
                 self.moved[mid].displacement = d
@@ -588,13 +630,13 @@ class MarkerCheck:
                 continue
             if mid in self.excluded:
                 continue
-            if n >= p.min_observations and T > p.threshold and float(np.linalg.norm(d)) > p.min_move and (
+            if n >= p.min_observations and T > p.threshold and dist[j] > p.min_move and (
                     worst is None or T > worst[2]):
                 worst = (mid, d, T)
             if j in instant:
-                d1, T1 = instant[j]
+                d1, T1, dist1 = instant[j]
                 T1 = float(T1)
-                if T1 > p.instant_threshold and float(np.linalg.norm(d1)) > p.min_move and (
+                if T1 > p.instant_threshold and dist1 > p.min_move and (
                         worst is None or T1 > worst[2]):
                     worst = (mid, d1, T1)
         if worst is None:
