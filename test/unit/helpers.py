@@ -10,6 +10,10 @@ from typing import Optional
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from aruco_ring_localization import geometry as geo
+from aruco_ring_localization.bundle_adjustment import BAProblem
+from aruco_ring_localization.markers import marker_corners
+
 REPO = Path(__file__).resolve().parents[2]
 CONFIG = REPO / "config"
 RING_YAML = CONFIG / "ring.yaml"
@@ -127,3 +131,29 @@ def moved(traj_poses: np.ndarray, T_ref_est: np.ndarray) -> np.ndarray:
     """The poses expressed in a frame ``est`` with ``T_ref_est`` (what an estimate in another frame holds)."""
     T_est_ref = np.linalg.inv(T_ref_est)
     return np.stack([T_est_ref @ P for P in traj_poses])
+
+
+def synthetic_ba_problem(seed=0, noise=0.0, M=6, S=4, C=3, per=30, size=0.2, focal=800.0):
+    """A bundle-adjustment problem: M markers ~4 m in front of a rig of C cameras, seen from S
+    stations (station 0 fixed), ``per`` observations drawn with ``noise`` px; returns the problem and
+    its true (markers, stations, cameras)."""
+    rng = np.random.default_rng(seed)
+    T_cams = np.stack([geo.make_transform(geo.rotation_from_rvec([0, 0.2 * k, 0]), [0.1 * k, 0, 0])
+                       for k in range(C)])
+    T_st = np.stack([geo.make_transform(geo.rotation_from_rvec([0, 0.05 * s, 0]), [0.3 * s, 0.0, 0.1 * s])
+                     for s in range(S)])
+    T_mk = np.stack([geo.make_transform(geo.rotation_from_rvec([np.pi + rng.normal(0, 0.2), rng.normal(0, 0.3), 0]),
+                                        [rng.uniform(-1.5, 1.5), rng.uniform(-0.5, 0.5), rng.uniform(3, 5)])
+                     for _ in range(M)])
+    om, os_, oc, xy = [], [], [], []
+    for _ in range(per):
+        m, s, c = rng.integers(M), rng.integers(S), rng.integers(C)
+        p = geo.transform_points(geo.inverse(T_cams[c]) @ geo.inverse(T_st[s]) @ T_mk[m], marker_corners(size))
+        if np.any(p[:, 2] <= 0.5):
+            continue
+        om.append(m), os_.append(s), oc.append(c)
+        xy.append(p[:, :2] / p[:, 2:] + rng.normal(0, noise / focal, (4, 2)))
+    n = len(om)
+    prob = BAProblem(T_mk, np.full(M, size), T_st, T_cams, np.array(om), np.array(os_), np.array(oc),
+                     np.array(xy), np.full((n, 2), focal), fixed_marker=None, fixed_station=0)
+    return prob, (T_mk, T_st, T_cams)

@@ -5,37 +5,14 @@ import numpy as np
 import pytest
 
 from aruco_ring_localization import geometry as geo
-from aruco_ring_localization.bundle_adjustment import BAOptions, BAProblem, _Model, bundle_adjust
+from aruco_ring_localization.bundle_adjustment import BAOptions, _Model, bundle_adjust
 from aruco_ring_localization.errors import GeometryError
-from aruco_ring_localization.markers import marker_corners
+
+from helpers import synthetic_ba_problem as _problem
 
 
 def _random_pose(rng, rot=0.3, trans=1.0):
     return geo.make_transform(geo.rotation_from_rvec(rng.normal(0, rot, 3)), rng.normal(0, trans, 3))
-
-
-def _problem(seed=0, noise=0.0, M=6, S=4, C=3, per=30):
-    """Markers ~4 m in front of 3 cameras on a rig, seen from S stations."""
-    rng = np.random.default_rng(seed)
-    T_cams = np.stack([geo.make_transform(geo.rotation_from_rvec([0, 0.2 * k, 0]) @ np.diag([1.0, 1.0, 1.0]),
-                                          [0.1 * k, 0, 0]) for k in range(C)])
-    T_st = np.stack([geo.make_transform(geo.rotation_from_rvec([0, 0.05 * s, 0]), [0.3 * s, 0.0, 0.1 * s])
-                     for s in range(S)])
-    T_mk = np.stack([geo.make_transform(geo.rotation_from_rvec([np.pi + rng.normal(0, 0.2), rng.normal(0, 0.3), 0]),
-                                        [rng.uniform(-1.5, 1.5), rng.uniform(-0.5, 0.5), rng.uniform(3, 5)])
-                     for _ in range(M)])
-    om, os_, oc, xy = [], [], [], []
-    for _ in range(per):
-        m, s, c = rng.integers(M), rng.integers(S), rng.integers(C)
-        p = geo.transform_points(geo.inverse(T_cams[c]) @ geo.inverse(T_st[s]) @ T_mk[m], marker_corners(0.2))
-        if np.any(p[:, 2] <= 0.5):
-            continue
-        om.append(m), os_.append(s), oc.append(c)
-        xy.append(p[:, :2] / p[:, 2:] + rng.normal(0, noise / 800.0, (4, 2)))
-    n = len(om)
-    prob = BAProblem(T_mk, np.full(M, 0.2), T_st, T_cams, np.array(om), np.array(os_), np.array(oc),
-                     np.array(xy), np.full((n, 2), 800.0), fixed_marker=None, fixed_station=0)
-    return prob, (T_mk, T_st, T_cams)
 
 
 @pytest.mark.parametrize("refine_extrinsics", [False, True])

@@ -4,33 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from aruco_ring_localization import geometry as geo
-from aruco_ring_localization.bundle_adjustment import BAOptions, BAProblem, MarkerPriors, _Model, bundle_adjust
+from aruco_ring_localization.bundle_adjustment import BAOptions, MarkerPriors, _Model, bundle_adjust
 from aruco_ring_localization.markers import marker_corners
 
-
-def _scene(seed=0, noise=0.0, M=6, S=4, C=3, per=30, size=0.2, focal=800.0):
-    """Markers ~4 m in front of a rig of C cameras, seen from S stations (station 0 fixed)."""
-    rng = np.random.default_rng(seed)
-    T_cams = np.stack([geo.make_transform(geo.rotation_from_rvec([0, 0.2 * k, 0]), [0.1 * k, 0, 0])
-                       for k in range(C)])
-    T_st = np.stack([geo.make_transform(geo.rotation_from_rvec([0, 0.05 * s, 0]), [0.3 * s, 0.0, 0.1 * s])
-                     for s in range(S)])
-    T_mk = np.stack([geo.make_transform(geo.rotation_from_rvec([np.pi + rng.normal(0, 0.2), rng.normal(0, 0.3), 0]),
-                                        [rng.uniform(-1.5, 1.5), rng.uniform(-0.5, 0.5), rng.uniform(3, 5)])
-                     for _ in range(M)])
-    om, os_, oc, xy = [], [], [], []
-    for _ in range(per):
-        m, s, c = rng.integers(M), rng.integers(S), rng.integers(C)
-        p = geo.transform_points(geo.inverse(T_cams[c]) @ geo.inverse(T_st[s]) @ T_mk[m], marker_corners(size))
-        if np.any(p[:, 2] <= 0.5):
-            continue
-        om.append(m), os_.append(s), oc.append(c)
-        xy.append(p[:, :2] / p[:, 2:] + rng.normal(0, noise / focal, (4, 2)))
-    n = len(om)
-    prob = BAProblem(T_mk, np.full(M, size), T_st, T_cams, np.array(om), np.array(os_), np.array(oc),
-                     np.array(xy), np.full((n, 2), focal), fixed_marker=None, fixed_station=0)
-    return prob, (T_mk, T_st, T_cams)
+from helpers import synthetic_ba_problem as _scene
 
 
 def _point(T, X):

@@ -9,20 +9,6 @@ from aruco_ring_localization.errors import ConfigError, MapSanityError
 from aruco_ring_localization.mapping import MapBuilder
 from aruco_ring_localization.marker_map import MarkerMap, check_map
 from aruco_ring_localization.markers import MarkerSizes, marker_corners
-from aruco_ring_localization.simulation.ring_sim import RingSimulator
-from aruco_ring_localization.simulation.scene import Scene
-
-
-@pytest.fixture(scope="module")
-def frames(ring, scene):
-    sim = RingSimulator(scene, ring, pixel_noise=0.3, seed=2)
-    return [sim.observe(Scene.T_world_base(p), stamp=10.0 * k + 0.1 * i)
-            for k, p in enumerate(scene.mapping_stations) for i in range(6)]
-
-
-@pytest.fixture(scope="module")
-def truth(scene):
-    return scene.truth_map()
 
 
 def _corner(T, c):

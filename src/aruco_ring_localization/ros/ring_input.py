@@ -225,11 +225,7 @@ class RingSubscriber:
         body = buff[12:]
         if self._info_bytes.get(camera) == body:
             return
-        header = getattr(msg, "_connection_header", None) or {}
-        if header.get("md5sum") != CameraInfo._md5sum:
-            rospy.logwarn_throttle(WARN_PERIOD, f"{self._name}: {camera}: camera_info from "
-                                                f"{header.get('callerid', '?')} is {header.get('type', '?')!r}, not "
-                                                f"{CameraInfo._type}: ignored")
+        if not self._of_type(msg, CameraInfo, camera, "camera_info"):
             return
         try:
             info = CameraInfo().deserialize(buff)
@@ -277,14 +273,20 @@ class RingSubscriber:
         rospy.loginfo("%s: %s extrinsics from tf %s -> %s (%.1f mm from the ring file)", self._name, camera, base,
                       frame_id, 1000.0 * drift)
 
+    def _of_type(self, msg: rospy.AnyMsg, cls, camera: str, topic: str) -> bool:
+        """Whether the bytes ``msg`` on ``camera``'s ``topic`` are a ``cls`` (the publisher's md5sum);
+        else warned about (throttled, naming the publisher and its type) and False."""
+        header = getattr(msg, "_connection_header", None) or {}
+        if header.get("md5sum") == cls._md5sum:
+            return True
+        rospy.logwarn_throttle(WARN_PERIOD, f"{self._name}: {camera}: {topic} from {header.get('callerid', '?')} is "
+                                            f"{header.get('type', '?')!r}, not {cls._type}: ignored")
+        return False
+
     def _on_fiducials_raw(self, msg: rospy.AnyMsg, camera: str) -> None:
         """fiducial_vertices as bytes (what the subscription hands over): type-checked, read, handled
         as :meth:`_on_fiducials`; a message cut short is warned about (throttled) and dropped."""
-        header = getattr(msg, "_connection_header", None) or {}
-        if header.get("md5sum") != FiducialArray._md5sum:
-            rospy.logwarn_throttle(WARN_PERIOD, f"{self._name}: {camera}: fiducial_vertices from "
-                                                f"{header.get('callerid', '?')} is {header.get('type', '?')!r}, not "
-                                                f"{FiducialArray._type}: ignored")
+        if not self._of_type(msg, FiducialArray, camera, "fiducial_vertices"):
             return
         try:
             stamp, frame_id, observations = fiducial_array_bytes_to_observations(
