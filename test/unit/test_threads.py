@@ -77,8 +77,14 @@ def _faults_per_message(mode: str) -> float:
 
 def test_tune_malloc_reuses_the_receive_buffer():
     # Without the tuning each 16 MB recv buffer is a fresh mmap: the kernel faults in (zeroes) every
-    # page the message is written to, 256 for 1 MB. Tuned, the heap's pages are reused.
-    plain = _faults_per_message("plain")
+    # page the message is written to, 256 for 1 MB. Tuned, the heap's pages are reused. The untuned
+    # count depends on the machine's memory state: once it was 11 (twice in a row, at the end of a
+    # full unit-test run, 2026-12-03), 256 or more otherwise; so the untuned child runs up to 3 times.
+    plain = 0.0
+    for _ in range(3):
+        plain = max(plain, _faults_per_message("plain"))
+        if plain > 200:
+            break
     tuned = _faults_per_message("tuned")
     assert plain > 200, plain
     assert tuned < 0.25 * plain, (tuned, plain)
