@@ -71,6 +71,12 @@ class ApriltagRelayTest(unittest.TestCase):
     def test_1_apriltag_msgs_corners_are_relayed_in_aruco_order(self):
         topics = sorted({t for t, _ in self.messages})
         pubs = {t: self._publisher(t, self.tag_class) for t in topics}
+        # Our fiducial_vertices subscriptions connected to the relay too, or its first messages are
+        # published to nobody (CI 2026-12-03: cam2 19 of 20 relayed under load).
+        end = rospy.Time.now() + rospy.Duration(15.0)
+        while not all(sub.get_num_connections() for sub in self.subs) and rospy.Time.now() < end:
+            rospy.sleep(0.05)
+        self.assertTrue(all(sub.get_num_connections() for sub in self.subs), "not connected to the relay's outputs")
         for topic, msg in self.messages:
             pubs[topic].publish(msg)
             rospy.sleep(0.002)
