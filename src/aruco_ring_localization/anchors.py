@@ -179,15 +179,7 @@ _KEYS = {"marker", "position", "std", "rotation", "rotation_std_deg", "instrumen
 
 
 def _anchor_from_dict(node: Any, source: str, key: str) -> Anchor:
-    if not isinstance(node, Mapping):
-        raise ConfigError(f"expected a mapping with marker, position and std, got {node!r}", path=source, key=key)
-    unknown = sorted(set(map(str, node)) - _KEYS)
-    if unknown:
-        raise ConfigError(f"unknown key {unknown[0]!r} (expected {', '.join(sorted(_KEYS))})", path=source,
-                          key=f"{key}.{unknown[0]}")
-    for required in ("marker", "position", "std"):
-        if required not in node:
-            raise ConfigError("missing", path=source, key=f"{key}.{required}")
+    _check_keys(node, _KEYS, ("marker", "position", "std"), source, key, "marker, position and std")
     mid = node["marker"]
     if isinstance(mid, bool) or not isinstance(mid, int) or mid < 0:
         raise ConfigError(f"expected a marker id (integer >= 0), got {mid!r}", path=source, key=f"{key}.marker")
