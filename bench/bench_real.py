@@ -298,7 +298,10 @@ def _localize_odom(ring, marker_map, frames, T_ref_map: np.ndarray, odo, T_base_
     message at its stamp (``on_motion('odom', ...)``, base_link's pose in odom: the odometry body's
     pose ``P`` moved to the ring's base frame, ``P · T_base_odom^-1``, tagslam.yaml's ``T_body_odom``;
     its twist from consecutive poses), every ring frame ``ODOM_LATENCY`` s after its stamp or when the
-    odometry has reached its stamp, whichever is later."""
+    odometry has reached its stamp, whichever is later. The pipeline's output for a frame is the
+    track at the odometry's newest stamp; it is carried back to the frame's stamp along the same
+    odometry (:func:`_back_along_odometry`: tens of ms of the odometry's own motion) to be compared
+    with the reference there."""
     stamps, poses = odo
     T_odom_base = [np.asarray(P, dtype=float) @ geo.inverse(T_base_odom) for P in poses]
     # A frame is taken once the odometry has reached its stamp (a bag's odometry may be sparser
@@ -324,8 +327,25 @@ def _localize_odom(ring, marker_map, frames, T_ref_map: np.ndarray, odo, T_base_
             outs = feed_ring_frame(pipeline, frames[k], now=now)
         for out in outs:
             if out.T_map_base is not None and not out.from_odometry:
-                filtered[int(round(out.stamp * 1e6))] = T_ref_map @ out.T_map_base
+                s = out.track.localization.stamp
+                back = _back_along_odometry(pipeline, out.stamp, s)
+                if back is not None:   # (None: the odometry restarted in between; the frame is left out)
+                    filtered[int(round(s * 1e6))] = T_ref_map @ out.T_map_base @ back
     return filtered
+
+
+def _back_along_odometry(pipeline: LocalizationPipeline, t: float, s: float) -> Optional[np.ndarray]:
+    """The motion (4x4, body frame at ``t``) from the pipeline's output stamp ``t`` back to its ring
+    frame's stamp ``s``, along the pipeline's own odometry history: the odometry moves the track past a
+    frame that arrives late, and the output is the track's pose at ``t`` (the reference has a pose at
+    ``s``). Identity when ``t == s``; None when the history does not cover both."""
+    if t == s:
+        return np.eye(4)
+    if pipeline.tracker6 is not None:
+        inc = pipeline.odometry6.increment(t, s)
+        return None if inc is None else inc[0]
+    inc = pipeline.odometry.increment(t, s)
+    return None if inc is None else geo.transform_from_se2(*inc[0])
 
 
 def filter_model(station_model: str, requested: str = "auto") -> str:

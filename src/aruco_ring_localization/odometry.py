@@ -48,8 +48,9 @@ class MotionParams:
     odometry: bool = param(False, "predict the filter with the wheel-odometry increments of odom's pose between "
                                   "camera frames, publish the pose at every odom message (the odometry rate) and "
                                   "bridge marker blackouts with it (filter/model 6dof: the 6-DOF tracker along the "
-                                  "increments of odom's full pose, e.g. a visual-inertial odometry, at the ring "
-                                  "frames); false: the paper's filter (odom only opens the gate)")
+                                  "increments of odom's full pose, e.g. a visual-inertial odometry, its pose at every "
+                                  "odom message too, up to tracker6/max_coast after the last accepted measurement); "
+                                  "false: the paper's filter (odom only opens the gate)")
     imu: bool = param(False, "with odometry: the yaw increments from the yaw rate of sensor_msgs/Imu on `imu` "
                              "(angular_velocity.z) instead of the wheels'")
     translation_noise: float = param(0.02, "odometry's position error after 1 m driven (grows with the square "

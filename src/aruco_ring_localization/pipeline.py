@@ -50,7 +50,7 @@ from .errors import ConfigError, GeometryError, MeasurementError
 from .gating import GateDecision, MotionGate
 from .kalman import PoseFilter
 from .localization import se2_covariance
-from .tracker6 import Tracker6
+from .tracker6 import Tracker6, move_pose
 from .localization import LocalizationResult, RingLocalizer
 from .mapping import MapBuilder
 from .marker_check import MarkerCheck
@@ -579,7 +579,7 @@ class LocalizationPipeline(_RingPipeline):
                 return []
         if six:
             self.odometry6.add_odometry(t, T_odom_base)
-            return []
+            return self._odometry_output6(t)
         self.odometry.add_odometry(t, se2)
         if not self.filter.initialized or self.filter.stamp is None or t <= self.filter.stamp:
             return []
@@ -587,6 +587,26 @@ class LocalizationPipeline(_RingPipeline):
         self.odometry_outputs += 1
         track = TrackResult(stamp=t, localization=LocalizationResult(stamp=t), pose=self.filter.pose,
                             covariance=self.filter.covariance)
+        return [self._output(track, from_odometry=True)]
+
+    def _odometry_output6(self, t: float) -> List[PoseOutput]:
+        """The 6-DOF tracker advanced along the odometry to its message at ``t`` and its pose there,
+        as the planar filter's (a pose at the odometry's rate): only while the track may publish
+        (:meth:`Tracker6.publishable`: the coasting limits count from the last accepted
+        measurement, whatever carries the prediction)."""
+        tracker = self.tracker6
+        if not tracker.initialized or t <= tracker.stamp:
+            return []
+        inc = self.odometry6.increment(tracker.stamp, t)
+        if inc is None:
+            return []
+        tracker.predict_increment(t, *inc)
+        if not tracker.initialized or not tracker.publishable(t, count=False):
+            return []
+        self.odometry_outputs += 1
+        T = tracker.pose
+        track = TrackResult(stamp=t, localization=LocalizationResult(stamp=t), T_map_base=T,
+                            pose=geo.se2_from_transform(T), covariance=se2_covariance(tracker.covariance))
         return [self._output(track, from_odometry=True)]
 
     def _odometry_jump(self, last: float, t: float, pose) -> Optional[Tuple[float, float]]:
@@ -875,7 +895,8 @@ class LocalizationPipeline(_RingPipeline):
             self.warn("stale", f"localizer: dropped {self.dropped_stale} stale ring frames so far (last "
                                f"{age:.2f} s old > timing/max_frame_age {max_age} s)", now)
             return []
-        behind = None if self.filter.stamp is None else self.filter.stamp - frame.stamp
+        track_stamp = self.filter.stamp if self.tracker6 is None else self.tracker6.stamp
+        behind = None if track_stamp is None else track_stamp - frame.stamp
         if -age > self.config.input.max_stamp_ahead or (
                 behind is not None and behind > self.config.filter.time_jump_tolerance):
             # Assembled before the clock went back, or later than the track by more than a time
@@ -1020,17 +1041,30 @@ class LocalizationPipeline(_RingPipeline):
             self.time_jumps += 1
             time_jump = True
             logger.warning("localizer: time jumped back to %.3f s: 6-DOF track reset", stamp)
-        if self.config.motion.odometry and tracker.initialized and stamp > tracker.stamp:
+        odometry = self.config.motion.odometry and tracker.initialized
+        if odometry and stamp > tracker.stamp:
             inc = self.odometry6.increment(tracker.stamp, stamp)   # None: the motion model
             if inc is not None:
                 tracker.predict_increment(stamp, *inc)
-        loc = self.localizer.process(ring_frame, tracker.predicted(stamp))
+        pred = tracker.predicted(stamp)
+        # The odometry moved the track past the frame (camera latency): the prediction at the
+        # frame's stamp is the track carried back along the odometry, and the measurement is
+        # carried forward to the track's stamp (as the planar filter's, _track).
+        ahead = self.odometry6.increment(stamp, tracker.stamp) if odometry and stamp < tracker.stamp else None
+        if ahead is not None:
+            pred = tracker.pose @ geo.inverse(ahead[0])
+        loc = self.localizer.process(ring_frame, pred)
         for k, v in loc.rejected.items():
             self.rejected_counts[k] = self.rejected_counts.get(k, 0) + v
         out = TrackResult(stamp=stamp, localization=loc, time_jump=time_jump)
         if loc.ok:
-            out.decision = tracker.update(loc.T_map_base, stamp, loc.covariance, ambiguous=loc.ambiguous,
-                                          markers=len(loc.marker_ids), alternatives=loc.alternatives)
+            T_meas, cov, t_update, alternatives = loc.T_map_base, loc.covariance, stamp, loc.alternatives
+            if ahead is not None:
+                T_meas, cov = move_pose(T_meas, cov, *ahead)
+                alternatives = [move_pose(A, None, *ahead)[0] for A in alternatives]
+                t_update = tracker.stamp
+            out.decision = tracker.update(T_meas, t_update, cov, ambiguous=loc.ambiguous,
+                                          markers=len(loc.marker_ids), alternatives=alternatives)
             if out.decision.accepted:
                 self._keep_attitude(loc.T_map_base)
             else:
@@ -1038,7 +1072,9 @@ class LocalizationPipeline(_RingPipeline):
                 self.rejected_counts[key] = self.rejected_counts.get(key, 0) + 1
         else:
             tracker.predict(stamp)
-        if tracker.initialized and tracker.publishable(stamp):
+        if odometry and tracker.stamp is not None:
+            out.stamp = max(out.stamp, tracker.stamp)   # the pose is the track's, at its stamp
+        if tracker.initialized and tracker.publishable(out.stamp):
             T = tracker.pose
             out.T_map_base = T
             out.pose = geo.se2_from_transform(T)

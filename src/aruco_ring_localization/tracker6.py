@@ -145,6 +145,33 @@ def _rot_diff(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
     return geo.rvec_from_rotation(R_a @ R_b.T).ravel()
 
 
+def increment_jacobians(R: np.ndarray, D: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """``(F, G)``, both 6x6: how a pose's error ``(dp, dtheta)`` (map frame, ``R_true = exp(dtheta)
+    R``) and an increment's error ``(n_t, n_r)`` (its own frame) reach the error of ``T · D``, for a
+    pose of rotation ``R``: ``dp' = dp - [R t_D]x dtheta + R n_t``, ``dtheta' = dtheta + R n_r``."""
+    F = np.eye(6)
+    F[0:3, 3:6] = -geo.skew(R @ np.asarray(D, dtype=np.float64)[:3, 3])
+    G = np.zeros((6, 6))
+    G[0:3, 0:3] = R
+    G[3:6, 3:6] = R
+    return F, G
+
+
+def move_pose(T: np.ndarray, covariance: Optional[np.ndarray], D: np.ndarray,
+              cov_D: np.ndarray) -> Tuple[np.ndarray, Optional[np.ndarray]]:
+    """A pose measurement ``T`` (4x4, with its 6x6 ``covariance`` over (x, y, z, map-frame rotation
+    vector), or None) carried along an odometry increment ``D`` (4x4, in the pose's body frame, 6x6
+    covariance ``cov_D`` over (translation, rotation vector) in that frame): ``T · D`` and its
+    covariance (None stays None: the tracker's default measurement noise then applies)."""
+    T = np.asarray(T, dtype=np.float64).reshape(4, 4)
+    D = np.asarray(D, dtype=np.float64).reshape(4, 4)
+    if covariance is None:
+        return T @ D, None
+    F, G = increment_jacobians(T[:3, :3], D)
+    C = F @ np.asarray(covariance, dtype=np.float64).reshape(6, 6) @ F.T + G @ np.asarray(cov_D) @ G.T
+    return T @ D, 0.5 * (C + C.T)
+
+
 class Tracker6:
     """Error-state Kalman filter on SE(3) with its own gate (module docstring)."""
 
@@ -278,14 +305,14 @@ class Tracker6:
         Q6 = np.asarray(cov, dtype=np.float64).reshape(6, 6)
         _, _, _, _, F, Q = self._propagate(dt)
         F[0:6, 6:12] = 0.0                        # the pose follows the odometry, not the velocity
-        t_map = self.R @ D[:3, 3]
-        F[0:3, 3:6] = -geo.skew(t_map)
+        F6, G6 = increment_jacobians(self.R, D)
+        F[0:6, 0:6] = F6
         G = np.zeros((12, 6))
-        G[0:3, 0:3] = self.R
-        G[3:6, 3:6] = self.R
+        G[0:6, :] = G6
         Q[0:6, :] = 0.0
         Q[:, 0:6] = 0.0
         self.P = F @ self.P @ F.T + Q + G @ Q6 @ G.T
+        t_map = self.R @ D[:3, 3]
         self.P = 0.5 * (self.P + self.P.T)
         R_new = self.R @ D[:3, :3]
         self.w = geo.rvec_from_rotation(R_new @ self.R.T).ravel() / dt
@@ -421,7 +448,7 @@ class Tracker6:
             return GateDecision(True, REINITIALIZED, dist, ang, allowed_d, allowed_a)
         return GateDecision(False, REJECTED_JUMP, dist, ang, allowed_d, allowed_a)
 
-    def publishable(self, stamp: float) -> bool:
+    def publishable(self, stamp: float, count: bool = True) -> bool:
         """Whether the track's pose at ``stamp`` (the filter advanced there) may be published.
 
         Right after an accepted measurement, always. Otherwise it is a prediction (coasting): only
@@ -429,7 +456,8 @@ class Tracker6:
         (at least 1) times its position and rotation std stay below ``coast_max_distance`` and
         ``coast_max_angle_deg`` (a prediction that uncertain may be a flip's size off), and not
         when a measurement contradicted it at that stamp (rejected as a jump, or ambiguous with every
-        pose it admits outside the gate: :meth:`update`)."""
+        pose it admits outside the gate: :meth:`update`). ``count``: a withheld pose counts in
+        :attr:`withheld_total` (the odometry-rate outputs do not count)."""
         if self.stamp is None or self.last_accepted_stamp is None:
             return False
         stamp = float(stamp)
@@ -442,7 +470,7 @@ class Tracker6:
             s_pos = float(np.sqrt(max(np.linalg.eigvalsh(self.P[:3, :3])[-1], 0.0)))
             s_rot = float(np.sqrt(max(np.linalg.eigvalsh(self.P[3:6, 3:6])[-1], 0.0)))
             ok = k * s_pos <= p.coast_max_distance and k * s_rot <= p.coast_max_angle
-        if not ok:
+        if not ok and count:
             self.withheld_total += 1
         return ok
 
@@ -453,4 +481,4 @@ class Tracker6:
         return np.array([vb[0], vb[1], wb[2]])
 
 
-__all__ = ["Tracker6", "Tracker6Params", "PENDING"]
+__all__ = ["Tracker6", "Tracker6Params", "PENDING", "increment_jacobians", "move_pose"]

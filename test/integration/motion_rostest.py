@@ -15,6 +15,11 @@ cameras report, without markers) the pose keeps coming at the odometry rate and 
 at its end, although the odometry resets 1 m away in the middle of it (``ODOM_JUMP``: a hostile or
 broken odometry must not move the robot); the markers back, the track is the cameras' again.
 
+With ``~six_dof`` (motion6.test: ``model:=6dof``, the 6-DOF tracker) the cameras are
+synchronized (the 6-DOF tracker does not compensate free-running cameras) and the blackout checks
+are the tracker's: its pose comes at the odometry rate too, but only up to ``tracker6/max_coast``
+after the last accepted measurement, none after that until the markers are back.
+
 With ``~odom_body`` ([x, y, yaw_deg], motion_body.test) the odometry is that of a body mounted
 there on the robot (``child_frame_id`` odom_body, a static tf base_link -> odom_body in the .test
 file), as a visual-inertial odometry reports its IMU's: the same checks hold only if the localizer
@@ -69,7 +74,10 @@ class MotionTest(unittest.TestCase):
         cls.sim = RingSimulator(cls.scene, cls.ring, pixel_noise=0.3, seed=1)
         cls.rng = np.random.default_rng(2)
         n = len(cls.ring.names)
+        cls.six_dof = bool(rospy.get_param("~six_dof", False))
         cls.phases = cls.rng.permutation(np.linspace(0.0, 0.08, n))
+        if cls.six_dof:
+            cls.phases = np.zeros(n)
         cls.clock_pub = rospy.Publisher("/clock", Clock, queue_size=10)
         cls.odom_pub = rospy.Publisher("odom", Odometry, queue_size=20)
         cls.pubs = {}
@@ -163,6 +171,9 @@ class MotionTest(unittest.TestCase):
             msg.header.frame_id = cls.ring[name].frame_id
             msg.fiducials = observations_to_fiducials(obs)
             fv.publish(msg)
+        if dark and cls.six_dof:
+            time.sleep(0.05)   # the 6-DOF tracker publishes nothing for a frame without markers
+            return
         with cls.answered:
             ok = cls.answered.wait_for(lambda: cls.last_estimates > before, timeout=ANSWER_TIMEOUT)
         cls.unanswered += int(not ok)
@@ -188,6 +199,19 @@ class MotionTest(unittest.TestCase):
         self.assertLess(float(np.max(err)), 0.03, f"max error {np.max(err) * 100:.2f} cm")
 
     def test_3_blackout_bridged_by_odometry(self):
+        if self.six_dof:
+            # The last markers at 8.0 s; the tracker coasts along the odometry for max_coast (0.25 s)
+            # after its last accepted measurement, the frame of 8.0 s or at worst of 7.9 s: at least
+            # the 7 odometry poses of 8.02-8.14 s.
+            steps = [(p[0] - T0) / ODOM_PERIOD for p in self._between(8.01, 8.26)]
+            coast = [k for k in steps if abs(k - round(k)) < 1e-3]     # the odometry's stamps
+            self.assertGreaterEqual(len(coast), 7, f"{len(coast)} odometry poses in the 0.25 s after the last markers")
+            late = self._between(8.4, 13.0)
+            self.assertEqual(len(late), 0, f"{len(late)} poses published 0.4-5 s into the blackout")
+            after = self._errors(self._between(14.0, 16.0))
+            self.assertGreater(len(after), 90)
+            self.assertLess(float(np.median(after)), 0.01, f"after the blackout: median {np.median(after) * 100:.2f} cm")
+            return
         dark = self._between(8.5, 13.0)
         self.assertGreaterEqual(len(dark) / 4.5, 45.0, f"{len(dark)} poses in 4.5 s of blackout")
         end = self._errors(self._between(12.8, 13.0))

@@ -220,10 +220,11 @@ def _pipe(lab, **overrides) -> LocalizationPipeline:
 
 
 def _drive(pipe: LocalizationPipeline, sim: RingSimulator, t_end: float, phases, odom_rate: float = 50.0,
-           dark=(np.inf, np.inf), odom_scale: float = 1.01, seed: int = 6, jump=(np.inf, 0.0)):
+           dark=(np.inf, np.inf), odom_scale: float = 1.01, seed: int = 6, jump=(np.inf, 0.0),
+           latency: float = 0.02):
     """Feed camera frames (10 Hz, free-running) and odometry (its own origin, 1 % scale error; from
-    ``jump[0]`` s on, its x shifted by ``jump[1]`` m: a reset) in arrival order; returns
-    [(output, true pose at its stamp)]."""
+    ``jump[0]`` s on, its x shifted by ``jump[1]`` m: a reset; the cameras' messages arrive ``latency``
+    s after their stamps) in arrival order; returns [(output, true pose at its stamp)]."""
     rng = np.random.default_rng(seed)
     events = []
     for k in range(int(t_end / 0.1)):
@@ -232,7 +233,7 @@ def _drive(pipe: LocalizationPipeline, sim: RingSimulator, t_end: float, phases,
             T = Scene.T_world_base(_true_pose(t))
             obs = [] if dark[0] <= t < dark[1] else [
                 MarkerObservation(m, px + rng.normal(0.0, 0.2, px.shape)) for m, px in sim.visible_camera(T, name)]
-            events.append((t + 0.02, "cam", name, t, obs))
+            events.append((t + latency, "cam", name, t, obs))
     if odom_rate:
         for j in range(1, int(t_end * odom_rate)):
             t = j / odom_rate
@@ -370,6 +371,55 @@ def test_a_jumping_6dof_odometry_does_not_move_the_track(lab):
     assert err < 0.05, err
     small = _track6_in_the_dark(lab, True, jump=(3.45, 0.01))    # within the 2 cm slack: followed
     assert small < 0.03, small
+
+
+def _pose_errors6(outs, t_min: float = 1.0, odometry=None) -> np.ndarray:
+    """Position errors (m, x-y) of the 6-DOF outputs from ``t_min`` on (``odometry``: only the
+    odometry-rate outputs, True, or only the ring frames', False)."""
+    return _errors([(o, tr) for o, tr in outs if o.T_map_base_6dof is not None], t_min, odometry)
+
+
+def test_the_6dof_track_gives_the_pose_at_the_odometry_rate(lab):
+    pipe = _pipe(lab, **{"filter.model": "6dof", "motion.odometry": True})
+    outs = _drive(pipe, lab[2], 4.0, np.zeros(8))
+    stamps = [o.stamp for o, _ in outs]
+    assert all(b >= a for a, b in zip(stamps, stamps[1:]))     # never a pose older than the last one
+    odo = _pose_errors6(outs, odometry=True)
+    ring = _pose_errors6(outs, odometry=False)
+    assert len(odo) >= 0.9 * 50 * 3.0, len(odo)                 # every odometry message from 1 s on
+    assert len(ring) >= 28, len(ring)
+    # Measured: 0.42 mm between the frames (the odometry's 1 % scale over at most 0.1 s at 0.5 m/s is
+    # 0.5 mm), 0.21 mm at the frames.
+    assert np.median(odo) < 0.001 and np.median(ring) < 0.0005, (np.median(odo), np.median(ring))
+    assert pipe.tracker6.withheld_total == 0
+
+
+def test_a_6dof_frame_older_than_the_odometry_is_carried_to_the_track(lab):
+    """Frames that arrive 0.3 s late (the odometry has moved the track 15 cm past them): each is
+    carried forward along the odometry to the track's stamp, never fused as if it were now."""
+    pipe = _pipe(lab, **{"filter.model": "6dof", "motion.odometry": True})
+    outs = _drive(pipe, lab[2], 4.0, np.zeros(8), latency=0.3)
+    # (the odometry ends at 4 s: the last frames are carried to it only)
+    ring = [(o, tr) for o, tr in outs if not o.from_odometry and o.stamp >= 1.0 and o.track.localization.stamp <= 3.6]
+    assert len(ring) >= 28 and all(o.track.decision is not None and o.track.decision.accepted for o, _ in ring)
+    assert all(o.stamp > o.track.localization.stamp + 0.25 for o, _ in ring)   # the pose is the track's, now
+    err = _pose_errors6(ring)
+    # The odometry's 1 % scale over the 0.3 s (15 cm) the measurement is carried: 1.5 mm, plus the
+    # estimate's own 0.2 mm. Fused as if it were now, the measurement would be 15 cm behind.
+    assert np.median(err) < 0.003 and err.max() < 0.005, (np.median(err), err.max())
+
+
+def test_6dof_odometry_outputs_stop_with_the_track(lab):
+    """The odometry-rate outputs keep the tracker's coasting limits: published up to
+    ``tracker6.max_coast`` after the last accepted measurement, again once markers are back."""
+    pipe = _pipe(lab, **{"filter.model": "6dof", "motion.odometry": True})
+    outs = _drive(pipe, lab[2], 5.0, np.zeros(8), dark=(2.0, 4.0))
+    max_coast = pipe.config.tracker6.max_coast
+    odo = [o.stamp for o, _ in outs if o.from_odometry]
+    assert any(2.0 < t <= 2.0 + max_coast for t in odo)
+    assert not any(2.0 + max_coast + 0.05 < t < 4.0 for t in odo), [t for t in odo if 2.3 < t < 4.0]
+    assert any(t > 4.3 for t in odo)
+    assert np.median(_pose_errors6(outs, t_min=4.3)) < 0.001
 
 
 def test_odometry_of_a_mounted_body_as_base_links():
