@@ -373,6 +373,8 @@ class RingFrameAssembler:
 
     def poll(self, now: float) -> List[RingFrame]:
         """Return the groups that are complete or timed out, and every older group before them."""
+        if not self._pending:
+            return []  # (the poll timer's usual case: nothing waits)
         ready_upto = -1
         awaited = self._awaited(now)
         for i, g in enumerate(self._pending):
