@@ -92,6 +92,7 @@ def simultaneous_parts(frame: RingFrame, spread: float) -> List[RingFrame]:
 
 
 _NEVER = -math.inf  # a camera's last_seen before its first frame
+_FLOAT64 = np.dtype(np.float64)  # native float64 (another byte order is another dtype object)
 
 #: ``slop`` value that derives the ring frame's window from the cameras' stamps (the default).
 AUTO_SLOP = "auto"
@@ -496,7 +497,7 @@ def _as_float_observation(obs: MarkerObservation, corners: np.ndarray) -> Marker
 
 def _is_float_quad(corners) -> bool:
     """Whether ``corners`` is a plain float64 numpy array of shape (4, 2) (kept as it is)."""
-    return type(corners) is np.ndarray and corners.dtype == np.float64 and corners.shape == (4, 2)
+    return type(corners) is np.ndarray and corners.dtype is _FLOAT64 and corners.shape == (4, 2)
 
 
 def _sanitize_scalar(candidates: List[MarkerObservation], quads: List[list], q: Optional[np.ndarray],
