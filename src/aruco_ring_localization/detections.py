@@ -91,6 +91,9 @@ def simultaneous_parts(frame: RingFrame, spread: float) -> List[RingFrame]:
     return parts
 
 
+_NEVER = -math.inf  # a camera's last_seen before its first frame
+_FLOAT64 = np.dtype(np.float64)  # native float64 (another byte order is another dtype object)
+
 #: ``slop`` value that derives the ring frame's window from the cameras' stamps (the default).
 AUTO_SLOP = "auto"
 
@@ -129,6 +132,10 @@ class _Group:
         if slop is None:
             return self.lo <= stamp < self.hi
         return max(self.hi, stamp) - min(self.lo, stamp) <= slop
+
+
+def _group_stamp(group: _Group) -> float:
+    return group.frame.stamp
 
 
 class RingFrameAssembler:
@@ -342,7 +349,8 @@ class RingFrameAssembler:
         group.frame.stamp = min(group.frame.stamp, stamp)
         if self.slop is not None:
             group.lo, group.hi = min(group.lo, stamp), max(group.hi, stamp)
-        self._pending.sort(key=lambda g: g.frame.stamp)
+        if len(self._pending) > 1:
+            self._pending.sort(key=_group_stamp)
         return self.poll(now)
 
     def _is_late(self, camera: str, stamp: float) -> bool:
@@ -373,6 +381,8 @@ class RingFrameAssembler:
 
     def poll(self, now: float) -> List[RingFrame]:
         """Return the groups that are complete or timed out, and every older group before them."""
+        if not self._pending:
+            return []  # (the poll timer's usual case: nothing waits)
         ready_upto = -1
         awaited = self._awaited(now)
         for i, g in enumerate(self._pending):
@@ -405,9 +415,11 @@ class RingFrameAssembler:
         For ``silence`` seconds after start-up, or after every camera was silent, all cameras are
         awaited: they come up one by one, and the first frame must not go out with one camera.
         """
-        if self.silence is None or (self._first_seen is not None and now - self._first_seen < self.silence):
+        silence = self.silence
+        if silence is None or (self._first_seen is not None and now - self._first_seen < silence):
             return set(self.cameras)
-        return {c for c in self.cameras if now - self.last_seen.get(c, -np.inf) <= self.silence}
+        seen = self.last_seen.get
+        return {c for c in self.cameras if now - seen(c, _NEVER) <= silence}
 
     def silent_cameras(self, now: float, silence: float) -> List[str]:
         """Cameras that have sent nothing for ``silence`` seconds (or never)."""
@@ -452,16 +464,21 @@ def sanitize_observations(observations: Sequence[MarkerObservation], ignore: Col
         candidates.append(obs)
     if not candidates:
         return [], reasons
-    # One array for the whole image (a few numpy calls per image, not per marker: this runs for
-    # every camera message); the marker-by-marker check only when some corners are not (4, 2).
-    try:
-        q = np.array([o.corners for o in candidates], dtype=np.float64)
-    except (ValueError, TypeError):
-        q = None
-    if q is not None and q.shape == (len(candidates), 4, 2) and len(candidates) <= SCALAR_SANITIZE:
-        kept = _sanitize_scalar(candidates, q, width, height, min_area_px, drop)
+    if len(candidates) <= SCALAR_SANITIZE and all(_is_float_quad(o.corners) for o in candidates):
+        # What the nodes' conversion gives: each quad's Python floats straight from its array.
+        kept = _sanitize_scalar(candidates, [o.corners.tolist() for o in candidates], None, width, height,
+                                min_area_px, drop)
     else:
-        kept = _sanitize_array(candidates, q, width, height, min_area_px, drop)
+        # One array for the whole image (a few numpy calls per image, not per marker: this runs
+        # for every camera message); the marker-by-marker check only when some corners are not (4, 2).
+        try:
+            q = np.array([o.corners for o in candidates], dtype=np.float64)
+        except (ValueError, TypeError):
+            q = None
+        if q is not None and q.shape == (len(candidates), 4, 2) and len(candidates) <= SCALAR_SANITIZE:
+            kept = _sanitize_scalar(candidates, q.tolist(), q, width, height, min_area_px, drop)
+        else:
+            kept = _sanitize_array(candidates, q, width, height, min_area_px, drop)
     ids = [o.marker_id for o in kept]
     if len(set(ids)) < len(ids):
         counts = Counter(ids)
@@ -478,18 +495,25 @@ def _as_float_observation(obs: MarkerObservation, corners: np.ndarray) -> Marker
     return MarkerObservation(int(obs.marker_id), corners)
 
 
-def _sanitize_scalar(candidates: List[MarkerObservation], q: np.ndarray, width: Optional[int],
-                     height: Optional[int], min_area_px: float, drop) -> List[MarkerObservation]:
-    """:func:`sanitize_observations`' checks for a few detections with corners ``q`` (k, 4, 2), on
-    Python floats (the same IEEE arithmetic as :func:`_sanitize_array`'s, in the same order:
-    non-finite, then outside the image, then degenerate)."""
+def _is_float_quad(corners) -> bool:
+    """Whether ``corners`` is a plain float64 numpy array of shape (4, 2) (kept as it is)."""
+    return type(corners) is np.ndarray and corners.dtype is _FLOAT64 and corners.shape == (4, 2)
+
+
+def _sanitize_scalar(candidates: List[MarkerObservation], quads: List[list], q: Optional[np.ndarray],
+                     width: Optional[int], height: Optional[int], min_area_px: float,
+                     drop) -> List[MarkerObservation]:
+    """:func:`sanitize_observations`' checks for a few detections with corners ``quads`` (k lists
+    of 4 [x, y]), on Python floats (the same IEEE arithmetic as :func:`_sanitize_array`'s, in the
+    same order: non-finite, then outside the image, then degenerate). ``q``: the same as a (k, 4, 2)
+    float64 array, for the observations whose corners are not one already; None when all are."""
     inside = None
     if width and height:
         size_x, size_y = float(width), float(height)
         inside = (0.5 * size_x, 0.5 * size_y, 1.5 * size_x, 1.5 * size_y)
     kept = []
     isfinite = math.isfinite
-    for k, quad in enumerate(q.tolist()):
+    for k, quad in enumerate(quads):
         (x0, y0), (x1, y1), (x2, y2), (x3, y3) = quad
         if not (isfinite(x0) and isfinite(y0) and isfinite(x1) and isfinite(y1) and isfinite(x2)
                 and isfinite(y2) and isfinite(x3) and isfinite(y3)):
@@ -504,7 +528,7 @@ def _sanitize_scalar(candidates: List[MarkerObservation], q: np.ndarray, width: 
         if not quad_ok_scalar(quad, min_area_px):
             drop("degenerate")
             continue
-        kept.append(_as_float_observation(candidates[k], q[k]))
+        kept.append(candidates[k] if q is None else _as_float_observation(candidates[k], q[k]))
     return kept
 
 

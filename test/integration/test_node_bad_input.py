@@ -412,6 +412,38 @@ def test_periodic_tasks_run_on_the_poll_timer_and_a_failing_one_does_not_stop_it
     assert ran[-1][1] == pytest.approx(clock[0])
 
 
+def test_poll_timer_skips_a_poll_that_could_find_nothing_new(node, world, monkeypatch):
+    """A second poll at the same ROS time with no other pipeline call in between is skipped (under
+    use_sim_time the 20 Hz timer fires twice per 10 Hz /clock step); any call in between, or a clock
+    that moved, polls again, and a ring frame waiting for its timeout still goes out."""
+    _, ring, _ = world
+    clock = [time.time()]
+    monkeypatch.setattr(node.ring_input, "now", lambda: clock[0])
+    polls = []
+    real_poll = node.pipeline.poll
+    monkeypatch.setattr(node.pipeline, "poll", lambda now: (polls.append(now), real_poll(now))[1])
+    node.ring_input._periodic.clear()
+    for name in ring.names:
+        node.ring_input._on_camera_info_raw(_raw(_info(ring, name)), name)
+    msgs = _frame_msgs(world, clock[0])
+    for name in ring.names[:-1]:   # the last camera does not report: the frame waits for input/timeout
+        node.ring_input._on_fiducials_raw(_raw(msgs[name]), name)
+    poses = len(node.published_poses())
+    node.ring_input._on_timer(None)
+    node.ring_input._on_timer(None)   # same clock, nothing in between: skipped
+    assert polls == [clock[0]]
+    node.on_cmd_vel(mock.MagicMock(**{"linear.x": 0.0, "linear.y": 0.0, "angular.z": 0.0}))
+    node.ring_input._on_timer(None)   # a call in between: polled
+    assert polls == [clock[0], clock[0]]
+    assert len(node.published_poses()) == poses, "the frame went out before its timeout"
+    clock[0] += node.config.input.timeout + 0.01
+    node.ring_input._on_timer(None)   # the clock moved past the timeout: polled, the frame goes out
+    node.ring_input._on_timer(None)
+    assert len(polls) == 3
+    assert len(node.published_poses()) == poses + 1
+    assert node.pipeline.last_track.stamp == pytest.approx(msgs[ring.names[0]].header.stamp.to_sec())
+
+
 def test_localizer_node_publishes_diagnostics_and_markers_from_the_poll_timer(node):
     names = [getattr(fn, "__name__", "") for _, fn, _ in node.ring_input._periodic]
     assert names == ["publish_diagnostics", "publish_markers"], names
@@ -457,6 +489,13 @@ def test_diagnostics_and_markers_callbacks_run(node, world):
     arr = node.diagnostics.updater.publisher.publish.call_args[0][0]  # diagnostic_updater's /diagnostics
     assert any(s.name.endswith(": filter") for s in arr.status), [s.name for s in arr.status]
     assert {s.hardware_id for s in arr.status if ": camera " in s.name} == set(node.pipeline.input.camera_names)
+    # Nobody on /diagnostics (not latched): nothing is built or published.
+    publisher = node.diagnostics.updater.publisher
+    publisher.get_num_connections.return_value = 0
+    sent = publisher.publish.call_count
+    with mock.patch.object(node.pipeline, "diagnostics", side_effect=AssertionError("built for nobody")):
+        node.publish_diagnostics()
+    assert publisher.publish.call_count == sent
 
 
 # --- fuzz ------------------------------------------------------------------------------------

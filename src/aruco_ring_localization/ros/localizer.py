@@ -326,6 +326,8 @@ class LocalizerNode:
         return msg
 
     def publish_diagnostics(self, _event=None) -> None:
+        if self.diagnostics.updater.publisher.get_num_connections() == 0:
+            return  # nobody listens (/diagnostics is not latched): the reports would be built for nothing
         with self.ring_input.lock:
             reports = self.pipeline.diagnostics(self.ring_input.now())
         self.diagnostics.publish(reports)

@@ -120,6 +120,8 @@ class RingSubscriber:
         self._info_keys: Dict[str, tuple] = {}
         self._info_bytes: Dict[str, bytes] = {}  # camera -> camera_info bytes after seq and stamp, last applied
         self._periodic: List[list] = []           # [period, function, last run (ROS time)] (every())
+        self._runs = 0                            # pipeline calls run so far (under the lock)
+        self._polled: Optional[tuple] = None      # (now, _runs) of the last poll that ran (_poll)
         #: camera -> ROS time its last fiducial_vertices message arrived (before waiting for the lock).
         self.last_arrival: Dict[str, float] = {}
         #: cameras whose message is being handled right now (waiting for the lock, typically).
@@ -168,6 +170,7 @@ class RingSubscriber:
             # popleft are atomic), so the inbox lock is not needed here.
             while inbox:
                 c = inbox.popleft()
+                self._runs += 1
                 try:
                     c.out = c.fn(*c.args)
                 except Exception as exc:  # noqa: BLE001 - handed to the caller's thread below
@@ -320,9 +323,19 @@ class RingSubscriber:
         finally:
             self._handling.discard(camera)
 
+    def _poll(self, now: float) -> Any:
+        """``pipeline.poll(now)``, unless the last poll ran at this same ``now`` and no other call ran
+        since (under the pipeline lock): it would find the same state at the same clock, so nothing
+        new (its ring frames, its prediction and its warnings went out then). Under ``use_sim_time``
+        the 20 Hz timer polls twice at each 10 Hz /clock step, the second time for nothing."""
+        if self._polled == (now, self._runs - 1):
+            return None
+        self._polled = (now, self._runs)
+        return self.pipeline.poll(now)
+
     def _on_timer(self, _event) -> None:
         try:
-            self.call(self.pipeline.poll, NOW)
+            self.call(self._poll, NOW)
         except ArucoRingError as exc:
             rospy.logwarn_throttle(WARN_PERIOD, f"{self._name}: {exc}")
         if self._periodic:
