@@ -188,3 +188,28 @@ def test_tagslam_boards_read_the_play(tmp_path):
     with pytest.raises(ConfigError) as err:
         tagslam_boards(str(p))
     assert err.value.key == "bodies[0].b.board.tag_position_noise"
+
+
+def test_loose_and_rigid_boards_in_one_adjustment():
+    """A loose board beside a rigid one (both off their layouts): the loose board's tags are mapped
+    where they are, the rigid board's exactly on its layout (their relative poses the layout's)."""
+    board, mids, T_true, prob = _loose_scene(seed=3)
+    # split the 2 x 3 grid: tags 0-2 a loose board, 3-5 a rigid one (same layout poses)
+    loose = Board("l", {m: board.layout[m] for m in (0, 1, 2)}, tag_position_std=0.002, tag_rotation_std_deg=0.2)
+    rigid = Board("r", {m: board.layout[m] for m in (3, 4, 5)})
+    res = MapBuilder._adjust(prob, mids, BAOptions(pixel_noise=0.1), BoardSet([loose, rigid]))
+    assert res.T_W_markers.shape == (6, 4, 4) and res.marker_cov.shape == (6, 6, 6)
+    T = res.T_W_markers
+    for a, b in ((3, 4), (3, 5)):
+        rel = geo.inverse(T[a]) @ T[b]
+        np.testing.assert_allclose(rel, geo.inverse(board.layout[a]) @ board.layout[b], atol=1e-9)
+    # the loose tags' centres follow the truth, not the layout (the truth is ~2 mm off it): after
+    # the best rigid fit of the three centres to the true ones
+    def fit_rms(P):
+        Q = np.array([T_true[m][:3, 3] for m in (0, 1, 2)])
+        F = geo.rigid_fit(P, Q)
+        return float(np.sqrt(np.mean(np.sum((P @ F[:3, :3].T + F[:3, 3] - Q) ** 2, axis=1))))
+
+    got = fit_rms(np.array([T[m][:3, 3] for m in (0, 1, 2)]))
+    lay = fit_rms(np.array([board.layout[m][:3, 3] for m in (0, 1, 2)]))
+    assert lay > 0.0005 and got < 0.3 * lay, (got, lay)
