@@ -1,4 +1,4 @@
-"""Rigid boards of markers: several markers printed on one board with a known layout.
+"""Boards of markers: several markers printed on one board with a known layout (rigid, or each marker with a play).
 
 A board is a rigid body whose markers sit at known poses ``T_board_marker`` (its layout, e.g. a
 grid: TagSLAM's ``board`` and ``staggered_board`` bodies, :func:`importers.tagslam_boards`). Given
