@@ -11,7 +11,9 @@ surveyed position of a marker's centre (``(t - p) / std`` per axis), a surveyed 
 (``log(R R_s^T) / std``) and a level station (the x, y components of its z axis over a sigma: the
 robot's floor is the frame's plane). They can replace the fixed station as the gauge: 3 surveyed
 points not on a line, or one surveyed pose, fix all 6 degrees of freedom; 2 points fix 5 and one
-level station the remaining tilt.
+level station the remaining tilt. A relative-pose prior ties two markers (a tag loose on its board
+to the board's frame, :mod:`boards`): the markers' block of the information is then no longer
+block diagonal, and the steps and covariances factorise it as a sparse matrix.
 
 Measurements: every detected corner of every observation. A corner ``X`` (marker frame) is seen by
 camera ``c`` of station ``s`` at ``p_c = T_base_cam^-1 · T_W_base^-1 · T_W_marker · X``, and the
