@@ -11,7 +11,8 @@ with TagSLAM's tags (the SE(3) fit of bench_real, over the 4 corners of every co
   frame, one pose per board (the first board with the most detections held as the gauge);
 * ``exact``: the tags exactly at the layout (the package's boards);
 * ``loose``: each tag's deviation from the layout free, with tagslam.yaml's tag noise as its prior
-  (TagSLAM's model);
+  (TagSLAM's model; the package's mapping has it since: a loose board, boards.py, which
+  ``tagslam_boards`` reads from the same keys, so ``bench_real`` maps tests 13 and 24 with it);
 * ``scaled``: exact layouts with one free scale of the layouts' positions (tag sizes kept): the
   pitch / size ratio the detections favour;
 * each on every frame, and on the frames TagSLAM has a rig pose for (``--frames tagslam``: TagSLAM's

@@ -1,4 +1,4 @@
-"""Rigid boards of markers: several markers printed on one board with a known layout.
+"""Boards of markers: several markers printed on one board with a known layout (rigid, or each marker with a play).
 
 A board is a rigid body whose markers sit at known poses ``T_board_marker`` (its layout, e.g. a
 grid: TagSLAM's ``board`` and ``staggered_board`` bodies, :func:`importers.tagslam_boards`). Given
@@ -14,7 +14,12 @@ What it brings, as TagSLAM's boards do:
 * the map's shape inherits the layout's accuracy (a printed board is better than a walk of
   single-camera views).
 
-The layout is taken as exact (TagSLAM allows ~1 mm / 1 mrad between a tag and its board).
+By default the layout is taken as exact. A board declared with a play (``tag_position_std`` m /
+``tag_rotation_std_deg``, TagSLAM's ``tag_position_noise`` / ``tag_rotation_noise``: ~1 mm / 1 mrad
+between a tag and its board) is mapped **loose**: each of its markers is its own unknown, tied to
+an unknown board frame (an extra pose with no observations) by a prior of that std on its layout
+pose (:func:`loose_priors`, ``MarkerPriors.relative_marker``): a printed board whose tags are off
+their nominal grid by a millimetre is mapped as it is, not as it was designed.
 """
 from __future__ import annotations
 
@@ -31,14 +36,33 @@ from .markers import marker_corners
 
 @dataclass(frozen=True)
 class Board:
-    """One rigid board: ``layout`` maps each marker id on it to ``T_board_marker`` (4x4, m)."""
+    """One board: ``layout`` maps each marker id on it to ``T_board_marker`` (4x4, m).
+
+    ``tag_position_std`` (m, per axis) / ``tag_rotation_std_deg`` (per axis): the play of each
+    marker about its layout pose; both 0 (default): a rigid board, one unknown of the adjustment;
+    both > 0: a loose board (the module's docstring).
+    """
 
     name: str
     layout: Dict[int, np.ndarray]
+    tag_position_std: float = 0.0
+    tag_rotation_std_deg: float = 0.0
+
+    def __post_init__(self) -> None:
+        p, r = float(self.tag_position_std), float(self.tag_rotation_std_deg)
+        if not (p >= 0 and r >= 0 and np.isfinite(p) and np.isfinite(r)) or (p > 0) != (r > 0):
+            raise GeometryError(f"board {self.name!r}: tag_position_std and tag_rotation_std_deg must be both 0 "
+                                f"(rigid) or both > 0 (loose), got {self.tag_position_std!r} and "
+                                f"{self.tag_rotation_std_deg!r}")
 
     @property
     def ids(self) -> List[int]:
         return sorted(self.layout)
+
+    @property
+    def loose(self) -> bool:
+        """Whether its markers play about the layout (both stds > 0)."""
+        return self.tag_position_std > 0
 
 
 @dataclass
@@ -72,6 +96,14 @@ class BoardSet:
     def without(self, names: Sequence[str]) -> "BoardSet":
         drop = set(names)
         return BoardSet([b for b in self.boards if b.name not in drop], self.source)
+
+    def rigid(self) -> "BoardSet":
+        """The rigid boards only."""
+        return BoardSet([b for b in self.boards if not b.loose], self.source)
+
+    def loose(self) -> "BoardSet":
+        """The loose boards only."""
+        return BoardSet([b for b in self.boards if b.loose], self.source)
 
 
 def grid_board(name: str, start_id: int, rows: int, columns: int, size: float, spacing: float,
@@ -281,6 +313,42 @@ def expand_covariances(cov_units: np.ndarray, T_W_units: np.ndarray, c: Collapse
         J[3:, :3] = -geo.skew(a)
         out[k] = J @ cov_units[u] @ J.T
     return out
+
+
+def loose_priors(mids: Sequence[int], T_W_markers: np.ndarray, boards: BoardSet
+                 ) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The board frames and relative priors of the loose boards among markers ``mids`` (poses
+    ``T_W_markers``): one frame per loose board with a marker in ``mids``, its start the
+    :func:`fit_board_pose` of those markers, numbered after the markers (``len(mids) + j``).
+
+    Returns (frames' poses (F, 4, 4), ``relative_marker`` (Q, 2) (frame index, marker index),
+    ``relative_pose`` (Q, 4, 4) the layout, ``relative_position_std`` (Q,) m,
+    ``relative_rotation_std`` (Q,) rad, and each frame's board index (F,)).
+    """
+    by_board: Dict[int, List[int]] = {}
+    for k, m in enumerate(mids):
+        b = boards.board_of(int(m))
+        if b is not None and boards.boards[b].loose:
+            by_board.setdefault(b, []).append(k)
+    frames: List[np.ndarray] = []
+    pairs: List[Tuple[int, int]] = []
+    poses: List[np.ndarray] = []
+    pos_std: List[float] = []
+    rot_std: List[float] = []
+    of: List[int] = []
+    for b, ks in sorted(by_board.items()):
+        board = boards.boards[b]
+        T_b, _ = fit_board_pose(board, {int(mids[k]): np.asarray(T_W_markers[k]) for k in ks})
+        f = len(mids) + len(frames)
+        frames.append(T_b)
+        of.append(b)
+        for k in ks:
+            pairs.append((f, k))
+            poses.append(board.layout[int(mids[k])])
+            pos_std.append(float(board.tag_position_std))
+            rot_std.append(float(np.radians(board.tag_rotation_std_deg)))
+    return (np.array(frames).reshape(-1, 4, 4), np.array(pairs, dtype=int).reshape(-1, 2),
+            np.array(poses).reshape(-1, 4, 4), np.array(pos_std), np.array(rot_std), np.array(of, dtype=int))
 
 
 def replace_poses(res, T_W_markers: np.ndarray, marker_cov: Optional[np.ndarray]):

@@ -11,7 +11,9 @@ surveyed position of a marker's centre (``(t - p) / std`` per axis), a surveyed 
 (``log(R R_s^T) / std``) and a level station (the x, y components of its z axis over a sigma: the
 robot's floor is the frame's plane). They can replace the fixed station as the gauge: 3 surveyed
 points not on a line, or one surveyed pose, fix all 6 degrees of freedom; 2 points fix 5 and one
-level station the remaining tilt.
+level station the remaining tilt. A relative-pose prior ties two markers (a tag loose on its board
+to the board's frame, :mod:`boards`): the markers' block of the information is then no longer
+block diagonal, and the steps and covariances factorise it as a sparse matrix.
 
 Measurements: every detected corner of every observation. A corner ``X`` (marker frame) is seen by
 camera ``c`` of station ``s`` at ``p_c = T_base_cam^-1 · T_W_base^-1 · T_W_marker · X``, and the
@@ -89,6 +91,11 @@ class MarkerPriors:
         plane_marker: (P,) index of the marker of each point on a measured plane, ``plane_point``
             (P, 3) the point in the marker's frame, ``plane_normal`` (P, 3) the plane's unit normal
             in W, ``plane_offset`` (P,) and ``plane_std`` (P,) m: ``r = (n . p - offset) / std``.
+        relative_marker: (Q, 2) markers (a, b) whose relative pose ``T_a^-1 T_b`` is known up to
+            a play (a tag loose on its board: a = the board's frame, an unknown with no
+            observations, b = the tag), ``relative_pose`` (Q, 4, 4) that pose (the layout),
+            ``relative_position_std`` (Q,) m and ``relative_rotation_std`` (Q,) rad its 1-sigma:
+            ``r = (log(R_ab^T R_a^T R_b) / rot_std, (R_a^T (t_b - t_a) - t_ab) / pos_std)``, 6 rows.
     """
 
     position_marker: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
@@ -108,6 +115,10 @@ class MarkerPriors:
     plane_normal: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     plane_offset: np.ndarray = field(default_factory=lambda: np.zeros(0))
     plane_std: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    relative_marker: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=int))
+    relative_pose: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    relative_position_std: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    relative_rotation_std: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def __post_init__(self) -> None:
         self.position_marker = np.asarray(self.position_marker, dtype=int).reshape(-1)
@@ -139,11 +150,21 @@ class MarkerPriors:
             raise GeometryError("MarkerPriors: the arrays of one kind of measurement must have the same length")
         if np.any(self.distance_std <= 0) or np.any(self.plane_std <= 0):
             raise GeometryError("MarkerPriors: every measurement std must be positive")
+        self.relative_marker = np.asarray(self.relative_marker, dtype=int).reshape(-1, 2)
+        self.relative_pose = np.asarray(self.relative_pose, dtype=float).reshape(-1, 4, 4)
+        self.relative_position_std = np.asarray(self.relative_position_std, dtype=float).reshape(-1)
+        self.relative_rotation_std = np.asarray(self.relative_rotation_std, dtype=float).reshape(-1)
+        Q = len(self.relative_marker)
+        if len(self.relative_pose) != Q or len(self.relative_position_std) != Q \
+                or len(self.relative_rotation_std) != Q:
+            raise GeometryError("MarkerPriors: the arrays of the relative poses must have the same length")
+        if np.any(self.relative_position_std <= 0) or np.any(self.relative_rotation_std <= 0):
+            raise GeometryError("MarkerPriors: every relative pose std must be positive")
 
     @property
     def n_residuals(self) -> int:
         return (3 * len(self.position_marker) + 3 * len(self.rotation_marker) + 2 * len(self.level_station)
-                + len(self.distance_marker) + len(self.plane_marker))
+                + len(self.distance_marker) + len(self.plane_marker) + 6 * len(self.relative_marker))
 
     @property
     def n_pose_residuals(self) -> int:
@@ -383,6 +404,13 @@ class _Model:
             self._dist_coupled = bool(np.any((ca >= 0) & (cb >= 0) & (ca != cb)))
         else:
             self._dist_coupled = False
+        # Relative poses (tags loose on a board) couple markers too, 6 rows each: the markers'
+        # block of H is then solved as a sparse matrix (:meth:`_solve_markers_coupled`).
+        if priors is not None and len(priors.relative_marker):
+            ca, cb = self.col_m[priors.relative_marker[:, 0]], self.col_m[priors.relative_marker[:, 1]]
+            self._rel_coupled = bool(np.any((ca >= 0) & (cb >= 0) & (ca != cb)))
+        else:
+            self._rel_coupled = False
         self._build_pattern()
 
     def _build_pattern(self) -> None:
@@ -454,6 +482,16 @@ class _Model:
         self._plane_mask = np.repeat((cp >= 0)[:, None], 6, 1)
         rows.append(np.broadcast_to((base + np.arange(P))[:, None], (P, 6))[self._plane_mask])
         cols.append((cp[:, None] + np.arange(6))[self._plane_mask])
+        base += P
+        # Relative poses: 6 rows x (w, t of marker a, then of marker b), as the distances.
+        Q = len(pr.relative_marker)
+        ca, cb = self.col_m[pr.relative_marker[:, 0]], self.col_m[pr.relative_marker[:, 1]]
+        free = np.concatenate([np.repeat((ca >= 0)[:, None], 6, 1), np.repeat((cb >= 0)[:, None], 6, 1)], axis=1)
+        self._rel_mask = np.broadcast_to(free[:, None, :], (Q, 6, 12))
+        c = np.concatenate([ca[:, None] + np.arange(6), cb[:, None] + np.arange(6)], axis=1)[:, None, :]
+        r = base + 6 * np.arange(Q)[:, None, None] + np.arange(6)[None, :, None]
+        rows.append(np.broadcast_to(r, (Q, 6, 12))[self._rel_mask])
+        cols.append(np.broadcast_to(c, (Q, 6, 12))[self._rel_mask])
         return np.concatenate(rows).astype(int), np.concatenate(cols).astype(int)
 
     def _odometry_pattern(self, base: int) -> Tuple[np.ndarray, np.ndarray]:
@@ -569,6 +607,30 @@ class _Model:
                 jw = (n[:, None, :] @ (-geo.skew(v) @ geo.so3_left_jacobian(wm[ip])))[:, 0, :]
                 Jp = np.concatenate([jw, n], axis=1) / pr.plane_std[:, None]
                 d.append(Jp[self._plane_mask])
+        # Relative pose of b in a: e_R = log(Z^T R_a^T R_b), e_t = R_a^T (t_b - t_a) - t_z. With
+        # R = exp(w) R0: de_R/dw_b = J_l(e_R)^-1 Z^T R_a^T J_l(w_b), de_R/dw_a its negative with
+        # J_l(w_a); de_t/dw_a = R_a^T [t_b - t_a]x J_l(w_a), de_t/dt_a = -R_a^T, de_t/dt_b = R_a^T.
+        if len(pr.relative_marker):
+            ia, ib = pr.relative_marker[:, 0], pr.relative_marker[:, 1]
+            Z = pr.relative_pose
+            RaT = np.transpose(Rm[ia], (0, 2, 1))
+            A = np.transpose(Z[:, :3, :3], (0, 2, 1)) @ RaT
+            eR = Rotation.from_matrix(A @ Rm[ib]).as_rotvec()
+            q = tm[ib] - tm[ia]
+            et = (RaT @ q[:, :, None])[..., 0] - Z[:, :3, 3]
+            sig = np.concatenate([np.repeat(pr.relative_rotation_std[:, None], 3, 1),
+                                  np.repeat(pr.relative_position_std[:, None], 3, 1)], axis=1)
+            r.append((np.concatenate([eR, et], axis=1) / sig).ravel())
+            if jacobian:
+                JA = np.linalg.inv(geo.so3_left_jacobian(eR)) @ A
+                Jq = np.zeros((len(ia), 6, 12))
+                Jq[:, :3, 0:3] = -JA @ geo.so3_left_jacobian(wm[ia])
+                Jq[:, :3, 6:9] = JA @ geo.so3_left_jacobian(wm[ib])
+                Jq[:, 3:, 0:3] = RaT @ geo.skew(q) @ geo.so3_left_jacobian(wm[ia])
+                Jq[:, 3:, 3:6] = -RaT
+                Jq[:, 3:, 9:12] = RaT
+                Jq /= sig[:, :, None]
+                d.append(Jq[self._rel_mask])
         return (np.concatenate(r), np.concatenate(d)) if jacobian else np.concatenate(r)
 
     def sparsity(self) -> sp.csr_matrix:
@@ -794,6 +856,8 @@ class _Model:
             return x
         if nm == 0:
             return splu(Hd.tocsc()).solve(b)
+        if self._rel_coupled:
+            return self._solve_markers_coupled(Hd, b)
         if self._dist_coupled:
             # Distances couple markers, which the elimination below (block by block) cannot see:
             # solve without them (H0 = H - E^T E, block diagonal again) and add them back exactly,
@@ -836,6 +900,28 @@ class _Model:
         S = (Hd[nm:, nm:] - B.T @ AB).tocsc()
         xc = splu(S).solve(np.ascontiguousarray(b[nm:] - B.T @ y))
         return np.concatenate([y - AB @ xc, xc.reshape(-1, k)]).reshape(shape)
+
+    def _solve_markers_coupled(self, Hd: sp.csr_matrix, b: np.ndarray) -> np.ndarray:
+        """``Hd x = b`` through the Schur complement on the markers when relative poses couple
+        them (a loose board: its frame and its tags): the markers' block ``A`` of ``Hd`` (block
+        diagonal but for the boards' and distances' couplings) factorised as a sparse matrix."""
+        from scipy.sparse.linalg import splu
+
+        n, nm = self.n_params, self.n_marker_params
+        try:
+            lu = splu(Hd[:nm, :nm].tocsc())
+        except RuntimeError as e:
+            raise RuntimeError("singular markers' block") from e
+        if nm == n:
+            return lu.solve(b)
+        B = Hd[:nm, nm:].toarray()
+        AB = lu.solve(B)
+        y = lu.solve(b[:nm])
+        S = Hd[nm:, nm:].toarray() - B.T @ AB
+        xc = _dense_spd_solve(S, b[nm:] - B.T @ y)
+        if not np.all(np.isfinite(xc)):
+            raise RuntimeError("singular reduced system")
+        return np.concatenate([y - AB @ xc, xc])
 
     def marginal_information(self, H: sp.csr_matrix, cols: np.ndarray) -> np.ndarray:
         """The information of the parameters ``cols`` (sorted) with every other one marginalised:
@@ -1125,6 +1211,8 @@ def _marker_covariances(model: _Model, H: sp.csr_matrix, variance_factor: float
             return out, None
         Hinv = np.linalg.pinv(H.toarray(), hermitian=True)
         return out, variance_factor * Hinv[np.ix_(cam_cols, cam_cols)]
+    if model._rel_coupled:
+        return _coupled_marker_covariances(model, H, variance_factor, cam_cols)
     # A is block diagonal (6x6 per free marker, in column order): gather and invert the blocks.
     idx = np.flatnonzero(model.col_m >= 0)
     Mf = len(idx)
@@ -1188,6 +1276,48 @@ def _marker_covariances(model: _Model, H: sp.csr_matrix, variance_factor: float
             contrib = G[rows, c[:, None]] * v[:, None]                 # (nnz, 6): [a] for column b = r % 6
             lin = (36 * np.repeat(blk, 6) + 6 * np.tile(np.arange(6), len(blk)) + np.repeat(r % 6, 6))
             cov += np.bincount(lin, weights=contrib.ravel(), minlength=36 * Mf).reshape(Mf, 6, 6)
+        if cam_cols is not None:
+            cam_cov = variance_factor * Sinv[np.ix_(cam_cols - nm, cam_cols - nm)]
+    out[idx] = cov * variance_factor
+    return 0.5 * (out + np.transpose(out, (0, 2, 1))), cam_cov
+
+
+def _coupled_marker_covariances(model: _Model, H: sp.csr_matrix, variance_factor: float,
+                                cam_cols: Optional[np.ndarray]) -> Tuple[np.ndarray, Optional[np.ndarray]]:
+    """:func:`_marker_covariances` when relative poses couple the markers (loose boards), exactly:
+    the markers' block ``A`` of ``H`` factorised as a sparse matrix, ``cov_i = (A^-1)_ii + K_i S^-1
+    K_i^T`` with ``K = A^-1 B`` and ``S = C - B^T K`` (the columns of ``A^-1`` by chunks of markers)."""
+    from scipy.sparse.linalg import splu
+
+    nm, n = model.n_marker_params, model.n_params
+    idx = np.flatnonzero(model.col_m >= 0)
+    Mf = len(idx)
+    out = np.zeros((model.M, 6, 6))
+    A = H[:nm, :nm].tocsc()
+    try:
+        lu = splu(A)
+        solve = lu.solve
+    except RuntimeError:
+        Ainv = np.linalg.pinv(A.toarray(), hermitian=True)
+
+        def solve(R: np.ndarray) -> np.ndarray:
+            return Ainv @ R
+    cov = np.zeros((Mf, 6, 6))
+    chunk = 128
+    for m0 in range(0, Mf, chunk):
+        m1 = min(m0 + chunk, Mf)
+        E = np.zeros((nm, 6 * (m1 - m0)))
+        E[6 * m0 + np.arange(6 * (m1 - m0)), np.arange(6 * (m1 - m0))] = 1.0
+        X = solve(E)[6 * m0:6 * m1].reshape(m1 - m0, 6, m1 - m0, 6)
+        cov[m0:m1] = X[np.arange(m1 - m0), :, np.arange(m1 - m0), :]
+    cam_cov = None
+    if n > nm:
+        B = H[:nm, nm:].toarray()
+        K = solve(B)
+        Sred = H[nm:, nm:].toarray() - B.T @ K
+        Sinv = np.linalg.pinv(Sred, hermitian=True)
+        Kb = K.reshape(Mf, 6, n - nm)
+        cov += Kb @ Sinv @ np.transpose(Kb, (0, 2, 1))
         if cam_cols is not None:
             cam_cov = variance_factor * Sinv[np.ix_(cam_cols - nm, cam_cols - nm)]
     out[idx] = cov * variance_factor
@@ -1288,14 +1418,14 @@ def _bundle_adjust(prob: BAProblem, opts: Optional[BAOptions] = None) -> BAResul
             rows[: model.n_obs_res] = 1.0 / max(vf, 1e-12)
         if isinstance(J, np.ndarray) and J.ndim == 1:       # solver lm: the robust weights at the solution
             H = model.normal_equations(res_x, r, J * rows)[0]
-            if model._dist_coupled and not model._station_elimination():
+            if model._dist_coupled and not model._rel_coupled and not model._station_elimination():
                 # The markers' covariances are computed block by block: without the distances
                 # that couple markers (less information: the covariances are conservative).
                 H = model.without_distances(H, model._dist_E)
         else:                                               # solver trf: scipy's (loss-scaled) Jacobian
             Jm = J if sp.issparse(J) else sp.csr_matrix(J)
             Jm = (sp.diags(np.sqrt(rows)) @ Jm).tocsr()
-            if model._dist_coupled and not model._station_elimination():
+            if model._dist_coupled and not model._rel_coupled and not model._station_elimination():
                 keep = np.setdiff1d(np.arange(model.n_res), model._dist_rows)
                 Jm = Jm[keep]
             H = (Jm.T @ Jm).tocsr()

@@ -65,7 +65,7 @@ import numpy as np
 from . import geometry as geo
 from .anchors import (AnchorSet, Measurements, anchor_report, fit_frame, frame_definition,
                       frame_kind, measurement_report)
-from .boards import BoardSet, collapse, expand_covariances, expand_poses, fit_board_pose, solve_board_view
+from .boards import BoardSet, collapse, expand_covariances, expand_poses, fit_board_pose, loose_priors, solve_board_view
 from .bundle_adjustment import (BAOptions, BAProblem, BAResult, MarkerPriors, RelativePoseFactors, bundle_adjust,
                                 camera_cov_in_optical_frames, marker_std_in_frame, observation_rms_px)
 from .config import in_radians, param, section
@@ -1850,6 +1850,16 @@ class MapBuilder:
         are boards (:func:`boards.collapse`), the result given back per marker."""
         if boards is None:
             return bundle_adjust(prob, opts)
+        if any(b.loose for b in boards.boards):
+            # Loose boards: their markers stay unknowns of their own, tied to a board frame each.
+            prob = MapBuilder._with_loose_boards(prob, mids, boards.loose())
+            boards = boards.rigid()
+            if not len(boards):
+                res = bundle_adjust(prob, opts)
+                return MapBuilder._drop_board_frames(res, len(mids))
+            n_frames = len(prob.T_W_markers) - len(mids)
+            mids = list(mids) + [-1 - j for j in range(n_frames)]    # ids on no board: one unit each
+            return MapBuilder._drop_board_frames(MapBuilder._adjust(prob, mids, opts, boards), len(mids) - n_frames)
         T_u, sizes_u, X, c = collapse(mids, prob.T_W_markers, prob.sizes, prob.obs_marker, boards)
         priors = prob.priors
         if priors is not None:
@@ -1870,11 +1880,37 @@ class MapBuilder:
                     plane_marker=c.unit[priors.plane_marker],
                     plane_point=in_unit(priors.plane_marker, priors.plane_point) if len(priors.plane_marker)
                     else priors.plane_point)
+            if len(priors.relative_marker):
+                # Loose boards' frames and markers are on no rigid board: their own units.
+                priors = dataclasses.replace(priors, relative_marker=c.unit[priors.relative_marker])
         sub = dataclasses.replace(prob, T_W_markers=T_u, sizes=sizes_u, obs_marker=c.unit[prob.obs_marker],
                                   obs_object=X, priors=priors)
         res = bundle_adjust(sub, opts)
         cov = expand_covariances(res.marker_cov, res.T_W_markers, c) if res.marker_cov is not None else None
         return dataclasses.replace(res, T_W_markers=expand_poses(res.T_W_markers, c), marker_cov=cov)
+
+    @staticmethod
+    def _with_loose_boards(prob: BAProblem, mids: List[int], loose: BoardSet) -> BAProblem:
+        """``prob`` with a frame per loose board appended to its markers (no observations; its
+        size a placeholder) and each of the board's markers tied to it by its layout's prior
+        (:func:`boards.loose_priors`)."""
+        frames, pairs, poses, pos_std, rot_std, _ = loose_priors(mids, prob.T_W_markers, loose)
+        if not len(frames):
+            return prob
+        priors = prob.priors if prob.priors is not None else MarkerPriors()
+        priors = dataclasses.replace(
+            priors, relative_marker=np.concatenate([priors.relative_marker, pairs]),
+            relative_pose=np.concatenate([priors.relative_pose, poses]),
+            relative_position_std=np.concatenate([priors.relative_position_std, pos_std]),
+            relative_rotation_std=np.concatenate([priors.relative_rotation_std, rot_std]))
+        return dataclasses.replace(prob, T_W_markers=np.concatenate([prob.T_W_markers, frames]),
+                                   sizes=np.concatenate([prob.sizes, np.ones(len(frames))]), priors=priors)
+
+    @staticmethod
+    def _drop_board_frames(res: BAResult, n_markers: int) -> BAResult:
+        """``res`` without the loose boards' frames (the unknowns after the first ``n_markers``)."""
+        cov = res.marker_cov[:n_markers] if res.marker_cov is not None else None
+        return dataclasses.replace(res, T_W_markers=res.T_W_markers[:n_markers], marker_cov=cov)
 
     @property
     def _refines_extrinsics(self) -> bool:

@@ -308,12 +308,27 @@ def _board(name: str, kind: str, grid: Mapping[str, Any], size: float, path: str
                       T_board_body=T_board_body)
 
 
-def tagslam_boards(path: str, rig_bodies: Tuple[str, ...] = ()) -> BoardSet:
-    """The static ``board`` and ``staggered_board`` bodies of a ``tagslam.yaml`` as rigid boards
+def _play(grid: Mapping[str, Any], path: str, key: str) -> Tuple[float, float]:
+    """(``tag_position_noise`` m, ``tag_rotation_noise`` rad) of a board description, 0 when absent."""
+    out = []
+    for k in ("tag_position_noise", "tag_rotation_noise"):
+        v = grid.get(k, 0.0)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0 or not np.isfinite(v):
+            raise ConfigError(f"expected a std >= 0, got {v!r}", path=path, key=f"{key}.{k}")
+        out.append(float(v))
+    if (out[0] > 0) != (out[1] > 0):
+        raise ConfigError(f"expected tag_position_noise and tag_rotation_noise both 0 (a rigid board) or both > 0 "
+                          f"(tags loose on the board), got {out[0]!r} and {out[1]!r}", path=path, key=key)
+    return out[0], out[1]
+
+
+def tagslam_boards(path: str, rig_bodies: Tuple[str, ...] = (), play: bool = True) -> BoardSet:
+    """The static ``board`` and ``staggered_board`` bodies of a ``tagslam.yaml`` as boards
     (:mod:`~aruco_ring_localization.boards`): tags ``tag_size * (1 + tag_spacing)`` apart, row by row
-    from ``tag_start_id`` (a staggered board: every other cell). TagSLAM's ``tag_position_noise`` /
-    ``tag_rotation_noise`` (the play between a tag and its board) are not used: the layout is taken
-    as exact. ConfigError names the file and key of a bad entry."""
+    from ``tag_start_id`` (a staggered board: every other cell). TagSLAM's ``tag_position_noise``
+    (m) / ``tag_rotation_noise`` (rad), the play between a tag and its board, become the board's
+    ``tag_position_std`` / ``tag_rotation_std_deg`` (a loose board; absent or 0: rigid); ``play``
+    False takes every layout as exact. ConfigError names the file and key of a bad entry."""
     data = load_yaml_file(path)
     if not isinstance(data, Mapping):
         raise ConfigError("expected a mapping", path=path)
@@ -327,7 +342,11 @@ def tagslam_boards(path: str, rig_bodies: Tuple[str, ...] = ()) -> BoardSet:
         if not isinstance(grid, Mapping):
             raise ConfigError(f"expected the {kind} description", path=path, key=f"{key}.{kind}")
         size = _positive(grid.get("tag_size", body.get("default_tag_size")), path, f"{key}.{kind}.tag_size")
-        out.append(_board(name, kind, grid, size, path, key))
+        board = _board(name, kind, grid, size, path, key)
+        pos, rot = _play(grid, path, f"{key}.{kind}")
+        if play and pos > 0:
+            board = Board(board.name, board.layout, tag_position_std=pos, tag_rotation_std_deg=float(np.degrees(rot)))
+        out.append(board)
     try:
         return BoardSet(out, source=path)
     except GeometryError as e:
