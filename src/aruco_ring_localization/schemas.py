@@ -203,9 +203,11 @@ class MapParams:
                                   "markers' measured positions with their std, or one marker's pose; they enter "
                                   "the bundle adjustment as priors and the map records each one's residual; "
                                   "empty: the frame of reference_marker")
-    boards_file: str = param("", "rigid boards of markers with known layouts: a tagslam.yaml whose board / "
-                                 "staggered_board bodies give them (docs/mapping.md, 'Boards'); each board is one "
-                                 "unknown of the bundle adjustment and places all its markers; empty: none")
+    boards_file: str = param("", "boards of markers with known layouts: a tagslam.yaml whose board / "
+                                 "staggered_board bodies give them (docs/mapping.md, 'Boards'); a rigid board is "
+                                 "one unknown of the bundle adjustment and places all its markers, a board whose "
+                                 "tags have a play (the file's tag_position_noise / tag_rotation_noise) ties each "
+                                 "tag to the layout by a prior of that std; empty: none")
     save_on_shutdown: bool = param(False, "save the map when the node stops")
     backups: int = param(5, "previous versions of the map file kept by every save: map.yaml.bak (the last), "
                             "map.yaml.bak.2, ... map.yaml.bak.N (the oldest); 0 keeps none")
