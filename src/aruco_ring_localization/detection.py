@@ -274,11 +274,14 @@ class TrackingDetector:
         min_margin_px: fixed growth of each region, px.
         edge_px: width of the strips along the left and right borders searched in every image, px
             (0: none).
+        whole_in_turn: the scheduled whole-image searches with one threshold window each, in turn
+            (the tracked markers' regions still with all); False: with all windows.
     """
 
     def __init__(self, detector: Detector, full_every: int = 5, margin: float = 0.5, min_margin_px: int = 16,
-                 edge_px: int = 128):
+                 edge_px: int = 128, whole_in_turn: bool = True):
         self.detector = detector
+        self.whole_in_turn = bool(whole_in_turn)
         self.full_every = int(full_every)
         self.margin = float(margin)
         self.min_margin_px = int(min_margin_px)
@@ -288,6 +291,7 @@ class TrackingDetector:
         self._shape: Tuple[int, ...] = ()
         self._windows = detector.params.threshold_windows()
         self._strip_turn = 0  # which threshold window the strips get next
+        self._whole_turn = 0  # which one the next scheduled whole-image search gets
         self.full_searches = 0
         self.region_searches = 0
 
@@ -343,17 +347,31 @@ class TrackingDetector:
             self.reset()  # another camera size: the previous corners mean nothing
             self._shape = img.shape
         out: Optional[List[MarkerObservation]] = None
-        if self.full_every > 1 and self._previous and self._since_full < self.full_every - 1 \
-                and img.ndim == 2 and img.dtype == np.uint8:
+        if self.full_every > 1 and self._previous and img.ndim == 2 and img.dtype == np.uint8:
             out = self.detector.detect_in(img, self.regions(img.shape))
-            strips = self.strips(img.shape)
-            if strips:
-                window = self._windows[self._strip_turn % len(self._windows)]
-                self._strip_turn += 1
-                out += self.detector.detect_in(img, strips, window=window, exclude={o.marker_id for o in out})
-            if set(self._previous) - {o.marker_id for o in out}:
-                out = None  # a marker was lost: search the whole image now
+            known = {o.marker_id for o in out}
+            scheduled = self._since_full >= self.full_every - 1
+            if scheduled and self.whole_in_turn:
+                # the scheduled whole-image search, with one threshold window (in turn) besides the
+                # regions' all: what it is for is finding markers that came into view
+                window = self._windows[self._whole_turn % len(self._windows)]
+                self._whole_turn += 1
+                out += self.detector.detect_in(img, [(0, 0, img.shape[1], img.shape[0])], window=window,
+                                               exclude=known)
+            elif not scheduled:
+                strips = self.strips(img.shape)
+                if strips:
+                    window = self._windows[self._strip_turn % len(self._windows)]
+                    self._strip_turn += 1
+                    out += self.detector.detect_in(img, strips, window=window, exclude=known)
             else:
+                out = None  # scheduled whole-image search with all windows
+            if out is not None and set(self._previous) - {o.marker_id for o in out}:
+                out = None  # a marker was lost: search the whole image now, all windows
+            elif out is not None and scheduled:
+                self._since_full = 0
+                self.full_searches += 1
+            elif out is not None:
                 self._since_full += 1
                 self.region_searches += 1
         if out is None:

@@ -82,6 +82,23 @@ def test_border_strips_take_the_threshold_windows_in_turn():
     assert t.full_searches == 1 and t.region_searches == 2
 
 
+def test_scheduled_whole_image_searches_take_the_windows_in_turn_and_keep_the_tracked_markers():
+    # Blurred (sigma 2.5 px): the 3 px window finds neither marker, 13 and 23 find both.
+    first = scene_image([(3, 500, 300, 120)], blur=2.5)
+    both = scene_image([(3, 500, 300, 120), (9, 700, 600, 100)], blur=2.5)   # 9 appears in the middle
+    assert ids(Detector(DetectorParams(adaptive_thresh_win_size_max=3)).detect(both)) == []
+    t = TrackingDetector(Detector(), full_every=2, edge_px=0)
+    assert ids(t.detect(first)) == [3] and t.full_searches == 1             # nothing tracked: all windows
+    seen = [ids(t.detect(both)) for _ in range(4)]
+    # regions, whole image with window 3 (9 not seen; 3 kept by its region's windows), regions,
+    # whole image with window 13 (9 found)
+    assert seen == [[3], [3], [3], [3, 9]], seen
+    assert t.full_searches == 3 and t.region_searches == 2
+    t = TrackingDetector(Detector(), full_every=2, edge_px=0, whole_in_turn=False)
+    t.detect(first)
+    assert [ids(t.detect(both)) for _ in range(2)] == [[3], [3, 9]]      # all windows on schedule
+
+
 def test_a_lost_marker_makes_the_same_image_searched_whole():
     before = scene_image([(3, 500, 300, 120), (5, 200, 600, 80)])
     moved = scene_image([(3, 500, 300, 120), (5, 900, 150, 80)])     # 5 jumped out of its region
