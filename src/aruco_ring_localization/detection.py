@@ -257,14 +257,19 @@ class TrackingDetector:
     occluded) makes the same image searched whole, so a marker in view is never dropped by the
     tracking. A ring camera on a robot that drives and turns on the floor sees markers come in
     mostly through the left and right borders: strips of ``edge_px`` there are searched in every
-    image too, so those are found at once. The strips, where nothing is tracked, are searched with
-    ONE of the detector's adaptive threshold windows per image, the next one in the next image
-    (each window is a threshold, contour and candidate pass of its own: 3 windows over the strips
-    cost about five times the smallest alone); the regions around tracked markers and the
-    whole-image searches use all windows. A marker that only some window finds (uneven light,
-    blur) is found in the strips within as many images as there are windows, or at the next
-    whole-image search. ``full_every`` <= 1 searches every image whole (the plain
-    :class:`Detector`).
+    image too, so those are found at once.
+
+    Threshold windows in turn (``windows_in_turn``, the default): the strips and the scheduled
+    whole-image searches are there to find markers that come into view, and each of the detector's
+    adaptive threshold windows is a threshold, contour and candidate pass of its own (3 windows
+    over an area cost 2-5 times the smallest alone); so they get ONE window per image, the next one
+    the next time, while the regions around the tracked markers get all windows in every image
+    (the scheduled search searches them too, so it never drops a tracked marker) and a search
+    after a loss, or with nothing tracked, is whole-image with all windows. What it costs: a new
+    marker that only some of the windows find (uneven light, blur) is found up to as many strip
+    searches, or scheduled whole-image searches, later as there are windows (3 by default: up to
+    2 images late in the strips, ``3 * full_every - 1`` away from them). ``full_every`` <= 1
+    searches every image whole (the plain :class:`Detector`).
 
     Args:
         detector: the detector (its parameters apply in the regions too).
@@ -274,14 +279,15 @@ class TrackingDetector:
         min_margin_px: fixed growth of each region, px.
         edge_px: width of the strips along the left and right borders searched in every image, px
             (0: none).
-        whole_in_turn: the scheduled whole-image searches with one threshold window each, in turn
-            (the tracked markers' regions still with all); False: with all windows.
+        windows_in_turn: the border strips and the scheduled whole-image searches with one
+            threshold window each, in turn (the tracked markers' regions with all); False: all
+            windows everywhere.
     """
 
     def __init__(self, detector: Detector, full_every: int = 5, margin: float = 0.5, min_margin_px: int = 16,
-                 edge_px: int = 128, whole_in_turn: bool = True):
+                 edge_px: int = 128, windows_in_turn: bool = True):
         self.detector = detector
-        self.whole_in_turn = bool(whole_in_turn)
+        self.windows_in_turn = bool(windows_in_turn)
         self.full_every = int(full_every)
         self.margin = float(margin)
         self.min_margin_px = int(min_margin_px)
@@ -351,7 +357,7 @@ class TrackingDetector:
             out = self.detector.detect_in(img, self.regions(img.shape))
             known = {o.marker_id for o in out}
             scheduled = self._since_full >= self.full_every - 1
-            if scheduled and self.whole_in_turn:
+            if scheduled and self.windows_in_turn:
                 # the scheduled whole-image search, with one threshold window (in turn) besides the
                 # regions' all: what it is for is finding markers that came into view
                 window = self._windows[self._whole_turn % len(self._windows)]
@@ -361,8 +367,10 @@ class TrackingDetector:
             elif not scheduled:
                 strips = self.strips(img.shape)
                 if strips:
-                    window = self._windows[self._strip_turn % len(self._windows)]
-                    self._strip_turn += 1
+                    window = None
+                    if self.windows_in_turn:
+                        window = self._windows[self._strip_turn % len(self._windows)]
+                        self._strip_turn += 1
                     out += self.detector.detect_in(img, strips, window=window, exclude=known)
             else:
                 out = None  # scheduled whole-image search with all windows

@@ -94,7 +94,7 @@ def test_scheduled_whole_image_searches_take_the_windows_in_turn_and_keep_the_tr
     # whole image with window 13 (9 found)
     assert seen == [[3], [3], [3], [3, 9]], seen
     assert t.full_searches == 3 and t.region_searches == 2
-    t = TrackingDetector(Detector(), full_every=2, edge_px=0, whole_in_turn=False)
+    t = TrackingDetector(Detector(), full_every=2, edge_px=0, windows_in_turn=False)
     t.detect(first)
     assert [ids(t.detect(both)) for _ in range(2)] == [[3], [3, 9]]      # all windows on schedule
 

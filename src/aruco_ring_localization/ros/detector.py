@@ -98,7 +98,8 @@ class DetectorCore:
         self.params = params
         # Regions around the previous image's markers between whole-image searches (detection.py).
         self.detector = TrackingDetector(Detector(params.detector_params()), full_every=params.tracking_full_every,
-                                         edge_px=params.tracking_edge_px)
+                                         edge_px=params.tracking_edge_px,
+                                         windows_in_turn=params.tracking_windows_in_turn)
         self.sizes = params.sizes()
         self.ignored = params.ignored()
         self.name = name
