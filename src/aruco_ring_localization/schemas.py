@@ -348,8 +348,9 @@ class DetectorConfig:
     tracking_windows_in_turn: bool = param(True, "the border strips and the scheduled whole-image searches with "
                                                  "ONE adaptive threshold window per search, the next one the next "
                                                  "time (the tracked markers' regions, and a search after a loss, "
-                                                 "with all): 6.6 instead of 9.6 ms CPU per lab image (20 whole "
-                                                 "image every time) at the same detections; a new marker that only "
+                                                 "with all): 5.9 instead of 11.4 ms CPU per lab image (23 whole "
+                                                 "image every time; bench_detector, load 12) at the same detections; "
+                                                 "a new marker that only "
                                                  "some window finds (uneven light) may be found up to (number of "
                                                  "windows) searches later; false: all windows everywhere "
                                                  "(docs/detector.md)")
