@@ -257,9 +257,7 @@ class TrackingDetector:
     occluded) makes the same image searched whole, so a marker in view is never dropped by the
     tracking. A ring camera on a robot that drives and turns on the floor sees markers come in
     mostly through the left and right borders: strips of ``edge_px`` there are searched in every
-    image too, so those are found at once. A camera that tracks nothing follows the same schedule:
-    the whole image every ``full_every`` images, the strips in between (it was every image whole:
-    a camera facing a wall without markers cost the most).
+    image too, so those are found at once.
 
     Threshold windows in turn (``windows_in_turn``, the default): the strips and the scheduled
     whole-image searches are there to find markers that come into view, and each of the detector's
@@ -295,7 +293,7 @@ class TrackingDetector:
         self.min_margin_px = int(min_margin_px)
         self.edge_px = int(edge_px)
         self._previous: Dict[int, np.ndarray] = {}
-        self._since_full = self.full_every  # the first image is searched whole
+        self._since_full = 0
         self._shape: Tuple[int, ...] = ()
         self._windows = detector.params.threshold_windows()
         self._strip_turn = 0  # which threshold window the strips get next
@@ -311,7 +309,7 @@ class TrackingDetector:
     def reset(self) -> None:
         """Forget the previous image (the next one is searched whole)."""
         self._previous = {}
-        self._since_full = self.full_every
+        self._since_full = 0
 
     def regions(self, shape: Tuple[int, int]) -> List[Tuple[int, int, int, int]]:
         """Non-overlapping boxes (x0, y0, x1, y1) around the previous image's markers (searched with
@@ -355,11 +353,10 @@ class TrackingDetector:
             self.reset()  # another camera size: the previous corners mean nothing
             self._shape = img.shape
         out: Optional[List[MarkerObservation]] = None
-        scheduled = self._since_full >= self.full_every - 1
-        # nothing tracked: the scheduled search is whole-image with all windows, the strips between
-        if self.full_every > 1 and (self._previous or not scheduled) and img.ndim == 2 and img.dtype == np.uint8:
+        if self.full_every > 1 and self._previous and img.ndim == 2 and img.dtype == np.uint8:
             out = self.detector.detect_in(img, self.regions(img.shape))
             known = {o.marker_id for o in out}
+            scheduled = self._since_full >= self.full_every - 1
             if scheduled and self.windows_in_turn:
                 # the scheduled whole-image search, with one threshold window (in turn) besides the
                 # regions' all: what it is for is finding markers that came into view

@@ -340,9 +340,8 @@ class DetectorConfig:
     tracking_full_every: int = param(5, "search the whole image every this many images; in between, only regions "
                                         "around the markers of the previous image and strips of tracking_edge_px "
                                         "along the left and right borders (a marker that is lost makes the same "
-                                        "image searched whole; a camera that sees no marker searches only the "
-                                        "strips in between too); a new marker away from the side borders is "
-                                        "found up to tracking_full_every - 1 images late (see "
+                                        "image searched whole); a new marker away from the side borders is found "
+                                        "up to tracking_full_every - 1 images late (see "
                                         "tracking_windows_in_turn); 1 = every image whole (docs/detector.md)")
     tracking_edge_px: int = param(128, "width of the border strips searched in every image (markers come into "
                                        "view there as the robot turns), 0 = none", unit="px")

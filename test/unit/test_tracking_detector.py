@@ -99,19 +99,6 @@ def test_scheduled_whole_image_searches_take_the_windows_in_turn_and_keep_the_tr
     assert [ids(t.detect(both)) for _ in range(2)] == [[3], [3, 9]]      # all windows on schedule
 
 
-def test_a_camera_that_sees_nothing_searches_the_whole_image_on_schedule_and_the_strips_between():
-    empty = scene_image([])
-    middle = scene_image([(9, 700, 600, 100)])
-    entering = scene_image([(11, 1180, 400, 90)])
-    t = TrackingDetector(Detector(), full_every=4, edge_px=128)
-    assert ids(t.detect(empty)) == [] and t.full_searches == 1                 # the first image: whole
-    assert [ids(t.detect(middle)) for _ in range(4)] == [[], [], [], [9]]      # strips, then whole again
-    assert t.full_searches == 2 and t.region_searches == 3
-    t = TrackingDetector(Detector(), full_every=4, edge_px=128)
-    t.detect(empty)
-    assert ids(t.detect(entering)) == [11] and t.full_searches == 1            # the strips, at once
-
-
 def test_a_lost_marker_makes_the_same_image_searched_whole():
     before = scene_image([(3, 500, 300, 120), (5, 200, 600, 80)])
     moved = scene_image([(3, 500, 300, 120), (5, 900, 150, 80)])     # 5 jumped out of its region
