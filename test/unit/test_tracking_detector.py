@@ -99,6 +99,15 @@ def test_scheduled_whole_image_searches_take_the_windows_in_turn_and_keep_the_tr
     assert [ids(t.detect(both)) for _ in range(2)] == [[3], [3, 9]]      # all windows on schedule
 
 
+def test_a_camera_that_saw_nothing_finds_a_marker_in_the_middle_at_once():
+    # nothing tracked: every image is searched whole with all windows (rostest detector.test
+    # publishes its conformance image after a blank one)
+    t = TrackingDetector(Detector(), full_every=5, edge_px=128)
+    assert ids(t.detect(scene_image([]))) == []
+    assert ids(t.detect(scene_image([(9, 700, 600, 100)], blur=2.5))) == [9]
+    assert t.full_searches == 2 and t.region_searches == 0
+
+
 def test_a_lost_marker_makes_the_same_image_searched_whole():
     before = scene_image([(3, 500, 300, 120), (5, 200, 600, 80)])
     moved = scene_image([(3, 500, 300, 120), (5, 900, 150, 80)])     # 5 jumped out of its region
