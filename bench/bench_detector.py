@@ -10,6 +10,12 @@
   (``RingSimulator.visible``) over the same images; detection rate of the visible markers.
 * A table of detection rate and median corner error for ONE marker (the lab's 0.20 m) in front of
   cam0 at 1..10 m and turned 0..70 deg from facing the camera: what decides marker sizes in a hall.
+* The node's search (:class:`TrackingDetector`) on the ring frames of bench_nodes' drive (each
+  camera's images in order): ``detector_tracking_ms_per_image`` (the node's defaults: regions,
+  strips and scheduled whole-image searches with the threshold windows in turn),
+  ``detector_tracking_all_windows_ms_per_image`` (``tracking_windows_in_turn`` false),
+  ``detector_whole_drive_ms_per_image`` (``tracking_full_every`` 1), CPU per image, with the
+  detection rate and median corner error of the default.
 """
 from __future__ import annotations
 
@@ -27,7 +33,7 @@ if os.path.join(ROOT, "src") not in sys.path:
     sys.path.insert(0, os.path.join(ROOT, "src"))
 
 from aruco_ring_localization import geometry as geo  # noqa: E402
-from aruco_ring_localization.detection import Detector, DetectorParams  # noqa: E402
+from aruco_ring_localization.detection import Detector, DetectorParams, TrackingDetector  # noqa: E402
 from aruco_ring_localization.ring import CameraRing  # noqa: E402
 from aruco_ring_localization.simulation.ring_sim import RingSimulator, perturb_ring  # noqa: E402
 from aruco_ring_localization.simulation.scene import Scene, SceneMarker, marker_pose  # noqa: E402
@@ -108,6 +114,44 @@ def _single_marker_table(ring: CameraRing, trials: int) -> Dict[Tuple[float, flo
     return out
 
 
+def _drive_images(ring: CameraRing, scene: Scene, frames: int, warmup: int):
+    """bench_nodes' drive: [(k, {cam: image}, {cam: visible})] for warmup + frames ring frames."""
+    sys.path.insert(0, HERE)
+    from bench_nodes import _trajectory
+
+    sim = RingSimulator(scene, ring, seed=3)
+    out = []
+    for k, pose in enumerate(_trajectory(scene, warmup + frames)):
+        T = Scene.T_world_base(pose)
+        out.append((k, sim.render(T, rng=np.random.default_rng(1000 + k)), sim.visible(T)))
+    return out
+
+
+def _tracking_stats(frames, warmup: int, **kwargs):
+    """(CPU ms per image, found, visible, corner errors, whole-image share) of TrackingDetector(**kwargs),
+    one per camera, each camera's images in order; the first ``warmup`` frames not counted."""
+    cpu, found, total, errors, whole, n = 0.0, 0, 0, [], 0, 0
+    for cam in sorted(frames[0][1]):
+        tracker = TrackingDetector(Detector(), **kwargs)
+        for k, images, visible in frames:
+            before = tracker.full_searches
+            c0 = time.process_time()
+            obs = tracker.detect(images[cam])
+            dt = time.process_time() - c0
+            if k < warmup:
+                continue
+            cpu += dt
+            n += 1
+            whole += tracker.full_searches - before
+            got = {o.marker_id: o.corners for o in obs}
+            for marker_id, corners in visible[cam]:
+                total += 1
+                if marker_id in got:
+                    found += 1
+                    errors.extend(np.linalg.norm(got[marker_id] - corners, axis=1))
+    return 1e3 * cpu / max(n, 1), found, total, np.array(errors), whole / max(n, 1)
+
+
 def run(quick: bool = False) -> dict:
     cv2.setNumThreads(1)  # 8 detector processes share the cores; measure one process's own cost
     ring = CameraRing.load(RING_FILE)
@@ -123,6 +167,14 @@ def run(quick: bool = False) -> dict:
                                                       repeats)
     trials = 2 if quick else 3
     table = _single_marker_table(ring, trials)
+    drive_frames, drive_warmup = (15, 3) if quick else (60, 5)
+    drive = _drive_images(ring, scene, drive_frames, drive_warmup)
+    tracking = {
+        "default": _tracking_stats(drive, drive_warmup),
+        "all_windows": _tracking_stats(drive, drive_warmup, windows_in_turn=False),
+        "whole": _tracking_stats(drive, drive_warmup, full_every=1),
+    }
+    tr_ms, tr_found, tr_total, tr_err, tr_whole = tracking["default"]
     load = os.getloadavg()[0]
     results = {
         # CPU time of the (single-threaded) detection: on a shared machine the wall time mostly
@@ -138,6 +190,11 @@ def run(quick: bool = False) -> dict:
         "detector_corner_err_px_p90": float(np.percentile(e_lines, 90)),
         "detector_corner_err_px_median_subpix": float(np.median(e_sub)),
         "detector_detection_rate": found / max(total, 1),
+        "detector_tracking_ms_per_image": tr_ms,
+        "detector_tracking_all_windows_ms_per_image": tracking["all_windows"][0],
+        "detector_whole_drive_ms_per_image": tracking["whole"][0],
+        "detector_tracking_detection_rate": tr_found / max(tr_total, 1),
+        "detector_tracking_corner_err_px_median": float(np.median(tr_err)) if tr_err.size else float("nan"),
     }
     for (d, ang), (rate, err) in table.items():
         if ang == 0.0:
@@ -161,6 +218,20 @@ def run(quick: bool = False) -> dict:
         "",
         f"Simulator render time per ring frame (8 cameras, one thread): {np.median(render_cpu):.0f} ms CPU, "
         f"{np.median(render_ms):.0f} ms wall (median).",
+        "",
+        f"The node's search (TrackingDetector, tracking_full_every 5, 128 px strips) on bench_nodes' drive: "
+        f"{drive_frames} ring frames after {drive_warmup} warm-up frames, each camera's images in order, CPU per "
+        "image (mean):",
+        "",
+        "| search | CPU ms/image | whole-image searches | visible markers detected | corner error median (px) |",
+        "|---|---|---|---|---|",
+    ]
+    for name, label in (("whole", "whole image every time (tracking_full_every 1)"),
+                        ("all_windows", "tracking, all threshold windows (tracking_windows_in_turn false)"),
+                        ("default", "tracking, windows in turn (default)")):
+        ms, f, t, e, w = tracking[name]
+        lines.append(f"| {label} | {ms:.1f} | {100 * w:.0f} % | {f}/{t} | {np.median(e):.3f} |")
+    lines += [
         "",
         "One 0.20 m marker in front of cam0 (f = 803 px), rendered; detection rate / median corner error (px) "
         f"over {trials} trials per cell (sub-pixel jitter, turned left and right):",

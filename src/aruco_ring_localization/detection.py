@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Collection, Dict, List, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
@@ -126,6 +126,12 @@ class DetectorParams:
         if self.min_distance_to_border < 0:
             raise ConfigError(f"must be >= 0, got {self.min_distance_to_border!r}", key="min_distance_to_border")
 
+    def threshold_windows(self) -> List[int]:
+        """The adaptive threshold windows OpenCV tries, px: min, min + step, ... <= max."""
+        lo, hi, step = (int(self.adaptive_thresh_win_size_min), int(self.adaptive_thresh_win_size_max),
+                        int(self.adaptive_thresh_win_size_step))
+        return list(range(lo, hi + 1, step))
+
     def opencv(self) -> "cv2.aruco.DetectorParameters":
         """The equivalent ``cv2.aruco.DetectorParameters``."""
         p = cv2.aruco.DetectorParameters()
@@ -179,7 +185,8 @@ class Detector:
             raise MeasurementError(f"image: empty ({img.shape})")
         return self._refined(img, self._detect_quads(self._detector, img))
 
-    def detect_in(self, gray: np.ndarray, boxes: Sequence[Tuple[int, int, int, int]]) -> List[MarkerObservation]:
+    def detect_in(self, gray: np.ndarray, boxes: Sequence[Tuple[int, int, int, int]],
+                  window: Optional[int] = None, exclude: Collection[int] = ()) -> List[MarkerObservation]:
         """Markers inside some regions of an image only (the search of :class:`TrackingDetector`).
 
         Each region is searched as an image of its own, with the perimeter limits rescaled so
@@ -190,6 +197,9 @@ class Detector:
         Args:
             gray: (H, W) uint8 image.
             boxes: (x0, y0, x1, y1) pixel ranges, x1/y1 exclusive, clipped to the image.
+            window: search with this one adaptive threshold window (px) instead of the detector's
+                windows (each window is a threshold, contour and candidate pass of its own).
+            exclude: ids left out (not refined either): markers already found elsewhere.
         """
         img = np.asarray(gray)
         if img.ndim != 2 or img.dtype != np.uint8 or img.size == 0:
@@ -197,7 +207,7 @@ class Detector:
         height, width = img.shape
         full = float(max(height, width))
         quads: List[Tuple[int, np.ndarray]] = []
-        seen = set()
+        seen = set(exclude)
         for x0, y0, x1, y1 in boxes:
             x0, y0 = max(0, int(x0)), max(0, int(y0))
             x1, y1 = min(width, int(x1)), min(height, int(y1))
@@ -207,6 +217,8 @@ class Detector:
             p = self._roi_params
             p.minMarkerPerimeterRate = float(self.params.min_marker_perimeter_rate) * scale
             p.maxMarkerPerimeterRate = float(self.params.max_marker_perimeter_rate) * scale
+            p.adaptiveThreshWinSizeMin = int(window if window is not None else self.params.adaptive_thresh_win_size_min)
+            p.adaptiveThreshWinSizeMax = int(window if window is not None else self.params.adaptive_thresh_win_size_max)
             self._roi_detector.setDetectorParameters(p)
             for marker_id, pts in self._detect_quads(self._roi_detector, img[y0:y1, x0:x1]):
                 if marker_id not in seen:
@@ -245,8 +257,19 @@ class TrackingDetector:
     occluded) makes the same image searched whole, so a marker in view is never dropped by the
     tracking. A ring camera on a robot that drives and turns on the floor sees markers come in
     mostly through the left and right borders: strips of ``edge_px`` there are searched in every
-    image too, so those are found at once. ``full_every`` <= 1 searches every image whole (the
-    plain :class:`Detector`).
+    image too, so those are found at once.
+
+    Threshold windows in turn (``windows_in_turn``, the default): the strips and the scheduled
+    whole-image searches are there to find markers that come into view, and each of the detector's
+    adaptive threshold windows is a threshold, contour and candidate pass of its own (3 windows
+    over an area cost 2-5 times the smallest alone); so they get ONE window per image, the next one
+    the next time, while the regions around the tracked markers get all windows in every image
+    (the scheduled search searches them too, so it never drops a tracked marker) and a search
+    after a loss, or with nothing tracked, is whole-image with all windows. What it costs: a new
+    marker that only some of the windows find (uneven light, blur) is found up to as many strip
+    searches, or scheduled whole-image searches, later as there are windows (3 by default: up to
+    2 images late in the strips, ``3 * full_every - 1`` away from them). ``full_every`` <= 1
+    searches every image whole (the plain :class:`Detector`).
 
     Args:
         detector: the detector (its parameters apply in the regions too).
@@ -256,11 +279,15 @@ class TrackingDetector:
         min_margin_px: fixed growth of each region, px.
         edge_px: width of the strips along the left and right borders searched in every image, px
             (0: none).
+        windows_in_turn: the border strips and the scheduled whole-image searches with one
+            threshold window each, in turn (the tracked markers' regions with all); False: all
+            windows everywhere.
     """
 
     def __init__(self, detector: Detector, full_every: int = 5, margin: float = 0.5, min_margin_px: int = 16,
-                 edge_px: int = 128):
+                 edge_px: int = 128, windows_in_turn: bool = True):
         self.detector = detector
+        self.windows_in_turn = bool(windows_in_turn)
         self.full_every = int(full_every)
         self.margin = float(margin)
         self.min_margin_px = int(min_margin_px)
@@ -268,6 +295,9 @@ class TrackingDetector:
         self._previous: Dict[int, np.ndarray] = {}
         self._since_full = 0
         self._shape: Tuple[int, ...] = ()
+        self._windows = detector.params.threshold_windows()
+        self._strip_turn = 0  # which threshold window the strips get next
+        self._whole_turn = 0  # which one the next scheduled whole-image search gets
         self.full_searches = 0
         self.region_searches = 0
 
@@ -282,13 +312,10 @@ class TrackingDetector:
         self._since_full = 0
 
     def regions(self, shape: Tuple[int, int]) -> List[Tuple[int, int, int, int]]:
-        """Non-overlapping boxes (x0, y0, x1, y1): around the previous image's markers, and the
-        left and right border strips."""
+        """Non-overlapping boxes (x0, y0, x1, y1) around the previous image's markers (searched with
+        all threshold windows; the border strips, :meth:`strips`, may overlap them)."""
         height, width = shape
         boxes = []
-        if self.edge_px > 0:
-            edge = min(self.edge_px, width)
-            boxes += [[0, 0, edge, height], [width - edge, 0, width, height]]
         for corners in self._previous.values():
             lo, hi = corners.min(axis=0), corners.max(axis=0)
             grow = self.margin * float(np.max(hi - lo)) + self.min_margin_px
@@ -309,6 +336,16 @@ class TrackingDetector:
                     break
         return [tuple(b) for b in boxes]
 
+    def strips(self, shape: Tuple[int, int]) -> List[Tuple[int, int, int, int]]:
+        """The left and right border strips (x0, y0, x1, y1), ``edge_px`` wide (none for 0)."""
+        height, width = shape
+        if self.edge_px <= 0:
+            return []
+        edge = min(self.edge_px, width)
+        if 2 * edge >= width:
+            return [(0, 0, width, height)]
+        return [(0, 0, edge, height), (width - edge, 0, width, height)]
+
     def detect(self, gray: np.ndarray) -> List[MarkerObservation]:
         """Markers in the next image of the camera (same contract as :meth:`Detector.detect`)."""
         img = np.asarray(gray)
@@ -316,12 +353,33 @@ class TrackingDetector:
             self.reset()  # another camera size: the previous corners mean nothing
             self._shape = img.shape
         out: Optional[List[MarkerObservation]] = None
-        if self.full_every > 1 and self._previous and self._since_full < self.full_every - 1 \
-                and img.ndim == 2 and img.dtype == np.uint8:
+        if self.full_every > 1 and self._previous and img.ndim == 2 and img.dtype == np.uint8:
             out = self.detector.detect_in(img, self.regions(img.shape))
-            if set(self._previous) - {o.marker_id for o in out}:
-                out = None  # a marker was lost: search the whole image now
+            known = {o.marker_id for o in out}
+            scheduled = self._since_full >= self.full_every - 1
+            if scheduled and self.windows_in_turn:
+                # the scheduled whole-image search, with one threshold window (in turn) besides the
+                # regions' all: what it is for is finding markers that came into view
+                window = self._windows[self._whole_turn % len(self._windows)]
+                self._whole_turn += 1
+                out += self.detector.detect_in(img, [(0, 0, img.shape[1], img.shape[0])], window=window,
+                                               exclude=known)
+            elif not scheduled:
+                strips = self.strips(img.shape)
+                if strips:
+                    window = None
+                    if self.windows_in_turn:
+                        window = self._windows[self._strip_turn % len(self._windows)]
+                        self._strip_turn += 1
+                    out += self.detector.detect_in(img, strips, window=window, exclude=known)
             else:
+                out = None  # scheduled whole-image search with all windows
+            if out is not None and set(self._previous) - {o.marker_id for o in out}:
+                out = None  # a marker was lost: search the whole image now, all windows
+            elif out is not None and scheduled:
+                self._since_full = 0
+                self.full_searches += 1
+            elif out is not None:
                 self._since_full += 1
                 self.region_searches += 1
         if out is None:
@@ -338,6 +396,11 @@ class TrackingDetector:
 _EDGE_T0, _EDGE_T1 = 0.06, 0.5
 _MODULES = 7.0  # modules across a 5x5 marker with its border; only sets the sampling scale
 _MIN_EDGE_CONTRAST = 12.0  # grey levels: median dark -> light step across a usable edge
+_NEXT = np.array([1, 2, 3, 0])                # corner i -> i + 1
+_HALF = np.array([0, 1, 2, 3, 0, 1, 2, 3])     # half-side -> its side (the corner it starts at)
+_I_PREV = np.array([7, 4, 5, 6])             # half-side (i-1 -> i) near its end
+_I_NEXT = np.array([0, 1, 2, 3])             # half-side (i -> i+1) near its start
+_ROT = np.array([1.0, -1.0])
 
 
 def refine_corners_lines(gray: np.ndarray, corners, iterations: int = 2) -> np.ndarray:
@@ -359,70 +422,76 @@ def refine_corners_lines(gray: np.ndarray, corners, iterations: int = 2) -> np.n
     Returns:
         (4, 2) refined corners, raw pixels.
     """
-    c = np.asarray(corners, dtype=np.float64).reshape(4, 2).copy()
-    side = np.linalg.norm(np.roll(c, -1, axis=0) - c, axis=1)
-    h = float(np.clip(0.6 * side.mean() / _MODULES, 1.5, 4.0))
+    c = np.array(corners, dtype=np.float64).reshape(4, 2)  # a copy
+    # About 60 small numpy calls per pass: written for few calls (index arrays instead of np.roll,
+    # 2x2 determinants and solutions in closed form), the per-marker cost is Python's, not the math's.
+    dd = c[_NEXT] - c
+    side = np.sqrt(dd[:, 0] * dd[:, 0] + dd[:, 1] * dd[:, 1])
+    h = min(max(0.6 * float(side.mean()) / _MODULES, 1.5), 4.0)
     offs = np.arange(-h, h + 1e-9, 0.5)
     mid = 0.5 * (offs[1:] + offs[:-1])
-    ns = int(np.clip(side.max() * (_EDGE_T1 - _EDGE_T0), 4, 64))
+    ns = int(min(max(float(side.max()) * (_EDGE_T1 - _EDGE_T0), 4.0), 64.0))
     u = np.linspace(_EDGE_T0, _EDGE_T1, ns)
-    x0 = int(max(np.floor(c[:, 0].min() - h - 3), 0))
-    y0 = int(max(np.floor(c[:, 1].min() - h - 3), 0))
-    x1 = int(min(np.ceil(c[:, 0].max() + h + 4), gray.shape[1]))
-    y1 = int(min(np.ceil(c[:, 1].max() + h + 4), gray.shape[0]))
+    lo, hi = c.min(axis=0), c.max(axis=0)
+    x0 = int(max(np.floor(lo[0] - h - 3), 0))
+    y0 = int(max(np.floor(lo[1] - h - 3), 0))
+    x1 = int(min(np.ceil(hi[0] + h + 4), gray.shape[1]))
+    y1 = int(min(np.ceil(hi[1] + h + 4), gray.shape[0]))
     if x1 - x0 < 4 or y1 - y0 < 4:
         return c
     roi = gray[y0:y1, x0:x1].astype(np.float32)  # float: remap on uint8 would round the profiles
     origin = np.array([x0, y0], dtype=np.float64)
     c -= origin
-    i_prev = 4 + (np.arange(4) - 1) % 4   # half-side (i-1 -> i) near its end
-    i_next = np.arange(4)                 # half-side (i -> i+1) near its start
+    k = offs.size
+    tu = np.concatenate([u, 1.0 - u])  # 8 half-sides: side i near corner i (0..3), near corner i+1 (4..7)
     for _ in range(iterations):
-        a, b = c, np.roll(c, -1, axis=0)
+        a = c[_HALF]                                          # (8, 2) start of the half-side's side
+        b = c[_NEXT][_HALF]                                   # its end
         d = b - a
-        length = np.linalg.norm(d, axis=1)
-        if np.any(length < 1.0):
+        length = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
+        if length.min() < 1.0:
             break
         d /= length[:, None]
-        n = np.stack([d[:, 1], -d[:, 0]], axis=1)
-        n *= np.sign(np.sum(n * (0.5 * (a + b) - c.mean(axis=0)), axis=1))[:, None]  # outward
-        # 8 half-sides: side i near corner i (0..3), side i near corner i+1 (4..7)
-        t = np.concatenate([u[None, :] * length[:, None], (1.0 - u[None, :]) * length[:, None]])
-        A, D, N = np.concatenate([a, a]), np.concatenate([d, d]), np.concatenate([n, n])
-        base = A[:, None, :] + t[..., None] * D[:, None, :]                              # (8, ns, 2)
-        pts = base[:, :, None, :] + offs[None, None, :, None] * N[:, None, None, :]       # (8, ns, K, 2)
-        k = offs.size
-        prof = cv2.remap(roi, pts[..., 0].reshape(8 * ns, k).astype(np.float32),
-                         pts[..., 1].reshape(8 * ns, k).astype(np.float32), cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_REPLICATE).astype(np.float64).reshape(8, ns, k)
-        g = np.clip(np.diff(prof, axis=2), 0.0, None)                                      # dark -> light
+        n = d[:, ::-1] * _ROT                                 # (d_y, -d_x)
+        centre = c.mean(axis=0)
+        n *= np.sign(((0.5 * (a + b) - centre) * n).sum(axis=1))[:, None]  # outward
+        t = tu.reshape(2, 1, ns) * length.reshape(2, 4, 1)    # (2, 4, ns) -> (8, ns) below
+        base = a[:, None, :] + t.reshape(8, ns, 1) * d[:, None, :]                       # (8, ns, 2)
+        mx = (base[:, :, 0, None] + offs * n[:, 0, None, None]).astype(np.float32).reshape(8 * ns, k)
+        my = (base[:, :, 1, None] + offs * n[:, 1, None, None]).astype(np.float32).reshape(8 * ns, k)
+        prof = cv2.remap(roi, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+                         ).astype(np.float64).reshape(8, ns, k)
+        g = np.maximum(prof[:, :, 1:] - prof[:, :, :-1], 0.0)                          # dark -> light
         w = g.sum(axis=2)
         shift = (g * mid).sum(axis=2) / np.maximum(w, 1e-9)
-        p = base + shift[..., None] * N[:, None, :]
-        wsum = w.sum(axis=1)
-        W = w / np.maximum(wsum[:, None], 1e-9)
+        p = base + shift[..., None] * n[:, None, :]
+        W = w / np.maximum(w.sum(axis=1), 1e-9)[:, None]
         m = (p * W[..., None]).sum(axis=1)
         q = p - m[:, None, :]
-        sxx = (W * q[..., 0] ** 2).sum(axis=1)
-        syy = (W * q[..., 1] ** 2).sum(axis=1)
-        sxy = (W * q[..., 0] * q[..., 1]).sum(axis=1)
+        qx, qy = q[..., 0], q[..., 1]
+        wx = W * qx
+        sxx = (wx * qx).sum(axis=1)
+        syy = (W * qy * qy).sum(axis=1)
+        sxy = (wx * qy).sum(axis=1)
         ang = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)        # principal direction of each half-side
-        nl = np.stack([-np.sin(ang), np.cos(ang)], axis=1)
-        cl = -np.sum(nl * m, axis=1)
-        M = np.stack([nl[i_prev], nl[i_next]], axis=1)       # (4, 2, 2): n . x + c = 0 for both lines
-        rhs = -np.stack([cl[i_prev], cl[i_next]], axis=1)
+        nx, ny = -np.sin(ang), np.cos(ang)                   # n . x + c = 0 for each half-side's line
+        cl = -(nx * m[:, 0] + ny * m[:, 1])
+        ax, ay, ac = nx[_I_PREV], ny[_I_PREV], cl[_I_PREV]   # the two lines that meet at corner i
+        bx, by, bc = nx[_I_NEXT], ny[_I_NEXT], cl[_I_NEXT]
+        det = ax * by - ay * bx
         # an edge needs a real dark -> light step along most of it (a marker printed without a
         # white margin, or cut by an occluder, has none): otherwise keep OpenCV's corner
-        contrast = np.median(w, axis=1)
+        ws = np.sort(w, axis=1)
+        contrast = 0.5 * (ws[:, (ns - 1) // 2] + ws[:, ns // 2])  # the median
         edged = contrast >= _MIN_EDGE_CONTRAST
-        good = (np.abs(np.linalg.det(M)) > 1e-3) & edged[i_prev] & edged[i_next]
-        new = c.copy()
-        if np.any(good):
-            sol = np.linalg.solve(M[good], rhs[good][..., None])[..., 0]
-            ok = np.all(np.isfinite(sol), axis=1) & (np.linalg.norm(sol - c[good], axis=1) < 2.0 * h)
-            idx = np.flatnonzero(good)[ok]
-            new[idx] = sol[ok]
-        c = new
+        good = (np.abs(det) > 1e-3) & edged[_I_PREV] & edged[_I_NEXT]
+        if not good.any():
+            continue
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sol = np.stack([(ay * bc - by * ac) / det, (bx * ac - ax * bc) / det], axis=1)
+        step = sol - c
+        ok = good & np.isfinite(sol).all(axis=1) & (np.sqrt((step * step).sum(axis=1)) < 2.0 * h)
+        c = np.where(ok[:, None], sol, c)
     return c + origin
 
 

@@ -342,12 +342,20 @@ class DetectorConfig:
     tracking_full_every: int = param(5, "search the whole image every this many images; in between, only regions "
                                         "around the markers of the previous image and strips of tracking_edge_px "
                                         "along the left and right borders (a marker that is lost makes the same "
-                                        "image searched whole); 9.6 instead of 20 ms CPU per lab image at the same "
-                                        "detections; a new marker away from the side borders is found up to "
-                                        "tracking_full_every - 1 images late; 1 = every image whole "
-                                        "(docs/detector.md)")
+                                        "image searched whole); a new marker away from the side borders is found "
+                                        "up to tracking_full_every - 1 images late (see "
+                                        "tracking_windows_in_turn); 1 = every image whole (docs/detector.md)")
     tracking_edge_px: int = param(128, "width of the border strips searched in every image (markers come into "
                                        "view there as the robot turns), 0 = none", unit="px")
+    tracking_windows_in_turn: bool = param(True, "the border strips and the scheduled whole-image searches with "
+                                                 "ONE adaptive threshold window per search, the next one the next "
+                                                 "time (the tracked markers' regions, and a search after a loss, "
+                                                 "with all): 5.9 instead of 11.4 ms CPU per lab image (23 whole "
+                                                 "image every time; bench_detector, load 12) at the same detections; "
+                                                 "a new marker that only "
+                                                 "some window finds (uneven light) may be found up to (number of "
+                                                 "windows) searches later; false: all windows everywhere "
+                                                 "(docs/detector.md)")
     adaptiveThreshWinSizeMin: int = param(_det("adaptive_thresh_win_size_min"),
                                           "smallest adaptive threshold window (aruco_detect's dynamic-reconfigure "
                                           "name); windows min, min+step, ... <= max are tried, each about 6 ms per "

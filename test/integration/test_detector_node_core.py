@@ -321,3 +321,10 @@ def test_fuzz_detector_core_callbacks_never_raise(data):
                                 now=data.draw(st.none() | st.floats(0, 1e10), label="now"))
             assert out is None or isinstance(out.observations, list)
     assert all(isinstance(w, str) for w in warnings)
+
+
+def test_tracking_parameters_reach_the_search():
+    core, _, _ = make_core(tracking_full_every=7, tracking_edge_px=64, tracking_windows_in_turn=False)
+    assert (core.detector.full_every, core.detector.edge_px, core.detector.windows_in_turn) == (7, 64, False)
+    core, _, _ = make_core()
+    assert core.detector.windows_in_turn is True   # config/detector.yaml's default

@@ -4,8 +4,11 @@ Subscribes (relative names, so one node per camera namespace, e.g. ``ring/cam0``
     ``image`` (sensor_msgs/Image; mono8, mono16, bgr8, rgb8, bgra8, rgba8), or with
         ``~image_transport: compressed`` ``image/compressed`` (sensor_msgs/CompressedImage, JPEG or
         PNG; image_transport's name): queue_size 1 and a large socket buffer, so a detector that
-        falls behind drops old images, never queues them;
-    ``camera_info`` (sensor_msgs/CameraInfo): intrinsics for the poses (latest valid one wins).
+        falls behind drops old images, never queues them. Raw images are subscribed as bytes
+        (rospy.AnyMsg, the publisher's type checked) and read in place: the pixels are a view of
+        the received bytes, not a copy in a message object;
+    ``camera_info`` (sensor_msgs/CameraInfo, also as bytes): intrinsics for the poses (latest valid
+        one wins), deserialised only when its bytes after the stamp change.
 Publishes:
     ``fiducial_vertices`` (fiducial_msgs/FiducialArray): one per usable image, header = the
         image's header (frame_id falls back to camera_info's when the image has none),
@@ -28,12 +31,13 @@ The logic is in :class:`DetectorCore` (no rospy; messages are duck-typed); the b
 """
 from __future__ import annotations
 
-import copy
 import logging
+import struct
 import time
 from dataclasses import dataclass
 from typing import Callable, List, Optional, Sequence
 
+import genpy
 import numpy as np
 
 from ..camera import CameraModel
@@ -42,7 +46,7 @@ from ..detections import MarkerObservation
 from ..errors import ArucoRingError, ConfigError, MeasurementError
 from ..schemas import DetectorConfig
 from ..throttle import ThrottledWarnings
-from .conversions import image_msg_to_gray
+from .conversions import image_bytes_to_msg, image_msg_to_gray
 
 logger = logging.getLogger(__name__)
 
@@ -94,7 +98,8 @@ class DetectorCore:
         self.params = params
         # Regions around the previous image's markers between whole-image searches (detection.py).
         self.detector = TrackingDetector(Detector(params.detector_params()), full_every=params.tracking_full_every,
-                                         edge_px=params.tracking_edge_px)
+                                         edge_px=params.tracking_edge_px,
+                                         windows_in_turn=params.tracking_windows_in_turn)
         self.sizes = params.sizes()
         self.ignored = params.ignored()
         self.name = name
@@ -108,8 +113,9 @@ class DetectorCore:
 
     # --- camera_info ---------------------------------------------------------------------------
 
-    def on_camera_info(self, msg) -> None:
-        """Take the intrinsics of a ``sensor_msgs/CameraInfo`` (the latest valid one wins)."""
+    def on_camera_info(self, msg) -> bool:
+        """Take the intrinsics of a ``sensor_msgs/CameraInfo`` (the latest valid one wins); False
+        when it was unusable (warned about, throttled)."""
         try:
             K = np.asarray(msg.K, dtype=np.float64)
             if K.size != 9 or not np.any(K):
@@ -121,10 +127,12 @@ class DetectorCore:
                                                           name=self.name)
                 self._info_key = key
             self.camera_frame_id = str(msg.header.frame_id)
+            return True
         except MeasurementError as exc:
             self.warnings(f"camera_info.{_field_key(exc)}", f"{self.name}: camera_info ignored: {exc}")
         except (ArucoRingError, TypeError, ValueError) as exc:
             self.warnings("camera_info.other", f"{self.name}: camera_info ignored: {exc}")
+        return False
 
     # --- image ---------------------------------------------------------------------------------
 
@@ -186,6 +194,15 @@ class DetectorCore:
 
 # --- ROS adapter -----------------------------------------------------------------------------------
 
+def _header_copy(header):
+    """A new std_msgs/Header with the same seq, stamp and frame_id (copy.deepcopy's result, in a
+    tenth of its time)."""
+    from std_msgs.msg import Header
+
+    return Header(seq=header.seq, stamp=genpy.Time(header.stamp.secs, header.stamp.nsecs),
+                  frame_id=header.frame_id)
+
+
 def fiducial_array_msg(det: Detections):
     """FiducialArray of one image's detections."""
     from fiducial_msgs.msg import FiducialArray
@@ -193,7 +210,7 @@ def fiducial_array_msg(det: Detections):
     from .conversions import observations_to_fiducials
 
     out = FiducialArray()
-    out.header = copy.deepcopy(det.header)  # rospy's publish() rewrites header.seq in place
+    out.header = _header_copy(det.header)  # rospy's publish() rewrites header.seq in place
     out.image_seq = int(det.header.seq)
     out.fiducials = observations_to_fiducials(det.observations)
     return out
@@ -206,7 +223,7 @@ def fiducial_transform_array_msg(det: Detections):
     from .conversions import transform_to_msg
 
     out = FiducialTransformArray()
-    out.header = copy.deepcopy(det.header)
+    out.header = _header_copy(det.header)
     out.image_seq = int(det.header.seq)
     for p in det.poses or ():
         ft = FiducialTransform()
@@ -224,7 +241,7 @@ def image_msg(bgr: np.ndarray, header):
     from sensor_msgs.msg import Image
 
     out = Image()
-    out.header = copy.deepcopy(header)
+    out.header = _header_copy(header)
     out.height, out.width = int(bgr.shape[0]), int(bgr.shape[1])
     out.encoding = "bgr8"
     out.is_bigendian = 0
@@ -239,7 +256,7 @@ class DetectorNode:
     def __init__(self, params: DetectorConfig):
         import rospy
         from fiducial_msgs.msg import FiducialArray, FiducialTransformArray
-        from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+        from sensor_msgs.msg import CompressedImage, Image
 
         self.rospy = rospy
         self.core = DetectorCore(params, warn=rospy.logwarn, name=rospy.get_namespace().rstrip("/") or "detector")
@@ -247,12 +264,58 @@ class DetectorNode:
         self.transforms_pub = (rospy.Publisher("fiducial_transforms", FiducialTransformArray, queue_size=5)
                                if params.do_pose_estimation else None)
         self.image_pub = rospy.Publisher("fiducial_images", Image, queue_size=1) if params.publish_images else None
-        self.info_sub = rospy.Subscriber("camera_info", CameraInfo, self.core.on_camera_info, queue_size=1)
+        # camera_info and raw images as bytes (rospy.AnyMsg), type-checked here: camera_info is
+        # deserialised only when it changed (it comes with every image), and the image's pixels are
+        # used in place (conversions.image_bytes_to_msg) instead of copied into a message object.
+        self._info_body: Optional[bytes] = None
+        self.info_sub = rospy.Subscriber("camera_info", rospy.AnyMsg, self.on_camera_info_bytes, queue_size=1)
         # image_transport's naming: the compressed stream of <image> is <image>/compressed.
-        topic, msg_type = ("image/compressed", CompressedImage) if params.image_transport == "compressed" \
-            else ("image", Image)
-        self.image_sub = rospy.Subscriber(topic, msg_type, self.on_image, queue_size=1, buff_size=IMAGE_BUFF_SIZE,
-                                          tcp_nodelay=True)
+        if params.image_transport == "compressed":
+            self.image_sub = rospy.Subscriber("image/compressed", CompressedImage, self.on_image, queue_size=1,
+                                              buff_size=IMAGE_BUFF_SIZE, tcp_nodelay=True)
+        else:
+            self.image_sub = rospy.Subscriber("image", rospy.AnyMsg, self.on_image_bytes, queue_size=1,
+                                              buff_size=IMAGE_BUFF_SIZE, tcp_nodelay=True)
+
+    def _of_type(self, msg, cls, topic: str) -> bool:
+        """Whether the bytes ``msg`` on ``topic`` are a ``cls`` (the publisher's md5sum); else a
+        throttled warning naming the publisher and its type, and False."""
+        header = getattr(msg, "_connection_header", None) or {}
+        if header.get("md5sum") == cls._md5sum:
+            return True
+        self.core.warnings(f"{topic}.type", f"{self.core.name}: {topic} from {header.get('callerid', '?')} is "
+                                            f"{header.get('type', '?')!r}, not {cls._type}: ignored")
+        return False
+
+    def on_camera_info_bytes(self, msg) -> None:
+        """camera_info as bytes: handed to the core (deserialised) only when it changed; the bytes
+        after the header's seq and stamp are compared, so a new stamp alone is no change."""
+        from sensor_msgs.msg import CameraInfo
+
+        body = msg._buff[12:]
+        if body == self._info_body or not self._of_type(msg, CameraInfo, "camera_info"):
+            return
+        try:
+            info = CameraInfo().deserialize(msg._buff)
+        except (genpy.DeserializationError, struct.error, UnicodeDecodeError, ValueError) as exc:
+            self.core.warnings("camera_info.other", f"{self.core.name}: unreadable camera_info "
+                                                    f"({len(msg._buff)} bytes): {exc}")
+            return
+        self._info_body = body if self.core.on_camera_info(info) else None
+
+    def on_image_bytes(self, msg) -> None:
+        """A raw image as bytes: type-checked, read in place, handled as :meth:`on_image`."""
+        from sensor_msgs.msg import Image
+
+        if not self._of_type(msg, Image, "image"):
+            return
+        try:
+            image = image_bytes_to_msg(msg._buff)
+        except MeasurementError as exc:
+            self.core.rejected_images += 1
+            self.core.warnings(f"image.{_field_key(exc)}", f"{self.core.name}: image ignored: {exc}")
+            return
+        self.on_image(image)
 
     def on_image(self, msg) -> None:
         rospy = self.rospy
