@@ -22,7 +22,9 @@ For every recording the package can handle (the others are listed with the reaso
    (``mapping.odometry``, ``base_to_odom`` = its ``T_body_odom``; the package's noise model;
    ``--odom-noise tagslam``: tagslam.yaml's own, mapping_odometry's ``per_message``). Its
    static ``board`` / ``staggered_board`` bodies are given as rigid boards (:func:`importers.tagslam_boards`,
-   test_13, test_24; ``--no-boards``: each tag alone). ``--view-limits``: the views TagSLAM drops
+   test_13, test_24; ``--no-boards``: each tag alone). The cameras' calibration as TagSLAM states it:
+   ``extrinsics_prior: ring`` with the std of each pose ``camera_poses.yaml`` gives (its ``R``), the
+   package's refinement prior for the cameras TagSLAM estimates (:func:`mapping_ring`). ``--view-limits``: the views TagSLAM drops
    (``minimum_viewing_angle``, ``minimum_tag_area``) are dropped too (not the default: the rows are
    measured without).
 4. **Localization** (:class:`pipeline.LocalizationPipeline`, ``joint`` fusion) of every ring frame, on
@@ -383,6 +385,22 @@ def _odometry(test: str, src: str, rig_body: str, frames) -> Tuple[Optional[Mapp
     return opts, (stamps, poses)
 
 
+def mapping_ring(ring, src: str, options: MappingOptions):
+    """The ring the mapping gets, as TagSLAM's calibration states it (``extrinsics_prior: ring``):
+    each camera that the recording's ``camera_poses.yaml`` gives with an ``R`` keeps that pose's
+    std (the importer's reading of ``R``; 1e-6 for the cameras TagSLAM holds fixed: both of
+    tests 11 and 12, camera 0 of the others); the cameras it does not give, whose poses TagSLAM
+    estimates, the mapping's own refinement prior (``ba.extrinsics_*_sigma``). The localization
+    keeps the ring as imported."""
+    from aruco_ring_localization.ring import CameraRing, RingCamera
+
+    stated = {c.name: c.extrinsics_std for c in read_rig(os.path.join(src, "cameras.yaml"),
+                                                         camera_poses=os.path.join(src, "camera_poses.yaml")).cameras}
+    loose = tuple([float(options.ba.extrinsics_rot_sigma)] * 3 + [float(options.ba.extrinsics_trans_sigma)] * 3)
+    return CameraRing([RingCamera(c.name, c.frame_id, c.model, c.T_base_cam, c.namespace,
+                                  stated.get(c.name) or loose, c.wiggle) for c in ring], ring.base_frame)
+
+
 def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool = True,
             odometry: bool = True, boards: bool = True, view_limits: bool = False,
             measurements: bool = True) -> Dict[str, float]:
@@ -417,7 +435,10 @@ def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool =
     # TagSLAM's boards (its board / staggered_board bodies: known layouts) as rigid boards, as TagSLAM uses them.
     layout = tagslam_boards(os.path.join(src, "tagslam.yaml"), rig_bodies=(ref.rig_body,)) if boards else None
     res["boards"] = len(layout) if layout is not None else 0
-    b = MapBuilder(ring, sizes, options=options, anchors=survey, boards=layout if layout is not None and len(layout)
+    # The cameras' calibration as TagSLAM's camera_poses.yaml states it (its R), as TagSLAM uses it.
+    options = dataclasses.replace(options, extrinsics_prior="ring")
+    b = MapBuilder(mapping_ring(ring, src, options), sizes, options=options, anchors=survey,
+                   boards=layout if layout is not None and len(layout)
                    else None, measurements=meas)
     if odo:
         b.set_odometry(*odo)
