@@ -236,6 +236,10 @@ class BAProblem:
         obs_object: optional (N, 4, 3) corners of each observation in its marker's frame (default:
             the square of ``sizes``): one unknown can then be a rigid board of several markers,
             each observation's corners placed by the board's layout (:mod:`boards`).
+        extrinsics_sigma: optional (C, 6) prior std of each camera's extrinsics when they are
+            refined, rotation (rad) then translation (m), per axis of the base frame (the
+            perturbation ``R = exp(w) R0``, ``t = t0 + dt``): a calibration stated per camera (the
+            ring file's ``extrinsics_std``); default: ``BAOptions.extrinsics_*_sigma`` for every camera.
     """
 
     T_W_markers: np.ndarray
@@ -254,6 +258,7 @@ class BAProblem:
     priors: Optional[MarkerPriors] = None
     odometry: Optional[RelativePoseFactors] = None
     obs_object: Optional[np.ndarray] = None
+    extrinsics_sigma: Optional[np.ndarray] = None
 
 
 @dataclass(frozen=True)
@@ -381,6 +386,16 @@ class _Model:
             self.A[..., 1, 1] = (prob.obs_focal[:, 1] / opts.pixel_noise)[:, None]
         self.n_obs_res = 8 * N
         self.n_prior_res = 6 * C if opts.refine_extrinsics else 0
+        # Prior std of each camera's (w, t): the problem's per camera, else the options' for all.
+        if prob.extrinsics_sigma is not None:
+            sig = np.asarray(prob.extrinsics_sigma, dtype=float)
+            if sig.shape != (C, 6) or not np.all(np.isfinite(sig)) or np.any(sig <= 0):
+                raise GeometryError(f"bundle adjustment: extrinsics_sigma must be ({C}, 6) positive numbers, got "
+                                    f"shape {sig.shape}")
+            self.ext_sigma = sig
+        else:
+            self.ext_sigma = np.tile(np.r_[np.full(3, opts.extrinsics_rot_sigma),
+                                           np.full(3, opts.extrinsics_trans_sigma)], (C, 1))
         self.n_anchor_res = priors.n_residuals if priors is not None else 0
         if priors is not None:
             if np.any(self.col_m[priors.position_marker] < 0) or np.any(self.col_m[priors.rotation_marker] < 0) \
@@ -673,9 +688,7 @@ class _Model:
         r = (self.A @ (proj - self.p.obs_xy)[..., None])[..., 0]
         out = r.ravel()
         if self.n_prior_res:
-            prior = x[self._prior_cols].reshape(self.C, 6).copy()
-            prior[:, :3] /= self.o.extrinsics_rot_sigma
-            prior[:, 3:] /= self.o.extrinsics_trans_sigma
+            prior = x[self._prior_cols].reshape(self.C, 6) / self.ext_sigma
             out = np.concatenate([out, prior.ravel()])
         if self.n_anchor_res:
             out = np.concatenate([out, self._anchor_residuals(wm, Rm, tm, ws, Rs)])
@@ -724,8 +737,7 @@ class _Model:
             blocks.append(np.concatenate([D @ dpc_de, -DRc], axis=-1).reshape(N, 8, 6))
         extra = []
         if self.n_prior_res:
-            extra.append(np.tile(np.r_[np.full(3, 1.0 / self.o.extrinsics_rot_sigma),
-                                       np.full(3, 1.0 / self.o.extrinsics_trans_sigma)], self.C))
+            extra.append((1.0 / self.ext_sigma).ravel())
         if self.n_anchor_res:
             extra.append(self._anchor_residuals(wm, Rm, tm, ws, Rs, jacobian=True)[1])
         if self.n_odo_res:

@@ -61,6 +61,7 @@ from dataclasses import dataclass, field
 from typing import Any, Dict, Hashable, List, Optional, Sequence, Tuple
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from . import geometry as geo
 from .anchors import (AnchorSet, Measurements, anchor_report, fit_frame, frame_definition,
@@ -89,6 +90,11 @@ LEVEL_SIGMA = 1e-5
 
 
 FRAMES = ("floor", "marker")
+#: ``MappingOptions.extrinsics_prior`` values.
+EXTRINSICS_PRIORS = ("options", "ring")
+#: The smallest prior std of an extrinsic (rad, m): a ring file's 0 ("exact") holds the camera this
+#: tight (TagSLAM's own "fixed", 1e-6).
+MIN_EXTRINSICS_SIGMA = 1e-6
 
 
 @dataclass(frozen=True)
@@ -169,6 +175,11 @@ class MappingOptions:
                                         "the localizer may see later); a position-only one cannot be and is "
                                         "reported as not mapped. false: only detected markers are mapped "
                                         "(build-map --no-surveyed-unseen)")
+    extrinsics_prior: str = param("options", "the prior of each camera's extrinsics when the adjustment refines "
+                                             "them: options = ba.extrinsics_trans_sigma / extrinsics_rot_sigma_deg "
+                                             "for every camera; ring = each camera's extrinsics_std from the ring "
+                                             "file (the calibration's own uncertainty, e.g. TagSLAM's camera_poses.yaml "
+                                             "R through import-kalibr; 0 holds the camera at its calibration)")
     ba: BAOptions = section(BAOptions, "bundle adjustment of method refined; the ring extrinsics are refined too, "
                                        "with priors around the calibration (several stations make them observable)",
                             refine_extrinsics=True)
@@ -185,6 +196,9 @@ class MappingOptions:
     def __post_init__(self) -> None:
         if self.frame not in FRAMES:
             raise ConfigError(f"expected one of {', '.join(FRAMES)}, got {self.frame!r}", key="frame")
+        if self.extrinsics_prior not in EXTRINSICS_PRIORS:
+            raise ConfigError(f"expected one of {', '.join(EXTRINSICS_PRIORS)}, got {self.extrinsics_prior!r}",
+                              key="extrinsics_prior")
 
 
 @dataclass
@@ -1045,6 +1059,7 @@ class MapBuilder:
             fixed_station=0,
             T_base_cams_start=np.stack([current[c] for c in cams]),
             odometry=self._odometry_factors(sts, si),
+            extrinsics_sigma=self._extrinsics_sigma(cams),
         )
         # A quick adjustment of the growing initialisation: the user's noise, loss and priors,
         # loose tolerances, no covariance.
@@ -1517,8 +1532,11 @@ class MapBuilder:
             # ring's calibration error from every pose (ring_tf publishes them given the map file).
             out.ring_extrinsics = {c: res.T_base_cams[k] for k, c in enumerate(self.ring.names)}
             out.ring_base_frame = self.ring.base_frame
-            out.ring_prior_sigma = {"translation": float(self.options.ba.extrinsics_trans_sigma),
-                                    "rotation": float(self.options.ba.extrinsics_rot_sigma)}
+            sigma = self._extrinsics_sigma(self.ring.names)
+            # The sanity check's scale of how far a camera may move: with per-camera priors, the loosest.
+            out.ring_prior_sigma = ({"translation": float(self.options.ba.extrinsics_trans_sigma),
+                                     "rotation": float(self.options.ba.extrinsics_rot_sigma)} if sigma is None else
+                                    {"translation": float(sigma[:, 3:].max()), "rotation": float(sigma[:, :3].max())})
             out.ring_moved = {c: geo.pose_distance(self.ring[c].T_base_cam, T) for c, T in out.ring_extrinsics.items()}
             if res.camera_cov is not None:  # their uncertainty, for the localizer's noise model
                 out.ring_covariance_cameras = list(self.ring.names)
@@ -1694,6 +1712,7 @@ class MapBuilder:
             priors=priors,
             T_base_cams_start=np.stack([init.extrinsics.get(c, self.ring[c].T_base_cam) for c in cams]),
             odometry=self._odometry_factors(sts, si),
+            extrinsics_sigma=self._extrinsics_sigma(cams),
         )
 
     def _measurement_priors(self, priors: Optional[MarkerPriors], mi: Dict[int, int]) -> Optional[MarkerPriors]:
@@ -1918,6 +1937,23 @@ class MapBuilder:
         relative to each other are observable, a single camera's extrinsics are not at all."""
         return bool(self.options.ba.refine_extrinsics) and len(self.ring) > 1
 
+    def _extrinsics_sigma(self, cams: Sequence[str]) -> Optional[np.ndarray]:
+        """(C, 6) prior std of the extrinsics of ``cams`` (rotation rad, translation m, per axis of the
+        base frame, :attr:`BAProblem.extrinsics_sigma`) with ``extrinsics_prior: ring``: each camera's
+        ``extrinsics_std`` (per axis of its optical frame) turned into the base frame (the diagonal of
+        ``R diag(std^2) R^T``: exact for the same std on the three axes, the correlations dropped
+        otherwise), at least :data:`MIN_EXTRINSICS_SIGMA`; None with ``options`` (the BA options' for all)."""
+        if self.options.extrinsics_prior != "ring":
+            return None
+        out = np.zeros((len(cams), 6))
+        for k, name in enumerate(cams):
+            cam = self.ring[name]
+            R = cam.T_base_cam[:3, :3]
+            std = np.asarray(cam.extrinsics_std, dtype=float)
+            for a in (0, 3):
+                out[k, a:a + 3] = np.sqrt(np.einsum("ij,j,ij->i", R, std[a:a + 3] ** 2, R))
+        return np.maximum(out, MIN_EXTRINSICS_SIGMA)
+
     def _remove_common_extrinsics_motion(self, res: BAResult) -> None:
         """Take out of the refined extrinsics the motion common to all cameras (in place).
 
@@ -1934,7 +1970,18 @@ class MapBuilder:
         """
         calib = [self.ring[c].T_base_cam for c in self.ring.names]
         motions = [res.T_base_cams[k] @ geo.inverse(E) for k, E in enumerate(calib)]
-        D = geo.inverse(geo.average_transforms(motions))
+        sigma = self._extrinsics_sigma(self.ring.names)
+        if sigma is None:
+            D = geo.inverse(geo.average_transforms(motions))
+        else:
+            # Cameras held by unequal priors (extrinsics_prior: ring): the mean weighted by each
+            # camera's prior information, so that a camera held at its calibration stays there.
+            wr = 1.0 / np.mean(sigma[:, :3] ** 2, axis=1)
+            wt = 1.0 / np.mean(sigma[:, 3:] ** 2, axis=1)
+            M = np.eye(4)
+            M[:3, :3] = Rotation.from_matrix(np.stack([T[:3, :3] for T in motions])).mean(weights=wr).as_matrix()
+            M[:3, 3] = np.average(np.stack([T[:3, 3] for T in motions]), axis=0, weights=wt)
+            D = geo.inverse(M)
         D_inv = geo.inverse(D)
         res.T_base_cams[:] = D @ res.T_base_cams
         if self.anchors is not None:

@@ -286,3 +286,38 @@ def test_an_se3_station_testifies_only_with_markers_spanning_a_plane():
     assert not MapBuilder._spans_plane([at(0, 0, 0), at(1, 0, 0), at(2, 0.001, 0)])
     assert MapBuilder._spans_plane([at(0, 0, 0), at(1, 0, 0), at(0, 0, 0.5)])
     assert MapBuilder._two_apart([at(0, 0, 0), at(1, 0, 0)])   # enough for a ground robot's planar station
+
+
+def test_extrinsics_prior_from_the_ring_file(ring, scene):
+    """``extrinsics_prior: ring``: each camera's prior is the ring file's extrinsics_std. A camera
+    declared exact (std 0) stays at its calibration while the others are refined (their motion
+    from the file is the adjustment's, the exact one's is none: the common motion is taken out
+    weighted by the priors); ``options`` (the default) moves every camera; an unknown value is
+    refused by name."""
+    from aruco_ring_localization.errors import ConfigError
+    from aruco_ring_localization.ring import CameraRing, RingCamera
+    from aruco_ring_localization.simulation.ring_sim import perturb_ring
+
+    true_ring = perturb_ring(ring, seed=1)
+    sim = RingSimulator(scene, true_ring, pixel_noise=0.3, seed=2)
+    frames = list(_frames(sim, scene.mapping_stations, 6))
+    exact = ring.names[0]
+    declared = CameraRing([RingCamera(c.name, c.frame_id, c.model, c.T_base_cam, c.namespace,
+                                      tuple([0.0] * 6) if c.name == exact else c.extrinsics_std, c.wiggle)
+                           for c in ring], ring.base_frame)
+
+    def moved(options, r):
+        b = MapBuilder(r, MarkerSizes(0.2), options=options)
+        for f in frames:
+            b.add_frame(f)
+        m = b.build("refined")
+        return {c: geo.pose_distance(r[c].T_base_cam, m.ring_extrinsics[c]) for c in r.names}
+
+    ring_mode = moved(MappingOptions(extrinsics_prior="ring"), declared)
+    default = moved(MappingOptions(), declared)
+    assert ring_mode[exact][0] < 1e-5 and ring_mode[exact][1] < 1e-5, ring_mode[exact]
+    assert default[exact][0] > 1e-4, f"the default moved camera {exact} by {default[exact]} only"
+    others = [c for c in ring.names if c != exact]
+    assert max(ring_mode[c][1] for c in others) > 1e-4, ring_mode
+    with pytest.raises(ConfigError, match="extrinsics_prior"):
+        MappingOptions(extrinsics_prior="file")
