@@ -1445,7 +1445,9 @@ class RingLocalizer:
         self._use_map_covariance(ring)
         # The ring file's calibration alone (declared, a guess: the window's verdict may leave it out;
         # the map's covariance of its refined extrinsics is the mapping's estimate, and stays).
-        self._cal_cov = {n: C if self.extrinsics_source[n] == "ring file" else None for n, C in self._ext_cov.items()}
+        # A ring file declaring its calibration exact (std 0) has nothing to clear.
+        self._cal_cov = {n: C if self.extrinsics_source[n] == "ring file" and C is not None and np.any(C) else None
+                         for n, C in self._ext_cov.items()}
         p = self.params
         for c in ring.cameras:   # the ring's vibration: independent per camera and frame (no cross terms)
             self._ext_cov[c.name] = self._ext_cov[c.name] + jitter_covariance(

@@ -234,3 +234,17 @@ def test_the_maps_covariance_of_refined_extrinsics_is_not_cleared(lab):
     for (a, *_), (r, *_) in zip(alone, rule):
         assert not r.calibration_cleared
         assert np.allclose(r.T_map_base, a.T_map_base, atol=1e-9)
+
+
+def test_a_ring_declared_exact_has_nothing_to_clear(lab):
+    scene, ring, truth, poses = lab
+    exact = ring.with_extrinsics_std(0.0, 0.0)
+    sim = RingSimulator(scene, ring, pixel_noise=SIGMA, seed=7)
+    frames = [sim.observe(T, 0.1 * k) for k, T in enumerate(poses * 2)]
+    off = _off_map(truth, 0.003, 0.3, seed=5)
+    rule, _ = _run(exact, off, frames, poses * 2)
+    alone, _ = _run(exact, off, frames, poses * 2, persistence_window=0)
+    for (a, *_), (r, *_) in zip(alone, rule):
+        assert not r.calibration_cleared
+        assert np.allclose(r.T_map_base, a.T_map_base, atol=1e-9)
+        assert np.allclose(r.covariance, a.covariance, rtol=1e-9, atol=1e-15)
