@@ -1337,42 +1337,65 @@ class CalibrationPersistence:
         for name, m, Gc, bc in zip(names, ids, G, b):
             cam = self._cams.get(name)
             if cam is None:
-                cam = self._cams[name] = {"serial": [], "ids": [], "G": [], "b": [], "disjoint": np.zeros((0, 0), bool)}
-            m = frozenset(int(i) for i in m)
-            row = np.array([not (m & o) for o in cam["ids"]] + [False], dtype=bool)
+                cam = self._cams[name] = {"serial": [], "seen": {}, "G": np.zeros((0, 6, 6)), "b": np.zeros((0, 6)),
+                                          "disjoint": np.zeros((0, 0), bool)}
+            # The frames of the window that saw one of these markers (a marker -> serials index).
+            seen = cam["seen"]
+            shared = set()
+            for i in m:
+                shared.update(seen.setdefault(int(i), []))
+                seen[int(i)].append(self._serial)
+            row = np.array([k not in shared for k in cam["serial"]] + [False], dtype=bool)
             n = row.size
             D = np.zeros((n, n), dtype=bool)
             D[:n - 1, :n - 1] = cam["disjoint"]
             D[-1], D[:, -1] = row, row
             cam["disjoint"] = D
-            for key, v in (("serial", self._serial), ("ids", m), ("G", np.asarray(Gc, dtype=np.float64)),
-                           ("b", np.asarray(bc, dtype=np.float64))):
-                cam[key].append(v)
+            cam["serial"].append(self._serial)
+            cam["G"] = np.concatenate([cam["G"], np.asarray(Gc, dtype=np.float64)[None]])
+            cam["b"] = np.concatenate([cam["b"], np.asarray(bc, dtype=np.float64)[None]])
         for name in list(self._cams):
             cam = self._cams[name]
             drop = sum(1 for k in cam["serial"] if k <= oldest)
             if drop:
-                for key in ("serial", "ids", "G", "b"):
-                    del cam[key][:drop]
+                del cam["serial"][:drop]
+                cam["G"], cam["b"] = cam["G"][drop:], cam["b"][drop:]
                 cam["disjoint"] = cam["disjoint"][drop:, drop:]
+                for i in list(cam["seen"]):
+                    kept = [k for k in cam["seen"][i] if k > oldest]
+                    if kept:
+                        cam["seen"][i] = kept
+                    else:
+                        del cam["seen"][i]
             if not cam["serial"]:
                 del self._cams[name]
 
     def correlation(self) -> Tuple[float, int]:
-        num = den = 0.0
-        pairs = 0
-        for cam in self._cams.values():
-            ok = np.triu(cam["disjoint"], 1)
-            if not ok.any():
-                continue
-            lam, U = np.linalg.eigh(np.sum(cam["G"], axis=0))
-            keep = lam > 1e-12 * max(float(lam.max()), 1e-300)
-            Y = np.stack(cam["b"]) @ (U[:, keep] / np.sqrt(lam[keep]))   # b^T A^+ b = |y|^2
-            K = Y @ Y.T
-            d = np.sqrt(np.maximum(np.diag(K), 0.0))
-            num += float(K[ok].sum())
-            den += float(np.outer(d, d)[ok].sum())
-            pairs += int(ok.sum())
+        cams = [c for c in self._cams.values() if len(c["serial"]) > 1]
+        if not cams:
+            return float("nan"), 0
+        # The cameras side by side (padded to the longest): one batched decomposition and product.
+        n = max(len(c["serial"]) for c in cams)
+        B = np.zeros((len(cams), n, 6))
+        ok = np.zeros((len(cams), n, n), dtype=bool)
+        A = np.empty((len(cams), 6, 6))
+        for k, c in enumerate(cams):
+            m = len(c["serial"])
+            B[k, :m] = c["b"]
+            ok[k, :m, :m] = c["disjoint"]
+            A[k] = c["G"].sum(axis=0)
+        ok = np.triu(ok, 1)
+        pairs = int(ok.sum())
+        if not pairs:
+            return float("nan"), 0
+        lam, U = np.linalg.eigh(A)
+        keep = lam > 1e-12 * np.maximum(lam.max(axis=1, keepdims=True), 1e-300)
+        scale = np.where(keep, 1.0 / np.sqrt(np.where(keep, lam, 1.0)), 0.0)
+        Y = np.matmul(B, U * scale[:, None, :])          # b^T A^+ b' = y . y'
+        K = np.matmul(Y, np.transpose(Y, (0, 2, 1)))
+        d = np.sqrt(np.maximum(np.einsum("cii->ci", K), 0.0))
+        num = float(K[ok].sum())
+        den = float((d[:, :, None] * d[:, None, :])[ok].sum())
         if not den > 0.0:
             return float("nan"), 0
         return num / den, pairs
