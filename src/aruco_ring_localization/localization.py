@@ -150,6 +150,23 @@ class LocalizationParams:
                                               "calibration-aware one; false: always the calibration-aware one")
     consistency_alpha: float = param(0.01, "joint, exact_when_consistent: the test's false-alarm rate (the chance "
                                            "that a consistent frame is taken as inconsistent)")
+    persistence_window: int = param(30, "joint, exact_when_consistent: the last multi-camera frames over which the "
+                                        "cameras' disagreement through the extrinsics is checked for what a "
+                                        "calibration error does and noise does not: follow the camera from one "
+                                        "marker to another (CalibrationPersistence); while it does not "
+                                        "(persistence_max), the frames are solved without the ring file's "
+                                        "extrinsics_std (the vibration's only; the map's covariance of refined "
+                                        "extrinsics stays), exact_when_consistent as before, the covariance still "
+                                        "carrying it; never with a camera the ring declares non-rigid (wiggle); "
+                                        "0: the extrinsics_std always")
+    persistence_max: float = param(0.25, "joint, persistence_window: the largest correlation, over the window, of a "
+                                         "camera's own pose correction between frames in which it sees no common "
+                                         "marker (1: a constant extrinsic error alone, 0: none) at which the "
+                                         "extrinsics count as borne out by the data")
+    persistence_min_pairs: int = param(100, "joint, persistence_window: the least number of such frame pairs (summed "
+                                            "over the cameras) the window's verdict needs; fewer: the "
+                                            "extrinsics_std stays (on the harsh lab's ring, 2 mm / 0.2 deg off, the "
+                                            "first 20-50 pairs showed no correlation, the next 90 and more 0.36-0.56)")
     joint_outlier_threshold: float = param(10.0, "a marker whose RMS residual in the joint solution exceeds this "
                                                  "is dropped (moved or mis-mapped marker) and the pose re-solved; a "
                                                  "final RMS above it rejects the joint solution. Larger than "
@@ -165,6 +182,11 @@ class LocalizationParams:
             raise ConfigError(f"must be >= 0, got {self.fusion_gap!r}", key="fusion_gap")
         if not 0.0 < self.consistency_alpha < 1.0:
             raise ConfigError(f"must be in (0, 1), got {self.consistency_alpha!r}", key="consistency_alpha")
+        for key in ("persistence_window", "persistence_min_pairs"):
+            if not getattr(self, key) >= 0:
+                raise ConfigError(f"must be >= 0, got {getattr(self, key)!r}", key=key)
+        if not -1.0 <= self.persistence_max <= 1.0:
+            raise ConfigError(f"must be in [-1, 1], got {self.persistence_max!r}", key="persistence_max")
         for key in ("extrinsic_jitter_deg", "extrinsic_jitter_m"):
             if not getattr(self, key) >= 0:
                 raise ConfigError(f"must be >= 0, got {getattr(self, key)!r}", key=key)
@@ -233,6 +255,9 @@ class LocalizationResult:
         alternatives: those other poses, (4, 4) ``T_map_base`` each (empty unless ambiguous).
         extrinsics_consistent: the joint pose took the extrinsics as exact because the cameras
             agreed with each other through them (``exact_when_consistent``).
+        calibration_cleared: the frame was solved without the ring's calibration uncertainty (the
+            vibration's only): over the last frames the cameras' disagreement did not follow them
+            (``persistence_window``).
     """
 
     stamp: float
@@ -249,6 +274,7 @@ class LocalizationResult:
     ambiguous: bool = False
     alternatives: List[np.ndarray] = field(default_factory=list)
     extrinsics_consistent: bool = False
+    calibration_cleared: bool = False
 
     @property
     def ok(self) -> bool:
@@ -1253,6 +1279,128 @@ def _f_quantile(prob: float, d1: int, d2: int) -> float:
     return q
 
 
+def camera_blocks(problem: JointProblem, fit: JointFit) -> Tuple[np.ndarray, np.ndarray]:
+    """Per camera ``G_c = J_c^T D_c J_c`` (C, 6, 6) and ``b_c = J_c^T D_c r_c`` (C, 6) of ``fit``
+    (px units, not whitened): the blocks ``fit`` holds when it has them, else summed from its rows."""
+    if fit.G_cam is not None and fit.b_cam is not None:
+        return fit.G_cam, fit.b_cam
+    rr = np.where(np.isfinite(fit.r), fit.r, 0.0)
+    Jw = fit.J * fit.w[:, None, None]
+    G = np.add.reduceat(np.einsum("nia,nib->nab", Jw, fit.J), problem.offsets[:-1], axis=0)
+    b = np.add.reduceat(np.einsum("nia,ni->na", Jw, rr), problem.offsets[:-1], axis=0)
+    return G, b
+
+
+class CalibrationPersistence:
+    """Whether the cameras' disagreement through the extrinsics is a calibration error: over the
+    last ``window`` multi-camera frames, does it follow the cameras from one marker to another?
+
+    At the exact-extrinsics optimum of a frame, camera c's own pose correction is
+    ``G_c^+ b_c`` (:func:`extrinsics_consistency` sums ``b_c^T G_c^+ b_c`` over the cameras). An
+    error of camera c's extrinsics ``eta_c`` (constant, in the base frame) makes ``b_c ~ G_c eta_c``
+    in every frame, whatever the camera sees; an error of the map or of a tag's detection moves the
+    correction of the frames that see that marker, and noise none twice. So the rule correlates
+    each camera's ``b_c`` between the window's frames in which it sees *no common marker*:
+
+        rho = sum_pairs b_f^T A^+ b_g / sum_pairs sqrt(b_f^T A^+ b_f  b_g^T A^+ b_g)
+
+    (``A = sum_f G_f`` of that camera over the window: the metric of its information; the pairs
+    of all cameras pooled): about 1 when a constant extrinsic error dominates the disagreement, 0
+    when nothing about the camera repeats (a positive-definite metric: ``rho`` is a weighted
+    average of the pairs' cosines). The common part of all cameras' errors moves the rig's pose
+    and no camera's correction: neither this nor the F-test sees it.
+
+    :meth:`add` records a frame; :meth:`correlation` gives ``(rho, pairs)``, ``pairs`` the frame
+    pairs it pooled (0: nothing to tell: each camera saw the same markers all along)."""
+
+    def __init__(self, window: int):
+        self.window = int(window)
+        self._serial = 0   # frames added
+        # Per camera, its frames in the window (the oldest first): serials, marker ids, G_c, b_c and
+        # which pairs of them saw no common marker (symmetric, updated a row per frame).
+        self._cams: Dict[str, Dict[str, object]] = {}
+
+    def __len__(self) -> int:
+        return min(self._serial, self.window)
+
+    def clear(self) -> None:
+        self._serial = 0
+        self._cams = {}
+
+    def add(self, names: Sequence[str], ids: Sequence[Sequence[int]], G: np.ndarray, b: np.ndarray) -> None:
+        """One frame's cameras, their marker ids and blocks ``G_c`` (C, 6, 6), ``b_c`` (C, 6) at the
+        exact-extrinsics optimum (:func:`camera_blocks`)."""
+        if self.window <= 0:
+            return
+        self._serial += 1
+        oldest = self._serial - self.window   # serials up to this have left the window
+        for name, m, Gc, bc in zip(names, ids, G, b):
+            cam = self._cams.get(name)
+            if cam is None:
+                cam = self._cams[name] = {"serial": [], "seen": {}, "G": np.zeros((0, 6, 6)), "b": np.zeros((0, 6)),
+                                          "disjoint": np.zeros((0, 0), bool)}
+            # The frames of the window that saw one of these markers (a marker -> serials index).
+            seen = cam["seen"]
+            shared = set()
+            for i in m:
+                shared.update(seen.setdefault(int(i), []))
+                seen[int(i)].append(self._serial)
+            row = np.array([k not in shared for k in cam["serial"]] + [False], dtype=bool)
+            n = row.size
+            D = np.zeros((n, n), dtype=bool)
+            D[:n - 1, :n - 1] = cam["disjoint"]
+            D[-1], D[:, -1] = row, row
+            cam["disjoint"] = D
+            cam["serial"].append(self._serial)
+            cam["G"] = np.concatenate([cam["G"], np.asarray(Gc, dtype=np.float64)[None]])
+            cam["b"] = np.concatenate([cam["b"], np.asarray(bc, dtype=np.float64)[None]])
+        for name in list(self._cams):
+            cam = self._cams[name]
+            drop = sum(1 for k in cam["serial"] if k <= oldest)
+            if drop:
+                del cam["serial"][:drop]
+                cam["G"], cam["b"] = cam["G"][drop:], cam["b"][drop:]
+                cam["disjoint"] = cam["disjoint"][drop:, drop:]
+                for i in list(cam["seen"]):
+                    kept = [k for k in cam["seen"][i] if k > oldest]
+                    if kept:
+                        cam["seen"][i] = kept
+                    else:
+                        del cam["seen"][i]
+            if not cam["serial"]:
+                del self._cams[name]
+
+    def correlation(self) -> Tuple[float, int]:
+        cams = [c for c in self._cams.values() if len(c["serial"]) > 1]
+        if not cams:
+            return float("nan"), 0
+        # The cameras side by side (padded to the longest): one batched decomposition and product.
+        n = max(len(c["serial"]) for c in cams)
+        B = np.zeros((len(cams), n, 6))
+        ok = np.zeros((len(cams), n, n), dtype=bool)
+        A = np.empty((len(cams), 6, 6))
+        for k, c in enumerate(cams):
+            m = len(c["serial"])
+            B[k, :m] = c["b"]
+            ok[k, :m, :m] = c["disjoint"]
+            A[k] = c["G"].sum(axis=0)
+        ok = np.triu(ok, 1)
+        pairs = int(ok.sum())
+        if not pairs:
+            return float("nan"), 0
+        lam, U = np.linalg.eigh(A)
+        keep = lam > 1e-12 * np.maximum(lam.max(axis=1, keepdims=True), 1e-300)
+        scale = np.where(keep, 1.0 / np.sqrt(np.where(keep, lam, 1.0)), 0.0)
+        Y = np.matmul(B, U * scale[:, None, :])          # b^T A^+ b' = y . y'
+        K = np.matmul(Y, np.transpose(Y, (0, 2, 1)))
+        d = np.sqrt(np.maximum(np.einsum("cii->ci", K), 0.0))
+        num = float(K[ok].sum())
+        den = float((d[:, :, None] * d[:, None, :])[ok].sum())
+        if not den > 0.0:
+            return float("nan"), 0
+        return num / den, pairs
+
+
 class RingLocalizer:
     """Robot pose from ring frames against a marker map.
 
@@ -1275,6 +1423,8 @@ class RingLocalizer:
         #: name -> :class:`CameraView` of the last frame processed (the moved-marker check reuses
         #: its corners: :meth:`marker_check.MarkerCheck.update`).
         self.last_views: Dict[str, CameraView] = {}
+        #: (rho, pairs) of the window after the last multi-camera frame (:class:`CalibrationPersistence`).
+        self.last_persistence: Tuple[float, int] = (float("nan"), 0)
         self.set_ring(ring)
 
     def set_ring(self, ring: CameraRing) -> None:
@@ -1286,6 +1436,18 @@ class RingLocalizer:
         those (ring_tf publishes them given the map file), else the ring file's
         ``extrinsics_std``. ``fusion: joint_exact_extrinsics`` takes them as exact.
         """
+        # The window's evidence is about the extrinsics in force: kept while they stay the same
+        # (tf may hand the same ring again), else started anew.
+        before = getattr(self, "_T_base_cam", None)
+        if before is None or set(before) != set(ring.names) or not all(
+                _same_pose(before[c.name], c.T_base_cam) for c in ring.cameras):
+            self.persistence = CalibrationPersistence(self.params.persistence_window)
+            #: The window's verdict after the last multi-camera frame: the ring's calibration is borne
+            #: out by the data (:meth:`_window_update`); the next frames are solved without its
+            #: uncertainty, the vibration's only.
+            self._calibration_cleared = False
+        #: Cameras the ring declares non-rigid (``wiggle``): the window never clears their frames.
+        self._wiggling = {c.name for c in ring.cameras if c.wiggle is not None}
         self.ring = ring
         self._T_cam_base = {c.name: c.T_cam_base for c in ring.cameras}
         self._T_base_cam = {c.name: np.asarray(c.T_base_cam, dtype=np.float64) for c in ring.cameras}
@@ -1295,18 +1457,35 @@ class RingLocalizer:
         self._ext_index: Dict[str, int] = {}
         self.extrinsics_source: Dict[str, str] = {c.name: "exact" for c in ring.cameras}
         self._ext_factor_any = False
+        self._vib_cov: Dict[str, Optional[np.ndarray]] = dict(self._ext_cov)
+        self._cal_cov: Dict[str, Optional[np.ndarray]] = dict(self._ext_cov)
+        self._vib_factor: Dict[str, Optional[np.ndarray]] = dict(self._ext_factor)
         if self.params.fusion != "joint":
             return
         for c in ring.cameras:
             self._ext_cov[c.name] = c.extrinsics_covariance
             self.extrinsics_source[c.name] = "ring file"
         self._use_map_covariance(ring)
+        # The ring file's calibration alone (declared, a guess: the window's verdict may leave it out;
+        # the map's covariance of its refined extrinsics is the mapping's estimate, and stays).
+        # A ring file declaring its calibration exact (std 0) has nothing to clear.
+        self._cal_cov = {n: C if self.extrinsics_source[n] == "ring file" and C is not None and np.any(C) else None
+                         for n, C in self._ext_cov.items()}
         p = self.params
         for c in ring.cameras:   # the ring's vibration: independent per camera and frame (no cross terms)
             self._ext_cov[c.name] = self._ext_cov[c.name] + jitter_covariance(
                 self._T_base_cam[c.name], np.radians(p.extrinsic_jitter_deg), p.extrinsic_jitter_m)
         self._ext_factor = {n: None if C is None else _psd_factor(C) for n, C in self._ext_cov.items()}
         self._ext_factor_any = any(F is not None for F in self._ext_factor.values())
+        # The vibration alone (what a frame is solved with once the window cleared the calibration).
+        self._vib_cov = {c.name: (jitter_covariance(self._T_base_cam[c.name], np.radians(p.extrinsic_jitter_deg),
+                                                    p.extrinsic_jitter_m)
+                                  if p.extrinsic_jitter_deg > 0 or p.extrinsic_jitter_m > 0 else None)
+                         for c in ring.cameras}
+        self._vib_factor = {n: None if C is None else _psd_factor(C) for n, C in self._vib_cov.items()}
+        for n, C in self._cal_cov.items():   # a camera whose calibration is the map's keeps it
+            if C is None:
+                self._vib_cov[n], self._vib_factor[n] = self._ext_cov[n], self._ext_factor[n]
 
     def _use_map_covariance(self, ring: CameraRing) -> None:
         """The map's covariance for the cameras whose extrinsics in force are the map's."""
@@ -1375,7 +1554,8 @@ class RingLocalizer:
                 continue
             ids = [int(o.marker_id) for o in obs]
             T_cam_base, T_base_cam = self._T_cam_base[name], self._T_base_cam[name]
-            ext_cov, ext_factor = self._ext_cov[name], self._ext_factor[name]
+            ext_cov, ext_factor = ((self._vib_cov[name], self._vib_factor[name]) if self._calibration_cleared
+                                   else (self._ext_cov[name], self._ext_factor[name]))
             moved = None if motion is None or cf.stamp == t_ref else motion(t_ref, float(cf.stamp))
             shared = None
             if moved is not None:
@@ -1571,6 +1751,7 @@ class RingLocalizer:
         result = LocalizationResult(stamp=float(ring_frame.stamp))
         views = self._gather(ring_frame, result.rejected, motion)
         self.last_views = views
+        result.calibration_cleared = self._calibration_cleared and any(self._cal_cov.get(n) is not None for n in views)
         result.marker_ids = sorted({i for v in views.values() for i in v.ids})
         if not views:
             return result
@@ -1738,11 +1919,31 @@ class RingLocalizer:
                 cov_map = problem.map_covariance(fit, T_bm)   # the map's error, carried to the pose
             if cov_map is not None:
                 cov = cov + cov_map
+            if self._calibration_cleared:
+                # The estimate does not weigh the calibration's error; the covariance still carries it.
+                H_cam = fit.H_cam if fit.H_cam is not None else \
+                    camera_blocks(problem, fit)[0] / (problem.sigma ** 2 * factor)
+                cov = cov + self._calibration_covariance(problem.views, H_cam)
         except (np.linalg.LinAlgError, MeasurementError):
             return None
         if not np.isfinite(rms) or rms > p.joint_outlier_threshold:
             return None
         return _JointSolution(problem, T_bm, fit, iters, rms, cov, outliers, sigma, gain)
+
+    def _calibration_covariance(self, views: Sequence[CameraView], H_cam: np.ndarray) -> np.ndarray:
+        """(6, 6) what the ring file's calibration error (its declared ``extrinsics_std``) does to a
+        pose whose estimate does not weigh it (the window cleared it): the pose responds to camera
+        c's error ``eta_c`` by ``K_c = H^-1 H_c`` (``H_cam``: the cameras' information in the model
+        solved, ``H`` their sum), so it adds ``sum_c K_c C_c K_c^T`` (the declared errors are
+        independent). The window cannot see the cameras' common error (a turn of the whole ring),
+        nor a calibration error too small for it: both stay in the covariance."""
+        K = np.linalg.solve(H_cam.sum(axis=0)[None], H_cam)   # (C, 6, 6)
+        out = np.zeros((6, 6))
+        for k, v in enumerate(views):
+            C = self._cal_cov.get(v.name)
+            if C is not None:
+                out += K[k] @ C @ K[k].T
+        return 0.5 * (out + out.T)
 
     def _solver(self, problem: JointProblem) -> JointProblem:
         """``problem`` at the pixel noise the solver weighs the pixels with: with
@@ -1820,11 +2021,15 @@ class RingLocalizer:
         independent errors)."""
         p = self.params
         problem = sol.problem
+        if self._calibration_cleared and problem.extrinsics_factor is None and len(problem.views) >= 2:
+            # Cleared, and the ring declares no vibration: the frame is exact already; the window goes on.
+            self._window_update(problem, sol.fit)
         if (not p.exact_when_consistent or p.fusion != "joint" or problem.extrinsics_factor is None
                 or len(problem.views) < 2):
             return sol
         exact = problem.exact()
         fit1 = test = None
+        recorded = False   # this frame in the window (persistence_window)
         try:
             start = sol.T_base_map
             if sol.fit.G_cam is not None and np.isfinite(sol.fit.r).all():
@@ -1835,6 +2040,7 @@ class RingLocalizer:
                 # the exact pose is solved from that step, and judged there as before.
                 T1, fit1, norm = exact.exact_step(sol.T_base_map, sol.fit, p.robust_scale)
                 test = extrinsics_consistency(exact, fit1)
+                recorded = self._window_update(exact, fit1)
                 if test is not None and test[0] > _F_CLEAR * _f_quantile(1.0 - p.consistency_alpha, test[1], test[2]):
                     return sol
                 start = T1
@@ -1852,6 +2058,8 @@ class RingLocalizer:
             return sol
         if fit is not fit1:
             test = extrinsics_consistency(exact, fit)
+        if not recorded:
+            self._window_update(exact, fit)
         if test is None or test[0] > _f_quantile(1.0 - p.consistency_alpha, test[1], test[2]):
             return sol
         rms = float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
@@ -1870,6 +2078,24 @@ class RingLocalizer:
             cov = cov - sol.shared_gain @ sol.shared_gain.T + gain @ gain.T
             cov = 0.5 * (cov + cov.T)
         return _JointSolution(exact, T_bm, fit, sol.iterations + iters, rms, cov, sol.outliers, shared_gain=gain)
+
+    def _window_update(self, exact: JointProblem, fit: JointFit) -> bool:
+        """This frame (``fit``: at the exact-extrinsics optimum of ``exact``, or the step to it) into
+        the window (:class:`CalibrationPersistence`), and the window's verdict for the next frames
+        (:attr:`calibration_cleared`): the ring's calibration is borne out when over the window the
+        cameras' disagreement does not follow them (``rho <= persistence_max`` over at least
+        ``persistence_min_pairs`` pairs of frames). A frame with a camera the ring declares
+        non-rigid (``wiggle``: it moves against the rig in every frame) is not recorded, and the
+        calibration stays. Returns whether the frame was recorded."""
+        p = self.params
+        if p.persistence_window <= 0 or any(v.name in self._wiggling for v in exact.views):
+            self._calibration_cleared = False
+            return False
+        G, b = camera_blocks(exact, fit)
+        self.persistence.add([v.name for v in exact.views], [v.ids for v in exact.views], G, b)
+        rho, pairs = self.last_persistence = self.persistence.correlation()
+        self._calibration_cleared = bool(pairs >= max(p.persistence_min_pairs, 1) and rho <= p.persistence_max)
+        return True
 
     def _finish_joint(self, result: LocalizationResult, sol: _JointSolution, per_camera: bool) -> None:
         problem = sol.problem
