@@ -47,7 +47,7 @@ from .anchors import load_anchors
 from .camera import CameraModel
 from .detections import CameraFrame, MarkerObservation, RingFrame, RingFrameAssembler, sanitize_observations
 from .errors import ConfigError, GeometryError, MeasurementError
-from .gating import GateDecision, MotionGate
+from .gating import REJECTED_AMBIGUOUS, REJECTED_JUMP, REJECTED_TILT, GateDecision, MotionGate
 from .kalman import PoseFilter
 from .localization import se2_covariance
 from .tracker6 import Tracker6, move_pose
@@ -922,10 +922,14 @@ class LocalizationPipeline(_RingPipeline):
         decision = track.decision
         if decision is not None and decision.accepted:
             self.last_update_now = float(now)
-        elif decision is not None:
+        elif decision is not None and decision.reason in (REJECTED_JUMP, REJECTED_TILT):
             self.warn("gate", f"localizer: measurement rejected by the gate (jump {decision.distance:.2f} m / "
                               f"{np.degrees(decision.angle):.1f} deg; allowed {decision.allowed_distance:.2f} m / "
                               f"{np.degrees(decision.allowed_angle):.1f} deg)", now)
+        elif decision is not None and decision.reason == REJECTED_AMBIGUOUS:
+            self.warn("ambiguous", "localizer: measurement not used: ambiguous (a single marker's two poses both fit "
+                                   "and nothing in the frame tells them apart)", now)
+        # (else the 6-DOF tracker's "pending": a track starts from init_count consistent measurements.)
         if track.pose is None:
             return []
         return [self._output(track)]
@@ -1060,7 +1064,10 @@ class LocalizationPipeline(_RingPipeline):
         if loc.ok:
             T_meas, cov, t_update, alternatives = loc.T_map_base, loc.covariance, stamp, loc.alternatives
             if ahead is not None:
-                T_meas, cov = move_pose(T_meas, cov, *ahead)
+                # The increment's own noise is not added: the track came to its stamp along the same
+                # increment, so that noise is in the prediction already and cancels in the innovation
+                # (adding it again would count it twice and underweight the measurement).
+                T_meas, cov = move_pose(T_meas, cov, ahead[0], np.zeros((6, 6)))
                 alternatives = [move_pose(A, None, *ahead)[0] for A in alternatives]
                 t_update = tracker.stamp
             out.decision = tracker.update(T_meas, t_update, cov, ambiguous=loc.ambiguous,

@@ -158,6 +158,32 @@ def test_follows_then_recovers_from_kidnap_then_resets_on_time_jump(setup):
     assert _err(out, _pose(0.0)) < 0.02, f"after the time jump: {out.T_map_base[:2, 3]}"
 
 
+@pytest.mark.parametrize("reason, key", [("jump", "gate"), ("ambiguous", "ambiguous"), ("pending", None)])
+def test_a_rejected_measurement_is_reported_for_what_it_is(setup, monkeypatch, reason, key):
+    """A jump is the gate's; an ambiguous pose is said to be ambiguous (not "rejected by the gate,
+    jump 0.00 m, allowed inf m"); the 6-DOF tracker waiting for its first consistent poses says nothing."""
+    from aruco_ring_localization.gating import GateDecision
+    scene, ring, sim = setup
+    p = LocalizationPipeline(_config(), ring, scene.truth_map())
+    said = []
+    monkeypatch.setattr(p, "warn", lambda k, message, now=None: said.append((k, message)))
+    real = p._track
+
+    def track(frame):
+        out = real(frame)
+        out.decision = (GateDecision(False, reason, 0.7, 0.1, 0.2, 0.05) if reason == "jump"
+                        else GateDecision(False, reason))
+        return out
+
+    monkeypatch.setattr(p, "_track", track)
+    feed_ring_frame(p, sim.observe(scene.T_world_base(_pose(0.0)), 0.0))
+    assert [k for k, _ in said if k in ("gate", "ambiguous")] == ([key] if key else []), said
+    if key == "gate":
+        assert "jump 0.70 m" in said[0][1] and "allowed 0.20 m" in said[0][1]
+    if key == "ambiguous":
+        assert "inf" not in said[0][1] and "ambiguous" in said[0][1]
+
+
 def test_no_markers_predicts_only(setup):
     scene, ring, sim = setup
     p = LocalizationPipeline(_config(), ring, scene.truth_map())
