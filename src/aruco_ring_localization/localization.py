@@ -536,6 +536,7 @@ class _Spectrum:
 
 
 _SKEW_TEMPLATE = np.zeros((0, 3, 7))
+_I6 = np.arange(6)
 
 
 def _skew_template(n: int) -> np.ndarray:
@@ -789,14 +790,38 @@ class JointProblem:
         off, seen on a real recording with eigenvalues 0.04 .. 2e15). ``Gb``: ``[G | b]`` (C, 6, 7)
         when the caller has it side by side already."""
         s2 = self.sigma ** 2
-        sp = self._spectrum(G, spectrum)
+        Gb = np.concatenate([G, b[:, :, None]], axis=2) if Gb is None else Gb
+        if spectrum is None or spectrum.L is not self.extrinsics_factor:
+            # No decomposition at hand (a fit at a new pose): with the Cholesky factor M = K K^T,
+            # G L M^-1 L^T G = Z^T Z for Z = K^-1 L^T G, and the same for b: one batched 6x6
+            # factorisation and triangular solve (~25 us for 8 cameras) where an eigen-decomposition
+            # costs twice that, needed only by the pixel-noise search (:meth:`_spectrum`, once per
+            # frame on the final fit). Refused as the spectrum's test below refuses: M not
+            # positive definite, or its pivots spanning more than 1 / machine epsilon.
+            if self._LT is None:
+                self._LT = np.ascontiguousarray(np.transpose(self.extrinsics_factor, (0, 2, 1)))
+            Q = np.matmul(self._LT, Gb)                      # L^T [G | b]
+            M = np.matmul(Q[:, :, :6], self.extrinsics_factor)
+            M[:, _I6, _I6] += s2
+            K = np.linalg.cholesky(M)                        # raises LinAlgError: not positive definite
+            piv = K[:, _I6, _I6]
+            piv = piv * piv
+            if not piv.min() > np.finfo(np.float64).eps * M[:, _I6, _I6].max():
+                raise np.linalg.LinAlgError("whitening: the 6x6 normal matrix is not positive definite")
+            Z = np.linalg.solve(K, Q)
+            Y = (Gb - np.matmul(np.transpose(Z[:, :, :6], (0, 2, 1)), Z)) / s2
+            H_cam, g = Y[:, :, :6], Y[:, :, 6]
+            chi2 = float(np.sum(q) - np.sum(Z[:, :, 6] * Z[:, :, 6])) / s2
+            if not np.isfinite(huber):
+                chi2 = np.inf
+            return JointFit(r, J, w, H_cam.sum(axis=0), g.sum(axis=0), chi2, chi2, H_cam, G, b, None)
+        sp = spectrum
         m = s2 + sp.lam
         if not m.min() > np.finfo(np.float64).eps * m.max():
             raise np.linalg.LinAlgError("whitening: the 6x6 normal matrix is not positive definite")
         d = 1.0 / m
         # [G | b] and Q = U^T L^T [G | b] = [P^T | beta] (P = G L U: G is symmetric): then
         # [H_c | g_c] s2 = [G | b] - P d [P^T | beta] in one product.
-        Gb = np.concatenate([G, b[:, :, None]], axis=2) if Gb is None else Gb
         Q = np.matmul(sp.LUT, Gb)
         Qd = Q * d[:, :, None]
         Y = (Gb - np.matmul(np.transpose(Q[:, :, :6], (0, 2, 1)), Qd)) / s2
@@ -819,7 +844,7 @@ class JointProblem:
             raise ValueError("pixel_noise_estimate needs a calibration model")
         rr = np.where(np.isfinite(fit.r), fit.r, 0.0)
         q = float(np.sum(fit.w * np.sum(rr * rr, axis=1)))
-        sp = self._spectrum(fit.G_cam, fit.spectrum)
+        sp = fit.spectrum = self._spectrum(fit.G_cam, fit.spectrum)   # kept: the refit at sigma reuses it
         b2 = (sp.beta(fit.b_cam) ** 2).ravel()   # (U^T L^T b)^2 per camera
         lam = sp.lam.ravel()
         dof = max(2 * self.n - 6, 1)
