@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 from dataclasses import dataclass
 from typing import Optional
 
@@ -53,6 +54,9 @@ logger = logging.getLogger(__name__)
 # State indices (the paper's order).
 IX, IY, IVX, IVY, IAX, IAY, IPHI, IW, IALPHA = range(9)
 _AXES = ((IX, IVX, IAX), (IY, IVY, IAY), (IPHI, IW, IALPHA))
+_POSE_ROWS = np.array([IX, IY, IPHI])
+_POSE_BLOCK = np.ix_(_POSE_ROWS, _POSE_ROWS)
+_VELOCITY_BLOCK = np.ix_(np.array([IVX, IVY, IW]), np.array([IVX, IVY, IW]))
 #: ``filter/model``: the paper's planar filter, or the 6-DOF tracker (:mod:`tracker6`).
 FILTER_MODELS = ("planar", "6dof")
 
@@ -148,33 +152,33 @@ class PoseFilter:
     @property
     def pose(self) -> np.ndarray:
         """(x, y, phi) of the current estimate."""
-        x = self.kf.x.ravel()
-        return np.array([x[IX], x[IY], geo.wrap_angle(float(x[IPHI]))])
+        x = self.kf.x[:, 0].tolist()   # scalars: a few array calls cost more than this arithmetic
+        return np.array([x[IX], x[IY], geo.wrap_angle(x[IPHI])])
 
     @property
     def velocity(self) -> np.ndarray:
         """(x', y', phi') in the map frame."""
-        x = self.kf.x.ravel()
+        x = self.kf.x[:, 0].tolist()
         return np.array([x[IVX], x[IVY], x[IW]])
 
     @property
     def body_twist(self) -> np.ndarray:
         """(v_forward, v_left, omega) in the robot frame (for nav_msgs/Odometry's twist)."""
-        vx, vy, w = self.velocity
-        c, s = np.cos(self.pose[2]), np.sin(self.pose[2])
+        x = self.kf.x[:, 0].tolist()
+        vx, vy, w = x[IVX], x[IVY], x[IW]
+        yaw = geo.wrap_angle(x[IPHI])
+        c, s = math.cos(yaw), math.sin(yaw)
         return np.array([c * vx + s * vy, -s * vx + c * vy, w])
 
     @property
     def covariance(self) -> np.ndarray:
         """3x3 covariance of (x, y, phi)."""
-        idx = np.array([IX, IY, IPHI])
-        return self.kf.P[np.ix_(idx, idx)].copy()
+        return self.kf.P[_POSE_BLOCK]   # advanced indexing: a copy
 
     @property
     def velocity_covariance(self) -> np.ndarray:
         """3x3 covariance of (x', y', phi')."""
-        idx = np.array([IVX, IVY, IW])
-        return self.kf.P[np.ix_(idx, idx)].copy()
+        return self.kf.P[_VELOCITY_BLOCK]
 
     # --- cycle ------------------------------------------------------------------------------
 
@@ -232,11 +236,9 @@ class PoseFilter:
         if self.stamp is None:
             raise ValueError("the filter is not initialised")
         dt = min(max(float(stamp) - self.stamp, 0.0), self.params.max_dt)
-        F = transition_matrix(dt)
-        # P = F P F^T + Q
-        P = F @ self.kf.P @ F.T + process_noise(dt, self.params.jerk_noise_xy, self.params.jerk_noise_yaw)
-        idx = np.array([IX, IY, IPHI])
-        return P[np.ix_(idx, idx)]
+        # P = F P F^T + Q, only its (x, y, phi) block: F's rows of x, y and phi, Q's block.
+        Fp = transition_matrix(dt)[_POSE_ROWS]
+        return Fp @ self.kf.P @ Fp.T + process_noise(dt, self.params.jerk_noise_xy, self.params.jerk_noise_yaw)[_POSE_BLOCK]
 
     def measurement_covariance(self, covariance: Optional[np.ndarray] = None) -> np.ndarray:
         """The R the filter uses for a measurement with estimator covariance ``covariance`` (3x3 or None)."""
