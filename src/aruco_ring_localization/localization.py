@@ -1333,6 +1333,8 @@ class RingLocalizer:
         """
         self.ring = ring
         self._verdict = None   # new extrinsics or their uncertainty: the consistency is tested again
+        #: camera names -> (:meth:`_cross_covariance` of views of those cameras,), for this ring.
+        self._cross_cache: Dict[Tuple[str, ...], tuple] = {}
         self._T_cam_base = {c.name: c.T_cam_base for c in ring.cameras}
         self._T_base_cam = {c.name: np.asarray(c.T_base_cam, dtype=np.float64) for c in ring.cameras}
         self._ext_cov: Dict[str, Optional[np.ndarray]] = {c.name: None for c in ring.cameras}
@@ -1379,15 +1381,24 @@ class RingLocalizer:
         """(6C, 6C) covariance between the views' extrinsic errors, diagonal blocks zero, or None."""
         if self._ext_full is None:
             return None
+        names = tuple(v.name for v in views)
+        hit = self._cross_cache.get(names)
+        if hit is not None:   # the same cameras as a recent frame: the same numbers (read-only)
+            return hit[0]
         idx = [self._ext_index.get(v.name) for v in views]
         if sum(i is not None for i in idx) < 2:
-            return None
-        C = len(views)
-        out = np.zeros((6 * C, 6 * C))
-        for a, ia in enumerate(idx):
-            for b, ib in enumerate(idx):
-                if a != b and ia is not None and ib is not None:
-                    out[6 * a:6 * a + 6, 6 * b:6 * b + 6] = self._ext_full[6 * ia:6 * ia + 6, 6 * ib:6 * ib + 6]
+            out = None
+        else:
+            C = len(views)
+            out = np.zeros((6 * C, 6 * C))
+            for a, ia in enumerate(idx):
+                for b, ib in enumerate(idx):
+                    if a != b and ia is not None and ib is not None:
+                        out[6 * a:6 * a + 6, 6 * b:6 * b + 6] = self._ext_full[6 * ia:6 * ia + 6, 6 * ib:6 * ib + 6]
+            out.flags.writeable = False
+        if len(self._cross_cache) >= 64:
+            self._cross_cache.clear()
+        self._cross_cache[names] = (out,)
         return out
 
     def _problem(self, views: Sequence[CameraView]) -> JointProblem:
