@@ -421,8 +421,8 @@ def test_a_trial_pose_that_cannot_be_whitened_shortens_the_step(lab, monkeypatch
 def test_a_clearly_inconsistent_verdict_is_reused_for_the_same_views_only(lab, monkeypatch):
     """RingLocalizer._exact_if_consistent: after a frame far beyond the consistency test's quantile
     (_F_REUSE times), the next _VERDICT_REUSE frames with the same cameras on the same markers take
-    its verdict untested, with the very poses the test would give; a frame with other markers, a new
-    ring, and a consistent rig are tested every time."""
+    its verdict untested, with the very poses the test would give; a frame with other markers, the
+    robot elsewhere, a new ring, and a consistent rig are tested every time."""
     from aruco_ring_localization import localization as lc
 
     scene, ring, truth = lab
@@ -449,6 +449,14 @@ def test_a_clearly_inconsistent_verdict_is_reused_for_the_same_views_only(lab, m
         assert not res.extrinsics_consistent
         assert np.array_equal(res.T_map_base, ref.process(f, prediction=T).T_map_base)
     monkeypatch.setattr(lc, "_VERDICT_REUSE", 4)
+    # The robot 2 cm away, the same markers in view: tested again.
+    on.process(frames[0], prediction=T)
+    calls.clear()
+    T_moved = T @ geo.transform_from_se2(0.02, 0.0, 0.0)
+    moved = RingSimulator(scene, bad_rig, SIGMA, seed=80).observe(T_moved, stamp=1.0)
+    assert sorted(moved.cameras) == sorted(frames[0].cameras)
+    on.process(moved, prediction=T_moved)
+    assert len(calls) == 1
     # Another set of markers (one camera's detections gone), or new extrinsics: tested again.
     on.process(frames[0], prediction=T)
     calls.clear()
