@@ -34,6 +34,7 @@ these records to rosout. Nothing here is thread-safe: a node calls a pipeline un
 from __future__ import annotations
 
 import logging
+import math
 import os
 import time
 from collections import deque
@@ -971,8 +972,9 @@ class LocalizationPipeline(_RingPipeline):
         motion = self._motion_model if self.config.motion.compensate_stamps else None
         check = self.marker_check
         loc = self.localizer.process(ring_frame if check is None else check.strip(ring_frame), pred, motion)
+        # (pose_distance's translation part, |t_pred - t_loc|, without its rotation angle and inverse)
         if check is not None and loc.ok and not loc.ambiguous and pred is not None and \
-                geo.pose_distance(loc.T_map_base, pred)[0] <= self.config.gate.base_distance:
+                math.sqrt(float(np.sum((pred[:3, 3] - loc.T_map_base[:3, 3]) ** 2))) <= self.config.gate.base_distance:
             # Moved-marker check (marker_check.py) on a measurement near the prediction, before the
             # filter: a marker declared moved now is dropped from this very frame's pose.
             speed, yaw_rate = self._speeds(stamp if self._clock is None else self._clock)

@@ -416,3 +416,62 @@ def test_a_trial_pose_that_cannot_be_whitened_shortens_the_step(lab, monkeypatch
     monkeypatch.setattr(JointProblem, "fit", broken_fit)
     with pytest.raises(MeasurementError):
         prob.solve(start, 8.0, 10)
+
+
+def test_a_clearly_inconsistent_verdict_is_reused_for_the_same_views_only(lab, monkeypatch):
+    """RingLocalizer._exact_if_consistent: after a frame far beyond the consistency test's quantile
+    (_F_REUSE times), the next _VERDICT_REUSE frames with the same cameras on the same markers take
+    its verdict untested, with the very poses the test would give; a frame with other markers, the
+    robot elsewhere, a new ring, and a consistent rig are tested every time."""
+    from aruco_ring_localization import localization as lc
+
+    scene, ring, truth = lab
+    T = scene.T_world_base(scene.test_positions[3])
+    calls = []
+    real = lc.extrinsics_consistency
+
+    def counted(problem, fit):
+        out = real(problem, fit)
+        calls.append(None if out is None else out[0] / lc._f_quantile(0.99, out[1], out[2]))
+        return out
+
+    monkeypatch.setattr(lc, "extrinsics_consistency", counted)
+    bad_rig = perturb_ring(ring, seed=9)
+    frames = [RingSimulator(scene, bad_rig, SIGMA, seed=70 + k).observe(T, stamp=0.1 * k) for k in range(7)]
+    on = RingLocalizer(ring, truth, LocalizationParams(pixel_noise=SIGMA))
+    got = [on.process(f, prediction=T) for f in frames[:6]]
+    assert calls and calls[0] > lc._F_REUSE, calls
+    assert len(calls) == 2, f"tested {len(calls)} times in 6 frames of the same views (ratios {calls})"
+    # Each reused verdict is the one the test gives: the same poses with the reuse off.
+    monkeypatch.setattr(lc, "_VERDICT_REUSE", 0)
+    ref = RingLocalizer(ring, truth, LocalizationParams(pixel_noise=SIGMA))
+    for res, f in zip(got, frames[:6]):
+        assert not res.extrinsics_consistent
+        assert np.array_equal(res.T_map_base, ref.process(f, prediction=T).T_map_base)
+    monkeypatch.setattr(lc, "_VERDICT_REUSE", 4)
+    # The robot 2 cm away, the same markers in view: tested again.
+    on.process(frames[0], prediction=T)
+    calls.clear()
+    T_moved = T @ geo.transform_from_se2(0.02, 0.0, 0.0)
+    moved = RingSimulator(scene, bad_rig, SIGMA, seed=80).observe(T_moved, stamp=1.0)
+    assert sorted(moved.cameras) == sorted(frames[0].cameras)
+    on.process(moved, prediction=T_moved)
+    assert len(calls) == 1
+    # Another set of markers (one camera's detections gone), or new extrinsics: tested again.
+    on.process(frames[0], prediction=T)
+    calls.clear()
+    fewer = frames[6]
+    name = max(fewer.cameras, key=lambda n: len(fewer.cameras[n].observations))
+    fewer.cameras[name].observations = []
+    on.process(fewer, prediction=T)
+    assert len(calls) == 1
+    on.process(fewer, prediction=T)
+    on.set_ring(ring)
+    on.process(fewer, prediction=T)
+    assert len(calls) == 2, calls
+    # A consistent rig: nothing is reused.
+    calls.clear()
+    good = RingLocalizer(ring, truth, LocalizationParams(pixel_noise=SIGMA))
+    for k in range(3):
+        good.process(RingSimulator(scene, ring, SIGMA, seed=90 + k).observe(T), prediction=T)
+    assert len(calls) == 3, calls
