@@ -5,6 +5,7 @@ Everything random here takes a ``numpy.random.Generator`` so that each test owns
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Optional
 
 import numpy as np
@@ -157,3 +158,29 @@ def synthetic_ba_problem(seed=0, noise=0.0, M=6, S=4, C=3, per=30, size=0.2, foc
     prob = BAProblem(T_mk, np.full(M, size), T_st, T_cams, np.array(om), np.array(os_), np.array(oc),
                      np.array(xy), np.full((n, 2), focal), fixed_marker=None, fixed_station=0)
     return prob, (T_mk, T_st, T_cams)
+
+
+def ba_jacobian_rows(model, rows: slice, seed: int = 1, spread: float = 0.05, h: float = 1e-6):
+    """A bundle-adjustment model's analytic Jacobian and its central differences, ``rows`` of both,
+    at a seeded random point ``spread`` (rad and m) from its start: ``(analytic, numeric)``."""
+    x = np.random.default_rng(seed).normal(0, spread, model.n_params)
+    J = model.jacobian(x).toarray()
+    Jn = np.stack([(model.residuals(x + h * e) - model.residuals(x - h * e)) / (2 * h)
+                   for e in np.eye(model.n_params)], axis=1)
+    return J[rows], Jn[rows]
+
+
+def ba_dense_reference(model, seed: int = 2) -> SimpleNamespace:
+    """A model's normal equations ``H, g`` and damped step ``dx`` (damping ``d``) at a seeded random
+    point with random weights, beside the dense ``J^T W J`` reference of each (``H_ref, g_ref,
+    dx_ref``): the tests compare them."""
+    rng = np.random.default_rng(seed)
+    x = rng.normal(0, 0.02, model.n_params)
+    r = model.residuals(x)
+    w = rng.uniform(0.1, 2.0, model.n_res)
+    H, g = model.normal_equations(x, r, w)
+    J = model.jacobian(x).toarray()
+    H_ref, g_ref = J.T @ (w[:, None] * J), J.T @ (w * r)
+    d = 1e-3 * np.maximum(np.diag(H_ref), 1e-12)
+    return SimpleNamespace(H=H, g=g, d=d, dx=model.solve_damped(H, -g, d), H_ref=H_ref, g_ref=g_ref,
+                           dx_ref=np.linalg.solve(H_ref + np.diag(d), -g_ref))
