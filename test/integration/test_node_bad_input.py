@@ -320,7 +320,9 @@ def test_repeated_camera_info_is_not_deserialised_and_a_change_is_applied(node, 
             reads.append(len(buff))
             return super().deserialize(buff)
 
-    monkeypatch.setattr(ring_input, "CameraInfo", CountingInfo)
+    from aruco_ring_localization.ros import conversions
+
+    monkeypatch.setattr(conversions, "CameraInfo", CountingInfo)   # where camera_info_from_bytes reads it
     monkeypatch.setattr(node.pipeline, "on_camera_info",
                         lambda cam, model: (applied.append(model), real_apply(cam, model))[1])
     info = _info(ring, "cam0")

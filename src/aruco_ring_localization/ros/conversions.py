@@ -57,6 +57,42 @@ _HEADER = struct.Struct("<4I")   # header.seq, header.stamp.secs, header.stamp.n
 _TAIL = struct.Struct("<iI")     # image_seq, len(fiducials)
 
 
+def _read_header(buff, after: int) -> Tuple[int, int, int, str, int]:
+    """A serialised message's std_msgs/Header: (seq, secs, nsecs, frame_id, offset after it); at
+    least ``after`` more bytes must follow. Raises :class:`MeasurementError` naming the field."""
+    n_bytes = len(buff)
+    if n_bytes < _HEADER.size:
+        raise MeasurementError(f"header: message of {n_bytes} bytes is shorter than a header")
+    seq, secs, nsecs, n_frame = _HEADER.unpack_from(buff, 0)
+    pos = _HEADER.size + n_frame
+    if n_bytes < pos + after:
+        raise MeasurementError(f"header.frame_id: {n_frame} bytes announced, message of {n_bytes} bytes")
+    return seq, secs, nsecs, bytes(buff[_HEADER.size:pos]).decode("utf-8", "rosmsg"), pos
+
+
+def type_mismatch(msg, cls) -> Optional[str]:
+    """None when the bytes ``msg`` (a ``rospy.AnyMsg``) are a ``cls`` (the publisher's md5sum), else
+    what they are instead: "from <publisher> is '<type>', not <cls type>"."""
+    header = getattr(msg, "_connection_header", None) or {}
+    if header.get("md5sum") == cls._md5sum:
+        return None
+    return f"from {header.get('callerid', '?')} is {header.get('type', '?')!r}, not {cls._type}"
+
+
+def camera_info_body(buff: bytes) -> bytes:
+    """A serialised camera_info's bytes after its header's seq and stamp (the first 12): equal for
+    two messages that differ only there (the intrinsics unchanged)."""
+    return buff[12:]
+
+
+def camera_info_from_bytes(buff: bytes) -> CameraInfo:
+    """A serialised sensor_msgs/CameraInfo, deserialised; :class:`MeasurementError` when unreadable."""
+    try:
+        return CameraInfo().deserialize(buff)
+    except (genpy.DeserializationError, struct.error, UnicodeDecodeError, ValueError) as exc:
+        raise MeasurementError(f"unreadable camera_info ({len(buff)} bytes): {exc}") from exc
+
+
 def fiducial_array_bytes_to_observations(buff: bytes, limit: Optional[int] = None
                                          ) -> Tuple[float, str, List[MarkerObservation]]:
     """A serialised fiducial_msgs/FiducialArray -> (header stamp s, header frame_id, observations).
@@ -67,13 +103,7 @@ def fiducial_array_bytes_to_observations(buff: bytes, limit: Optional[int] = Non
     per fiducial. Raises :class:`MeasurementError` naming the field for a message cut short.
     """
     n_bytes = len(buff)
-    if n_bytes < _HEADER.size:
-        raise MeasurementError(f"header: message of {n_bytes} bytes is shorter than a header")
-    _seq, secs, nsecs, n_frame = _HEADER.unpack_from(buff, 0)
-    start = _HEADER.size + n_frame
-    if n_bytes < start + _TAIL.size:
-        raise MeasurementError(f"header.frame_id: {n_frame} bytes announced, message of {n_bytes} bytes")
-    frame_id = bytes(buff[_HEADER.size:start]).decode("utf-8", "rosmsg")
+    _seq, secs, nsecs, frame_id, start = _read_header(buff, _TAIL.size)
     _image_seq, count = _TAIL.unpack_from(buff, start)
     start += _TAIL.size
     if n_bytes < start + count * FIDUCIAL_RECORD.itemsize:
@@ -277,16 +307,8 @@ def image_bytes_to_msg(buff: bytes) -> ImageBytes:
     """
     mv = memoryview(buff)
     n_bytes = len(mv)
-    if n_bytes < _HEADER.size:
-        raise MeasurementError(f"header: message of {n_bytes} bytes is shorter than a header")
-    seq, secs, nsecs, n_frame = _HEADER.unpack_from(mv, 0)
-    pos = _HEADER.size + n_frame
-    if n_bytes < pos + 12:
-        raise MeasurementError(f"header.frame_id: {n_frame} bytes announced, message of {n_bytes} bytes")
-    header = Header()
-    header.seq = seq
-    header.stamp = rospy_time(secs, nsecs)
-    header.frame_id = bytes(mv[_HEADER.size:pos]).decode("utf-8", "rosmsg")
+    seq, secs, nsecs, frame_id, pos = _read_header(mv, 12)
+    header = Header(seq=seq, stamp=rospy_time(secs, nsecs), frame_id=frame_id)
     height, width, n_enc = struct.unpack_from("<3I", mv, pos)
     pos += 12
     if n_bytes < pos + n_enc + _STEP.size + _U32.size:

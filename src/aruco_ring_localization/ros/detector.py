@@ -32,13 +32,13 @@ The logic is in :class:`DetectorCore` (no rospy; messages are duck-typed); the b
 from __future__ import annotations
 
 import logging
-import struct
 import time
 from dataclasses import dataclass
 from typing import Callable, List, Optional, Sequence
 
 import genpy
 import numpy as np
+from std_msgs.msg import Header
 
 from ..camera import CameraModel
 from ..detection import Detector, MarkerPose, TrackingDetector, annotate, marker_poses
@@ -46,7 +46,8 @@ from ..detections import MarkerObservation
 from ..errors import ArucoRingError, ConfigError, MeasurementError
 from ..schemas import DetectorConfig
 from ..throttle import ThrottledWarnings
-from .conversions import image_bytes_to_msg, image_msg_to_gray
+from .conversions import (camera_info_body, camera_info_from_bytes, image_bytes_to_msg, image_msg_to_gray,
+                          type_mismatch)
 
 logger = logging.getLogger(__name__)
 
@@ -197,8 +198,6 @@ class DetectorCore:
 def _header_copy(header):
     """A new std_msgs/Header with the same seq, stamp and frame_id (copy.deepcopy's result, in a
     tenth of its time)."""
-    from std_msgs.msg import Header
-
     return Header(seq=header.seq, stamp=genpy.Time(header.stamp.secs, header.stamp.nsecs),
                   frame_id=header.frame_id)
 
@@ -280,11 +279,10 @@ class DetectorNode:
     def _of_type(self, msg, cls, topic: str) -> bool:
         """Whether the bytes ``msg`` on ``topic`` are a ``cls`` (the publisher's md5sum); else a
         throttled warning naming the publisher and its type, and False."""
-        header = getattr(msg, "_connection_header", None) or {}
-        if header.get("md5sum") == cls._md5sum:
+        wrong = type_mismatch(msg, cls)
+        if wrong is None:
             return True
-        self.core.warnings(f"{topic}.type", f"{self.core.name}: {topic} from {header.get('callerid', '?')} is "
-                                            f"{header.get('type', '?')!r}, not {cls._type}: ignored")
+        self.core.warnings(f"{topic}.type", f"{self.core.name}: {topic} {wrong}: ignored")
         return False
 
     def on_camera_info_bytes(self, msg) -> None:
@@ -292,14 +290,13 @@ class DetectorNode:
         after the header's seq and stamp are compared, so a new stamp alone is no change."""
         from sensor_msgs.msg import CameraInfo
 
-        body = msg._buff[12:]
+        body = camera_info_body(msg._buff)
         if body == self._info_body or not self._of_type(msg, CameraInfo, "camera_info"):
             return
         try:
-            info = CameraInfo().deserialize(msg._buff)
-        except (genpy.DeserializationError, struct.error, UnicodeDecodeError, ValueError) as exc:
-            self.core.warnings("camera_info.other", f"{self.core.name}: unreadable camera_info "
-                                                    f"({len(msg._buff)} bytes): {exc}")
+            info = camera_info_from_bytes(msg._buff)
+        except MeasurementError as exc:
+            self.core.warnings("camera_info.other", f"{self.core.name}: {exc}")
             return
         self._info_body = body if self.core.on_camera_info(info) else None
 

@@ -38,20 +38,19 @@ is converted only up to ``input/max_detections`` + 1 quads (the pipeline drops a
 from __future__ import annotations
 
 import collections
-import struct
 import threading
 from typing import Any, Callable, Dict, List, Optional, Set
 
-import genpy
 import numpy as np
 import rospy
 import tf2_ros
 from fiducial_msgs.msg import FiducialArray
 from sensor_msgs.msg import CameraInfo
 
-from ..errors import ArucoRingError
-from .conversions import (camera_info_to_model, fiducial_array_bytes_to_observations, fiducial_array_to_observations,
-                          msg_to_transform, stamp_to_sec)
+from ..errors import ArucoRingError, MeasurementError
+from .conversions import (camera_info_body, camera_info_from_bytes, camera_info_to_model,
+                          fiducial_array_bytes_to_observations, fiducial_array_to_observations, msg_to_transform,
+                          stamp_to_sec, type_mismatch)
 
 WARN_PERIOD = 5.0  # s between repeats of one throttled warning
 
@@ -224,17 +223,15 @@ class RingSubscriber:
         """camera_info as bytes: dropped at once when all but the header's seq and stamp (its first
         12 bytes) are those of the last message applied; else type-checked, deserialised and
         handed to :meth:`_on_camera_info`."""
-        buff = msg._buff
-        body = buff[12:]
+        body = camera_info_body(msg._buff)
         if self._info_bytes.get(camera) == body:
             return
         if not self._of_type(msg, CameraInfo, camera, "camera_info"):
             return
         try:
-            info = CameraInfo().deserialize(buff)
-        except (genpy.DeserializationError, struct.error, UnicodeDecodeError, ValueError) as exc:
-            rospy.logwarn_throttle(WARN_PERIOD, f"{self._name}: {camera}: unreadable camera_info "
-                                                f"({len(buff)} bytes): {exc}")
+            info = camera_info_from_bytes(msg._buff)
+        except MeasurementError as exc:
+            rospy.logwarn_throttle(WARN_PERIOD, f"{self._name}: {camera}: {exc}")
             return
         if self._on_camera_info(info, camera):
             self._info_bytes[camera] = body
@@ -279,11 +276,10 @@ class RingSubscriber:
     def _of_type(self, msg: rospy.AnyMsg, cls, camera: str, topic: str) -> bool:
         """Whether the bytes ``msg`` on ``camera``'s ``topic`` are a ``cls`` (the publisher's md5sum);
         else warned about (throttled, naming the publisher and its type) and False."""
-        header = getattr(msg, "_connection_header", None) or {}
-        if header.get("md5sum") == cls._md5sum:
+        wrong = type_mismatch(msg, cls)
+        if wrong is None:
             return True
-        rospy.logwarn_throttle(WARN_PERIOD, f"{self._name}: {camera}: {topic} from {header.get('callerid', '?')} is "
-                                            f"{header.get('type', '?')!r}, not {cls._type}: ignored")
+        rospy.logwarn_throttle(WARN_PERIOD, f"{self._name}: {camera}: {topic} {wrong}: ignored")
         return False
 
     def _on_fiducials_raw(self, msg: rospy.AnyMsg, camera: str) -> None:
