@@ -36,12 +36,13 @@ def _big_map(version: int) -> MarkerMap:
     return MarkerMap(entries, reference_marker=0, method=f"version {version}")
 
 
-def _save_forever(path: str, start: int) -> None:  # runs in the forked child
+def _save_forever(path: str, start: int, saves) -> None:  # runs in the forked child
     version = start
     while True:
         # x counts the saves, beyond any hall: this test is about atomic writes, not the sanity checks.
         _big_map(version).save(path, MapSanityLimits(max_extent=1e12))
         version += 1
+        saves.value = version - start
 
 
 def _check_whole(path: str) -> int:
@@ -62,8 +63,16 @@ def test_sigkill_during_repeated_saves_always_leaves_a_loadable_map(tmp_path):
     ctx = multiprocessing.get_context("fork")  # the child inherits the imports: starts in ms
     versions = []
     for k in range(KILLS):
-        child = ctx.Process(target=_save_forever, args=(path, 1000 * (k + 1)))
+        saves = ctx.Value("i", 0)
+        child = ctx.Process(target=_save_forever, args=(path, 1000 * (k + 1), saves))
         child.start()
+        if k % 2:
+            # Every other kill after the child's first complete save, so that on a loaded machine
+            # (where forking alone can outlast a few saves) some kills still land on a new version.
+            deadline = time.monotonic() + 60.0
+            while saves.value < 1 and time.monotonic() < deadline and child.is_alive():
+                time.sleep(0.001)
+            assert saves.value >= 1, "the child saved nothing in 60 s"
         # Kill anywhere within the first few saves (a save takes save_s; the instant is seeded).
         time.sleep(float(rng.uniform(0.0, 2.5 * save_s)))
         os.kill(child.pid, signal.SIGKILL)

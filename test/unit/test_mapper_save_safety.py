@@ -36,13 +36,14 @@ def _builder():
     return b, sim, poses
 
 
-def _map_and_save_forever(b: MapBuilder, sim: RingSimulator, poses, path: str) -> None:  # forked child
+def _map_and_save_forever(b: MapBuilder, sim: RingSimulator, poses, path: str, saves) -> None:  # forked child
     k = 0
     while True:
         # The mapper keeps receiving frames between saves: each save writes a different map.
         b.add_frame(sim.observe(poses[k % len(poses)], stamp=1.0 + 0.1 * k), station=k % len(poses))
         b.save_map(path)
         k += 1
+        saves.value = k
 
 
 def _check_whole(path: str, ids) -> int:
@@ -63,8 +64,16 @@ def test_sigkill_while_mapping_and_saving_leaves_a_loadable_map(tmp_path):
     ctx = multiprocessing.get_context("fork")  # the child inherits the builder and its frames
     totals = [_check_whole(path, ids)]
     for k in range(KILLS):
-        child = ctx.Process(target=_map_and_save_forever, args=(b, sim, poses, path))
+        saves = ctx.Value("i", 0)
+        child = ctx.Process(target=_map_and_save_forever, args=(b, sim, poses, path, saves))
         child.start()
+        if k % 2:
+            # Every other kill after the child's first complete save, so that on a loaded machine
+            # (where forking alone can outlast a few saves) some kills still land on a new map.
+            deadline = time.monotonic() + 60.0
+            while saves.value < 1 and time.monotonic() < deadline and child.is_alive():
+                time.sleep(0.001)
+            assert saves.value >= 1, "the child saved nothing in 60 s"
         time.sleep(float(rng.uniform(0.0, 3.0 * cycle_s)))
         os.kill(child.pid, signal.SIGKILL)
         child.join(5.0)
