@@ -446,6 +446,35 @@ def test_poll_timer_skips_a_poll_that_could_find_nothing_new(node, world, monkey
     assert node.pipeline.last_track.stamp == pytest.approx(msgs[ring.names[0]].header.stamp.to_sec())
 
 
+def test_poll_timer_queues_no_call_when_nothing_ran_since_the_last_poll(node, world, monkeypatch):
+    """The timer's second firing at one clock value takes neither lock (no call queued); a call
+    waiting in the inbox, one that ran since, or a clock that moved makes it poll again."""
+    _, ring, _ = world
+    clock = [time.time()]
+    ri = node.ring_input
+    monkeypatch.setattr(ri, "now", lambda: clock[0])
+    ri._periodic.clear()
+    calls = []
+    real_call = ri.call
+    monkeypatch.setattr(ri, "call", lambda fn, *a: (calls.append(getattr(fn, "__name__", fn)), real_call(fn, *a))[1])
+    ri._on_timer(None)
+    ri._on_timer(None)   # same clock, nothing in between: no call at all
+    assert calls == ["_poll"]
+    from aruco_ring_localization.ros.ring_input import _Call
+    ri._inbox.append(_Call(lambda: None, ()))   # a call that arrived, not yet run
+    assert not ri._idle_since_poll()
+    ri._on_timer(None)   # polls, after running the waiting call
+    assert calls == ["_poll", "_poll"] and not ri._inbox
+    ri._on_timer(None)
+    assert calls == ["_poll", "_poll"]
+    node.on_cmd_vel(mock.MagicMock(**{"linear.x": 0.0, "linear.y": 0.0, "angular.z": 0.0}))
+    ri._on_timer(None)   # a call ran since
+    assert calls == ["_poll", "_poll", "on_motion", "_poll"]
+    clock[0] += 0.05
+    ri._on_timer(None)   # the clock moved
+    assert calls[-1] == "_poll" and len(calls) == 5
+
+
 def test_localizer_node_publishes_diagnostics_and_markers_from_the_poll_timer(node):
     names = [getattr(fn, "__name__", "") for _, fn, _ in node.ring_input._periodic]
     assert names == ["publish_diagnostics", "publish_markers"], names

@@ -168,8 +168,10 @@ class RingSubscriber:
             # Only the lock's holder pops; others append under the inbox lock (deque's append and
             # popleft are atomic), so the inbox lock is not needed here.
             while inbox:
-                c = inbox.popleft()
+                # Counted before it leaves the inbox: a call is always either waiting there or in
+                # _runs (what _on_timer's lock-free test of "nothing ran since the last poll" reads).
                 self._runs += 1
+                c = inbox.popleft()
                 try:
                     c.out = c.fn(*c.args)
                 except Exception as exc:  # noqa: BLE001 - handed to the caller's thread below
@@ -329,11 +331,26 @@ class RingSubscriber:
         self._polled = (now, self._runs)
         return self.pipeline.poll(now)
 
+    def _idle_since_poll(self) -> bool:
+        """Whether the last poll ran at the clock's present value and no pipeline call ran or waits
+        since: a poll now would be skipped by :meth:`_poll`. Read without the lock, in this order
+        (the inbox, then the count of calls run, then the last poll): a call that is neither in the
+        inbox nor counted has not arrived yet, so a poll skipped here stands for one that came just
+        before it."""
+        if self._inbox:
+            return False
+        runs = self._runs
+        polled = self._polled
+        return polled is not None and polled[1] == runs and polled[0] == self.now()
+
     def _on_timer(self, _event) -> None:
-        try:
-            self.call(self._poll, NOW)
-        except ArucoRingError as exc:
-            rospy.logwarn_throttle(WARN_PERIOD, f"{self._name}: {exc}")
+        # Under use_sim_time the 20 Hz timer fires twice per 10 Hz /clock step: the second firing
+        # would queue a call and take both locks only for _poll to skip it.
+        if not self._idle_since_poll():
+            try:
+                self.call(self._poll, NOW)
+            except ArucoRingError as exc:
+                rospy.logwarn_throttle(WARN_PERIOD, f"{self._name}: {exc}")
         if self._periodic:
             now = self.now()
             for task in self._periodic:
