@@ -80,3 +80,8 @@ def test_smooth_with_a_wrong_odometry_topic_names_it(ring_file, tmp_path, capsys
     err = capsys.readouterr().err
     assert "odometry topic /odom" in err and "/fla/vio/odom" in err, err
     assert not out.exists()
+
+
+def test_smooth_refuses_the_per_frame_outputs(ring_file, tmp_path, capsys):
+    assert _localize(ring_file, tmp_path / "x.tum", "--smooth", "--output", "measurement") == 1
+    assert "--output and --csv do not apply" in capsys.readouterr().err

@@ -159,7 +159,8 @@ def test_smoother_equals_a_dense_reference_solve(walk):
     model = _Model(built.problem, built.options)
     assert model.n_marker_params == 0 and model.n_params == 6 * len(frames)
     ref = least_squares(model.residuals, np.zeros(model.n_params), jac=lambda x: model.jacobian(x).toarray(),
-                        method="trf", loss="huber", f_scale=built.options.robust_scale, x_scale="jac", ftol=1e-15, xtol=1e-15, gtol=1e-15, max_nfev=200)
+                        method="trf", loss="huber", f_scale=built.options.robust_scale, x_scale="jac",
+                        ftol=1e-15, xtol=1e-15, gtol=1e-15, max_nfev=200)
     (_, _, _), (_, Rs, ts, _), _ = model.poses(ref.x)
     r = model.residuals(ref.x)
     assert np.max(np.linalg.norm(r[model.n_res - model.n_odo_res:].reshape(-1, 6), axis=1)) < 3.0

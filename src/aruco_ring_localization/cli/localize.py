@@ -169,6 +169,8 @@ def run_smooth(args: argparse.Namespace) -> int:
     from ..ros.bag_source import POSE_FIELDS, BagSource, package_file, read_reference
     from ..smoother import SmootherOptions, odometry_track, smooth_trajectory
 
+    if args.output != "filtered" or args.csv:
+        raise ConfigError("--smooth writes the smoothed poses: --output and --csv do not apply to it")
     config = load_config(args)
     ring = CameraRing.load(args.ring or config.ring_file or package_file("config", "ring.yaml"))
     marker_map = MarkerMap.load(args.map_file)
