@@ -220,14 +220,17 @@ def write_camera_poses(ref: Reference, path: str, header: str = "") -> str:
 
 
 def export_test_data(test: str, out_dir: str, every: int = 1, max_frames: int = 0,
-                     start: Optional[float] = None, stop: Optional[float] = None) -> List[str]:
+                     start: Optional[float] = None, stop: Optional[float] = None,
+                     odometry: bool = False) -> List[str]:
     """Copy what a unit test needs of ``test`` into ``out_dir`` (small, self-contained).
 
     Files: ``cameras.yaml`` and ``tagslam.yaml`` (as published), ``camera_poses.yaml`` (TagSLAM's
     optimized camera poses, in TagSLAM's format), ``tags.yaml`` (TagSLAM's tag poses as a marker
     map), ``rig_poses.tum`` (its rig poses) and ``tag_detections.bag`` (every ``every``-th frame,
     at most ``max_frames``, bz2-compressed chunks: rosbag reads it directly); ``start`` / ``stop``
-    (s, the detections' stamps): only the frames in that window.
+    (s, the detections' stamps): only the frames in that window. ``odometry``: the bag also holds
+    the rig body's odometry (tagslam.yaml's ``odom_topic``, unchanged messages) from 0.5 s before the
+    first kept frame to 0.5 s after the last.
     """
     import rosbag
     import yaml
@@ -259,6 +262,16 @@ def export_test_data(test: str, out_dir: str, every: int = 1, max_frames: int = 
         for topic, msg, t in bag.read_messages(topics=topics):
             if msg.header.stamp.to_nsec() in kept_stamps:
                 out.write(topic, msg, t)
+        if odometry and keep:
+            from aruco_ring_localization.importers.tagslam import tagslam_odometry
+
+            found = tagslam_odometry(os.path.join(src, "tagslam.yaml"), ref.rig_body)
+            if found is None:
+                raise ValueError(f"{test}: its rig body has no odom_topic")
+            lo, hi = keep[0] - 0.5e9, keep[-1] + 0.5e9
+            for topic, msg, t in bag.read_messages(topics=[found.topic]):
+                if lo <= msg.header.stamp.to_nsec() <= hi:
+                    out.write(topic, msg, t)
     sel = [k for k, s in enumerate(ref.stamps) if int(round(s * 1e9)) in kept_stamps or
            min(abs(int(round(s * 1e9)) - x) for x in kept_stamps) < 1000]
     write_tum_poses(os.path.join(out_dir, "rig_poses.tum"), ref.stamps[sel], ref.T_map_rig[sel],

@@ -240,6 +240,10 @@ class BAProblem:
             refined, rotation (rad) then translation (m), per axis of the base frame (the
             perturbation ``R = exp(w) R0``, ``t = t0 + dt``): a calibration stated per camera (the
             ring file's ``extrinsics_std``); default: ``BAOptions.extrinsics_*_sigma`` for every camera.
+        hold_markers: every marker held at ``T_W_markers`` (no marker unknowns; ``fixed_marker`` is
+            then moot): the localization setting, the map given and only the stations (and the
+            cameras when refined) estimated -- the smoothing of a trajectory on a map
+            (:mod:`smoother`). The markers are then the gauge.
     """
 
     T_W_markers: np.ndarray
@@ -259,6 +263,7 @@ class BAProblem:
     odometry: Optional[RelativePoseFactors] = None
     obs_object: Optional[np.ndarray] = None
     extrinsics_sigma: Optional[np.ndarray] = None
+    hold_markers: bool = False
 
 
 @dataclass(frozen=True)
@@ -343,7 +348,8 @@ class _Model:
         if N == 0:
             raise GeometryError("bundle adjustment needs at least one observation")
         priors = prob.priors if prob.priors is not None and prob.priors.n_residuals else None
-        if prob.fixed_marker is None and prob.fixed_station is None and not opts.refine_extrinsics and priors is None:
+        if prob.fixed_marker is None and prob.fixed_station is None and not opts.refine_extrinsics and priors is None \
+                and not prob.hold_markers:
             raise GeometryError("bundle adjustment needs a gauge: a fixed marker, a fixed station or priors")
         self.priors = priors
         self.M, self.S, self.C, self.N = M, S, C, N
@@ -353,7 +359,7 @@ class _Model:
         self.col_c = np.full(C, -1)
         col = 0
         for i in range(M):
-            if i != prob.fixed_marker:
+            if i != prob.fixed_marker and not prob.hold_markers:
                 self.col_m[i] = col
                 col += 6
         self.n_marker_params = col
