@@ -419,7 +419,7 @@ def objective(test: str, frames_sel: str, iterations: int = 50) -> None:
         nc = 8 * len(model.p.obs_frame)
         cc, cp = float(r[:nc] @ r[:nc]), float(r[nc:] @ r[nc:])
         print(f"  ({k}) {names[k]}: {cc + cp:.1f} = corners {cc:.1f} + tag play priors {cp:.1f}; corner RMS "
-              f"{float(np.sqrt(np.mean(np.square(r[:nc])))) * model.px:.3f} px; vs TagSLAM "
+              f"{float(np.sqrt(2.0 * np.mean(np.square(r[:nc])))) * model.px:.3f} px (per corner); vs TagSLAM "
               f"{map_error(maps[k], truth, best_fit=True)['position_rms_mm']:.2f} mm", flush=True)
     if frames_sel == "all":   # the minimum from the package's map, to compare other maps with it
         maps["d"].save(os.path.join(bench_real.OUT, test, "objective_min.yaml"))

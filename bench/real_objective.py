@@ -156,7 +156,7 @@ class Objective:
         rc, rp, ro = self.residuals(Tb, Tt)
         c = {"corners": float(rc @ rc), "tag_priors": float(rp @ rp), "odometry": float(ro @ ro)}
         c["total"] = c["corners"] + c["tag_priors"] + c["odometry"]
-        c["corner_rms_px"] = float(np.sqrt(np.mean(np.square(rc))) * self.px)
+        c["corner_rms_px"] = float(np.sqrt(2.0 * np.mean(np.square(rc))) * self.px)   # per corner
         return c
 
     def _sparsity(self) -> None:
