@@ -23,8 +23,16 @@ Started from the package's map (``results/bench/real/<test>/map.yaml``, written 
 both says the answer is the model's, not the start's. Levenberg-Marquardt on the sparse normal
 equations, the Jacobian by finite differences over columns that share no residual.
 
+``--objective``: TagSLAM's stated problem (loose boards, its pixel_noise, plain least squares) at
+TagSLAM's answer (its tags, its rig poses where it has them, the other frames fitted alone; each
+board's frame the one that costs its tags' play least, TagSLAM's board poses not being in its
+answer), at the package's map (every rig pose fitted alone), and the minima of a full solve from
+each: is either answer the optimum of that problem (bench/real_objective.py for the recordings
+without boards)? With ``--frames all`` the minimum from the package's map is written to
+``results/bench/real/<test>/objective_min.yaml``.
+
 Usage: ``python bench/real_board_model.py test_24 [--init tagslam] [--models exact,loose,scaled]
-[--frames all,tagslam]``.
+[--frames all,tagslam] [--objective]``.
 """
 from __future__ import annotations
 
@@ -32,7 +40,7 @@ import argparse
 import os
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Sequence, Tuple
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -88,6 +96,7 @@ class Problem:
     T_W_board0: np.ndarray     # (B, 4, 4)
     gauge: int
     distances: List[Tuple[int, np.ndarray, int, np.ndarray, float, float]]   # (tag a, point, tag b, point, m, std)
+    stamps: np.ndarray = field(default_factory=lambda: np.zeros(0))   # (F,) each frame's stamp, s
 
 
 def build(test: str, init: str, frames_sel: str,
@@ -155,7 +164,7 @@ def build(test: str, init: str, frames_sel: str,
                 dist.append((tix[d.a.marker_id], d.a.local(sizes(d.a.marker_id)), tix[d.b.marker_id],
                              d.b.local(sizes(d.b.marker_id)), float(d.distance), float(d.std)))
     prob = Problem(tag_ids, board, layout, corners, noise, obs_frame, obs_tag, oc, np.array(opx), T_W_base0,
-                   T_W_board0, int(np.argmax(counts)), dist)
+                   T_W_board0, int(np.argmax(counts)), dist, np.array([f.stamp for f in fr]))
     return prob, truth, sizes, float(tags.pixel_noise or 1.0)
 
 
@@ -286,25 +295,34 @@ class Model:
         return sp.csr_matrix((np.concatenate(data), (np.concatenate(ri), np.concatenate(ci))), shape=(self.m, self.n))
 
 
-def solve(model: Model, iterations: int = 50) -> Tuple[np.ndarray, float, int]:
-    """Levenberg-Marquardt from zero; (x, cost, iterations)."""
-    x = np.zeros(model.n)
+def solve(model: Model, iterations: int = 50, x0: Optional[np.ndarray] = None,
+          free: Optional[np.ndarray] = None) -> Tuple[np.ndarray, float, int]:
+    """Levenberg-Marquardt from ``x0`` (zero: the starting values) over the columns ``free`` (all by
+    default); (x, cost, iterations)."""
+    x = np.zeros(model.n) if x0 is None else np.array(x0, dtype=float)
     r = model.residuals(x)
     cost, lam = 0.5 * float(r @ r), 1e-3
     for it in range(1, iterations + 1):
         J = model.jacobian(x, r)
+        if free is not None:
+            J = J.tocsc()[:, free].tocsr()
         H = (J.T @ J).tocsc()
         g = J.T @ r
         d = H.diagonal()
         floor = 1e-9 * float(d.max()) * (d == 0)
         done = False
         while True:
-            dx = spla.spsolve(H + sp.diags(lam * d + floor), -g)
-            r2 = model.residuals(x + dx)
+            step = spla.spsolve(H + sp.diags(lam * d + floor), -g)
+            x2 = x.copy()
+            if free is None:
+                x2 += step
+            else:
+                x2[free] += step
+            r2 = model.residuals(x2)
             c2 = 0.5 * float(r2 @ r2)
             if c2 < cost:
                 done = cost - c2 < 1e-9 * cost
-                x, r, cost, lam = x + dx, r2, c2, max(lam / 3.0, 1e-9)
+                x, r, cost, lam = x2, r2, c2, max(lam / 3.0, 1e-9)
                 break
             lam *= 4.0
             if lam > 1e8:
@@ -315,6 +333,108 @@ def solve(model: Model, iterations: int = 50) -> Tuple[np.ndarray, float, int]:
     return x, cost, iterations
 
 
+def x_at(model: Model, T_W_base: np.ndarray, T_W_tag: np.ndarray) -> np.ndarray:
+    """The parameters that put the rig at ``T_W_base`` (F, 4, 4) and the tags at ``T_W_tag`` (T, 4, 4)
+    (loose model): each board's frame the rigid fit of its layout onto those tags (the gauge board
+    stays at its starting pose, so the problem must start from the same map), each tag's deviation
+    from it the rest."""
+    p = model.p
+    x = np.zeros(model.n)
+    dR = np.einsum("nij,nkj->nik", T_W_base[:, :3, :3], p.T_W_base0[:, :3, :3])
+    x[:6 * model.nF] = np.concatenate([Rotation.from_matrix(dR).as_rotvec(),
+                                       T_W_base[:, :3, 3] - p.T_W_base0[:, :3, 3]], axis=1).ravel()
+    from scipy.optimize import least_squares
+
+    Tb = p.T_W_board0.copy()
+    for b in range(model.nB):
+        on = np.flatnonzero(p.board == b)
+        T0 = geo.rigid_fit([p.layout[t][:3, 3] for t in on], [T_W_tag[t][:3, 3] for t in on])
+        on = [t for t in on if t in model.tpos]
+
+        def play(v, T0=T0, on=on):   # the board's tags' play priors with the board frame at exp(v) T0
+            T = _exp(v[None], T0[None])[0]
+            D = [geo.inverse(T @ p.layout[t]) @ T_W_tag[t] for t in on]
+            return np.concatenate([np.r_[Rotation.from_matrix(d[:3, :3]).as_rotvec() / p.noise[t, 1],
+                                         d[:3, 3] / p.noise[t, 0]] for t, d in zip(on, D)])
+
+        # The board frame that costs the tags' play least (the tags held): TagSLAM's board pose is
+        # not in its answer.
+        Tb[b] = _exp(least_squares(play, np.zeros(6)).x[None], T0[None])[0] if on else T0
+        if b == p.gauge:
+            p.T_W_board0[b] = Tb[b]
+    for b in model.bvar:
+        v = np.r_[Rotation.from_matrix(Tb[b][:3, :3] @ p.T_W_board0[b][:3, :3].T).as_rotvec(),
+                  Tb[b][:3, 3] - p.T_W_board0[b][:3, 3]]
+        x[model.boff[b]:model.boff[b] + 6] = v
+    for t in model.loose:
+        D = geo.inverse(Tb[p.board[t]] @ p.layout[t]) @ T_W_tag[t]
+        x[model.tpos[int(t)]:model.tpos[int(t)] + 6] = np.r_[Rotation.from_matrix(D[:3, :3]).as_rotvec(), D[:3, 3]]
+    return x
+
+
+def objective(test: str, frames_sel: str, iterations: int = 50) -> None:
+    """TagSLAM's stated problem (loose boards, its pixel_noise, plain least squares) evaluated at
+    (a) TagSLAM's answer (its tags; its rig poses where it has them, the others fitted alone),
+    (b) the package's map (every rig pose fitted alone), (c) the minimum from (a), (d) from (b):
+    costs (chi^2 = 2 x the solver's cost) and the map RMS between each pair (bench/real_objective.py
+    does the same for the recordings without boards)."""
+    t0 = time.process_time()
+    answers: Dict[str, Tuple[Model, np.ndarray]] = {}
+    for init in ("tagslam", "ours"):
+        prob, truth, sizes, px = build(test, init, frames_sel)
+        model = Model(prob, "loose", px)
+        frame_cols = np.arange(6 * model.nF)
+        if init == "tagslam":
+            _, ref, _ = _reference(test)
+            have = {int(round(t * 1e6)): T for t, T in zip(ref.stamps, ref.T_map_rig)}
+            keys = [int(round(s * 1e6)) for s in prob.stamps]
+            Tb = np.array([have.get(k, T) for k, T in zip(keys, prob.T_W_base0)])
+            lack = np.array([k not in have for k in keys])
+            x = x_at(model, Tb, np.array([truth.T_map_marker(m) for m in prob.tag_ids]))
+            answers["a"] = (model, x)
+            if lack.any():
+                cols = (6 * np.flatnonzero(lack)[:, None] + np.arange(6)).ravel()
+                x, _, _ = solve(model, iterations, x, cols)
+                answers["a"] = (model, x)
+            x2, _, _ = solve(model, iterations, x, frame_cols)
+            answers["a'"] = (model, x2)
+            print(f"  TagSLAM has rig poses for {int((~lack).sum())} of {model.nF} frames", flush=True)
+        else:
+            ours = MarkerMap.load(os.path.join(bench_real.OUT, test, "map.yaml"))
+            x = x_at(model, prob.T_W_base0, np.array([ours.T_map_marker(m) for m in prob.tag_ids]))
+            x, _, _ = solve(model, iterations, x, frame_cols)
+            answers["b"] = (model, x)
+    for key, start in (("c", "a"), ("d", "b")):
+        model, x0 = answers[start]
+        x, _, its = solve(model, iterations, x0)
+        answers[key] = (model, x)
+        print(f"  ({key}) full batch from ({start}): {its} iterations ({time.process_time() - t0:.0f} s CPU)", flush=True)
+    maps = {}
+    names = {"a": "TagSLAM's answer", "a'": "TagSLAM's tags, poses refitted", "b": "the package's map",
+             "c": "minimum from (a)", "d": "minimum from (b)"}
+    for k, (model, x) in answers.items():
+        _, Tt = model.tags(x)
+        maps[k] = MarkerMap([MarkerEntry(m, Tt[i], sizes(m)) for i, m in enumerate(model.p.tag_ids)], frame_id="map")
+        r = model.residuals(x)
+        nc = 8 * len(model.p.obs_frame)
+        cc, cp = float(r[:nc] @ r[:nc]), float(r[nc:] @ r[nc:])
+        print(f"  ({k}) {names[k]}: {cc + cp:.1f} = corners {cc:.1f} + tag play priors {cp:.1f}; corner RMS "
+              f"{float(np.sqrt(2.0 * np.mean(np.square(r[:nc])))) * model.px:.3f} px (per corner); vs TagSLAM "
+              f"{map_error(maps[k], truth, best_fit=True)['position_rms_mm']:.2f} mm", flush=True)
+    if frames_sel == "all":   # the minimum from the package's map, to compare other maps with it
+        maps["d"].save(os.path.join(bench_real.OUT, test, "objective_min.yaml"))
+    ks = list(maps)
+    print("  map RMS between answers (mm): " + "; ".join(
+        f"{p}-{q} {map_error(maps[p], maps[q], best_fit=True)['position_rms_mm']:.2f}"
+        for n_, p in enumerate(ks) for q in ks[n_ + 1:]))
+    print(f"  {time.process_time() - t0:.0f} s CPU, load {open('/proc/loadavg').read().split()[0]}")
+
+
+def _reference(test: str):
+    out_dir, src, tags, ref, ring, sizes, ignore, frames, truth = bench_real._load_case(test)
+    return truth, ref, sizes
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("test")
@@ -322,7 +442,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--models", default="exact,loose,scaled")
     ap.add_argument("--frames", default="all,tagslam")
     ap.add_argument("--measurements", action="store_true", help="tagslam.yaml's distance measurements too")
+    ap.add_argument("--objective", action="store_true", help="TagSLAM's stated problem (loose boards) at its answer, "
+                    "at the package's, and the minima from each (see objective())")
     a = ap.parse_args(argv)
+    if a.objective:
+        for frames_sel in a.frames.split(","):
+            print(f"{a.test}: TagSLAM's objective, frames {frames_sel}", flush=True)
+            objective(a.test, frames_sel)
+        return 0
     print(f"{a.test}: start from {'the package' if a.init == 'ours' else 'TagSLAM'}'s map; corners in raw px, "
           f"plain least squares{'; its distance measurements' if a.measurements else ''}; against TagSLAM's tags "
           f"(SE(3) fit over all corners)")

@@ -1,0 +1,93 @@
+"""Which of the package's mapping settings move a real recording's map? (issue 11, diagnostic)
+
+Maps one recording as ``bench/bench_real.py`` does (TagSLAM's extrinsics and camera priors, its
+anchors, measurements, boards and odometry; its pixel_noise with a survey), once per variant of the
+mapping options, and prints each map's RMS against TagSLAM's tags and, when
+``bench/real_objective.py --save`` (or ``bench/real_board_model.py --objective``) has written it,
+against the minimum of TagSLAM's stated problem (``results/bench/real/<test>/objective_min.yaml``).
+Nothing is saved: the sanity checks' verdict is printed.
+
+A variant is ``name:key=value,...`` with ``MappingOptions`` keys, ``ba.<key>`` for the adjustment's
+(``BAOptions``); ``ODOM=tagslam`` in the environment reads tagslam.yaml's odometry noise
+(bench_real ``--odom-noise tagslam``).
+
+Usage: ``python bench/real_map_variants.py test_10 default: "linear:ba.loss='linear'"
+"frames:ba.loss='linear',min_station_motion_px=0"``.
+"""
+from __future__ import annotations
+
+import ast
+import dataclasses
+import os
+import sys
+import time
+from typing import Any, Dict, Optional, Sequence
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.join(os.path.dirname(HERE), "src"))
+sys.path.insert(0, HERE)
+
+import bench_real  # noqa: E402
+from aruco_ring_localization.evaluation.maps import map_error  # noqa: E402
+from aruco_ring_localization.importers import tagslam_boards  # noqa: E402
+from aruco_ring_localization.importers.tagslam import tagslam_anchors, tagslam_measurements  # noqa: E402
+from aruco_ring_localization.mapping import MapBuilder, MappingOptions  # noqa: E402
+from aruco_ring_localization.marker_map import MarkerMap, check_map  # noqa: E402
+
+
+def _value(text: str) -> Any:
+    try:
+        return ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        return text
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    args = list(sys.argv[1:] if argv is None else argv)
+    if len(args) < 2:
+        raise SystemExit(__doc__)
+    test = args[0]
+    bench_real.ODOM_NOISE = os.environ.get("ODOM", bench_real.ODOM_NOISE)
+    out_dir, src, tags, ref, ring, sizes, ignore, frames, truth = bench_real._load_case(test)
+    yaml_path = os.path.join(src, "tagslam.yaml")
+    survey = tagslam_anchors(tags, ignore, yaml_path)
+    meas = tagslam_measurements(yaml_path, ignore)
+    if meas is not None and survey is None:
+        meas.planes = []
+    odo_opts, odo = bench_real._odometry(test, src, ref.rig_body, frames)
+    layout = tagslam_boards(yaml_path, rig_bodies=(ref.rig_body,))
+    minimum = os.path.join(out_dir, "objective_min.yaml")
+    for variant in args[1:]:
+        name, _, spec = variant.partition(":")
+        kw: Dict[str, Any] = {}
+        ba: Dict[str, Any] = {}
+        for item in filter(None, spec.split(",")):
+            key, _, val = item.partition("=")
+            (ba if key.startswith("ba.") else kw)[key[3:] if key.startswith("ba.") else key] = _value(val)
+        t0 = time.process_time()
+        options = MappingOptions(frame="marker") if odo_opts is None else \
+            MappingOptions(frame="marker", odometry=odo_opts)
+        if (survey is not None or meas is not None) and tags.pixel_noise:
+            ba.setdefault("pixel_noise", tags.pixel_noise)
+        options = dataclasses.replace(options, ba=dataclasses.replace(options.ba, **ba), extrinsics_prior="ring", **kw)
+        b = MapBuilder(bench_real.mapping_ring(ring, src, options), sizes, options=options, anchors=survey,
+                       boards=layout if layout is not None and len(layout) else None, measurements=meas)
+        if odo:
+            b.set_odometry(*odo)
+        for f in frames:
+            b.add_frame(f)
+        m = b.build()
+        det = MarkerMap([e for e in m if not e.surveyed_only], frame_id=m.frame_id)
+        err = map_error(det, truth, best_fit=True)
+        line = (f"{test} {name}: map RMS {err['position_rms_mm']:.2f} / max {err['position_max_mm']:.2f} mm vs "
+                f"TagSLAM's, stations {b.summary()['stations']}")
+        if os.path.exists(minimum):
+            line += f", {map_error(det, MarkerMap.load(minimum), best_fit=True)['position_rms_mm']:.2f} mm vs the minimum"
+        problems = check_map(m, b.options.sanity)
+        verdict = f"save refused ({'; '.join(sorted({p.split(':')[0] for p in problems}))})" if problems else "saves"
+        print(f"{line}; {verdict}; {time.process_time() - t0:.0f} s CPU", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
