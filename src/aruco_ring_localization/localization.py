@@ -1493,13 +1493,13 @@ class VibrationEstimate:
         #: (serial, t, m) of the window's pairs, the oldest first, and their running sums of t, m,
         #: t^2, t m and m^2.
         self._pairs: Deque[Tuple[int, float, float]] = collections.deque()
-        self._sums = np.zeros(5)
+        self._sums = [0.0] * 5
 
     def clear(self) -> None:
         self._serial = 0
         self._last = {}
         self._pairs = collections.deque()
-        self._sums = np.zeros(5)
+        self._sums = [0.0] * 5
 
     def add(self, names: Sequence[str], ids: Sequence[Sequence[int]], G: np.ndarray, b: np.ndarray,
             noise: Union[float, Callable[[], float]], V: Sequence[np.ndarray]) -> None:
@@ -1514,16 +1514,16 @@ class VibrationEstimate:
         oldest = self._serial - self.window
         while self._pairs and self._pairs[0][0] <= oldest:
             _, t, m = self._pairs.popleft()
-            self._sums -= np.array([t, m, t * t, t * m, m * m])
+            self._sums = [a - x for a, x in zip(self._sums, (t, m, t * t, t * m, m * m))]
         if not self._pairs:
-            self._sums[:] = 0.0   # no rounding left over
+            self._sums = [0.0] * 5   # no rounding left over
         last, self._last = self._last, {}
         if len(names) < 2:
             return
         frame = [G, b, noise, V, None]   # None: its terms (N, M) not computed yet
         matched = []
         for c, (n, m) in enumerate(zip(names, ids)):
-            key = tuple(int(i) for i in m)
+            key = tuple(m)
             q = last.get(n)
             if q is not None and q[0] == self._serial - 1 and q[1] == key:
                 matched.append((c, q[2], q[3]))   # each frame in one pair at most: not kept
@@ -1538,19 +1538,19 @@ class VibrationEstimate:
         c = [k for k, _, _ in matched]
         k = [j for _, _, j in matched]
         d = np.asarray(b, dtype=np.float64)[c] - np.asarray(matched[0][1][1], dtype=np.float64)[k]
-        Nn = one[0][c] + two[0][k]
         Mm = one[1][c] + two[1][k]
-        S = Nn + Mm
+        S = one[0][c] + two[0][k] + Mm
         try:
-            X = _solve_spd_batch(0.5 * (S + np.transpose(S, (0, 2, 1))), np.concatenate([d[:, :, None], Nn, Mm], axis=2))
+            X = _solve_spd_batch(0.5 * (S + np.transpose(S, (0, 2, 1))), np.concatenate([d[:, :, None], Mm], axis=2))
         except np.linalg.LinAlgError:
             return
-        t = np.einsum("ki,ki->k", d, X[:, :, 0]) - np.einsum("kii->k", X[:, :, 1:7])
-        m = np.einsum("kii->k", X[:, :, 7:])
+        # tr(W N) = 6 - tr(W M): W = (N + M)^-1.
+        m = X[:, _I6, _I6 + 1].sum(axis=1)
+        t = (d * X[:, :, 0]).sum(axis=1) - (6.0 - m)
         for tk, mk in zip(t.tolist(), m.tolist()):
             if mk > 0.0:
                 self._pairs.append((self._serial, tk, mk))
-                self._sums += np.array([tk, mk, tk * tk, tk * mk, mk * mk])
+                self._sums = [a + x for a, x in zip(self._sums, (tk, mk, tk * tk, tk * mk, mk * mk))]
 
     @staticmethod
     def _frame_terms(frame: list) -> Optional[Tuple[np.ndarray, np.ndarray]]:
@@ -1568,7 +1568,7 @@ class VibrationEstimate:
                 if info == 0:
                     K = np.transpose(X.reshape(6, C, 6), (1, 0, 2))   # K_d = H^-1 G_d
                     KV = np.matmul(K, V)
-                    Q = np.einsum("dab,dcb->ac", KV, K)   # sum_d K_d V_d K_d^T
+                    Q = np.matmul(KV, np.transpose(K, (0, 2, 1))).sum(axis=0)   # sum_d K_d V_d K_d^T
                     inner = V - KV - np.transpose(KV, (0, 2, 1)) + Q
                     frame[4] = (noise * (G - np.matmul(G, K)), np.matmul(np.matmul(G, inner), G))
         return frame[4] or None
@@ -1577,7 +1577,7 @@ class VibrationEstimate:
         """``(kappa^2, its standard error, pairs)`` over the window (nan, nan, 0: no pair)."""
         if not self._pairs:
             return float("nan"), float("nan"), 0
-        st, sm, stt, stm, smm = self._sums.tolist()
+        st, sm, stt, stm, smm = self._sums
         if not sm > 0.0:
             return float("nan"), float("nan"), 0
         k2 = st / sm
