@@ -94,14 +94,15 @@ def lab():
 def _shaking(lab, true_deg: float, frames: int = 60, **kw) -> Tuple[RingLocalizer, List[Tuple[float, float, int]],
                                                                    List[float], List[np.ndarray]]:
     """The true rig as declared exact, shaking by ``true_deg`` (and 2 mm per degree) per axis and
-    frame, the robot parked two frames at each of the lab's test positions; the localizer's
+    frame, the robot parked two frames at each of the lab's test positions (``estimate_vibration``
+    on unless ``kw`` says otherwise; it is off by default); the localizer's
     estimate after every frame, the pose's NEES / 3 (x, y, yaw) and the poses."""
     scene, ring, truth = lab
     exact = ring.with_extrinsics_std(0.0, 0.0)
     vib = RingVibration(RingParams(vibration_rot_std_deg=true_deg, vibration_trans_std=0.002 * true_deg), seed=9)
     sim = RingSimulator(scene, exact, pixel_noise=SIGMA, seed=5)
     poses = [scene.T_world_base(p) for p in scene.test_positions]
-    loc = RingLocalizer(exact, truth, LocalizationParams(pixel_noise=SIGMA, **kw))
+    loc = RingLocalizer(exact, truth, LocalizationParams(pixel_noise=SIGMA, **{"estimate_vibration": True, **kw}))
     hist, nees, out = [], [], []
     for k in range(frames):
         T = poses[(k // 2) % len(poses)]
