@@ -49,10 +49,11 @@ and 3x3 over (x, y, yaw).
 """
 from __future__ import annotations
 
+import collections
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Deque, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 from scipy.linalg import lapack as _lapack
@@ -125,7 +126,8 @@ class LocalizationParams:
     extrinsic_jitter_deg: float = param(0.05, "joint: each camera's extrinsics also jitter from frame to frame by this "
                                               "much (1 sigma per axis of its optical frame; the ring shakes while the "
                                               "robot drives), independently per camera and frame, on top of the "
-                                              "calibration's uncertainty; 0 with extrinsic_jitter_m = 0: a rigid ring",
+                                              "calibration's uncertainty; 0 with extrinsic_jitter_m = 0: a rigid ring; "
+                                              "with estimate_vibration an upper bound (the data's estimate when smaller)",
                                         unit="deg")
     extrinsic_jitter_m: float = param(0.0001, "joint: the same jitter's translation, 1 sigma per axis", unit="m")
     map_uncertainty: bool = param(True, "joint: each marker's pose in the map is uncertain by the map's own "
@@ -167,6 +169,19 @@ class LocalizationParams:
                                             "over the cameras) the window's verdict needs; fewer: the "
                                             "extrinsics_std stays (on the harsh lab's ring, 2 mm / 0.2 deg off, the "
                                             "first 20-50 pairs showed no correlation, the next 90 and more 0.36-0.56)")
+    estimate_vibration: bool = param(False, "joint, persistence_window: the cameras' per-frame jitter is measured from "
+                                           "the data over the window (VibrationEstimate: each camera's gradient at the "
+                                           "exact-extrinsics optimum, differenced between consecutive frames on the "
+                                           "same markers, less what the pixel noise within the cameras explains); "
+                                           "with vibration_min_pairs pairs the vibration term is the declared one "
+                                           "(extrinsic_jitter_deg, extrinsic_jitter_m) scaled by the estimate's upper "
+                                           "one-sigma bound, never above the declared (an upper bound: 0 stays a "
+                                           "rigid ring), unless more than two standard errors below zero; false "
+                                           "(default: on TagSLAM's test_9 it made the filtered output worse, 1.76 -> "
+                                           "2.11 mm median): the declared term always")
+    vibration_min_pairs: int = param(20, "joint, estimate_vibration: the least number of frame pairs (summed over "
+                                         "the cameras, within persistence_window) the estimate needs; fewer: the "
+                                         "declared vibration")
     joint_outlier_threshold: float = param(10.0, "a marker whose RMS residual in the joint solution exceeds this "
                                                  "is dropped (moved or mis-mapped marker) and the pose re-solved; a "
                                                  "final RMS above it rejects the joint solution. Larger than "
@@ -182,7 +197,7 @@ class LocalizationParams:
             raise ConfigError(f"must be >= 0, got {self.fusion_gap!r}", key="fusion_gap")
         if not 0.0 < self.consistency_alpha < 1.0:
             raise ConfigError(f"must be in (0, 1), got {self.consistency_alpha!r}", key="consistency_alpha")
-        for key in ("persistence_window", "persistence_min_pairs"):
+        for key in ("persistence_window", "persistence_min_pairs", "vibration_min_pairs"):
             if not getattr(self, key) >= 0:
                 raise ConfigError(f"must be >= 0, got {getattr(self, key)!r}", key=key)
         if not -1.0 <= self.persistence_max <= 1.0:
@@ -1443,6 +1458,135 @@ class CalibrationPersistence:
         return num / den, pairs
 
 
+class VibrationEstimate:
+    """How much the cameras really jitter from frame to frame against the ring, measured from the
+    data over the last ``window`` multi-camera frames (:class:`CalibrationPersistence`'s window).
+
+    The declared vibration (``extrinsic_jitter_deg`` / ``_m``: camera c's per-frame extrinsic
+    error ``eta_c``, covariance ``V_c`` in the base frame, :func:`jitter_covariance`) is scaled by
+    ``kappa^2`` (``V_c -> kappa^2 V_c``), and ``kappa^2`` is what the data tell. At a frame's
+    exact-extrinsics optimum camera c's gradient is ``b_c = J_c^T D r_c`` (:func:`camera_blocks`);
+    with the pose's own response removed (``H = sum_d G_d``, ``K_d = H^-1 G_d``)
+
+        b_c = G_c (eta_c - sum_d K_d eta_d) + (pixel noise) + (what persists)
+
+    The pixel noise gives ``b_c`` the covariance ``N_c = s^2 (G_c - G_c H^-1 G_c)``, ``s^2 = S / d2``
+    the frame's noise within the cameras (:func:`extrinsics_consistency`'s denominator: what no
+    extrinsic error touches), the vibration ``kappa^2 M_c`` with
+    ``M_c = G_c (V_c - K_c V_c - V_c K_c^T + sum_d K_d V_d K_d^T) G_c``. What persists (the
+    calibration's error, the map's, a tag's detection bias, a lens model's error) is removed by
+    pairing each camera's frame with its previous one when it saw the same markers in the
+    multi-camera frame just before (each frame in one pair at most, so the pairs are independent):
+    ``d = b_f - b_g`` has the covariance ``N_f + N_g + kappa^2 (M_f + M_g)``. With the weight
+    ``W = (N_f + N_g + M_f + M_g)^-1`` (the declared vibration) every pair gives
+    ``t = d^T W d - tr(W (N_f + N_g))`` and ``m = tr(W (M_f + M_g))``, ``E[t] = kappa^2 m``, and the
+    window pools them (a moment estimate, unbiased):
+
+        kappa^2 = sum t / sum m,   its standard error  sqrt(sum (t - kappa^2 m)^2) / sum m
+
+    :meth:`add` records a frame, :meth:`estimate` gives ``(kappa^2, standard error, pairs)``."""
+
+    def __init__(self, window: int):
+        self.window = int(window)
+        self._serial = 0
+        #: camera -> (serial, marker ids, its frame's record, its index there) of its last frame
+        #: not yet paired.
+        self._last: Dict[str, tuple] = {}
+        #: (serial, t, m) of the window's pairs, the oldest first, and their running sums of t, m,
+        #: t^2, t m and m^2.
+        self._pairs: Deque[Tuple[int, float, float]] = collections.deque()
+        self._sums = [0.0] * 5
+
+    def clear(self) -> None:
+        self._serial = 0
+        self._last = {}
+        self._pairs = collections.deque()
+        self._sums = [0.0] * 5
+
+    def add(self, names: Sequence[str], ids: Sequence[Sequence[int]], G: np.ndarray, b: np.ndarray,
+            noise: Union[float, Callable[[], float]], V: Sequence[np.ndarray]) -> None:
+        """One frame: its cameras, their marker ids, blocks ``G_c`` (C, 6, 6) and ``b_c`` (C, 6) at
+        the exact-extrinsics optimum, the pixel noise variance within the cameras ``s^2`` (px^2; or
+        a function giving it, called only when one of the frame's cameras pairs) and each camera's
+        declared vibration covariance ``V_c`` (6, 6). The terms of a frame are computed only when
+        one of its cameras pairs (each frame at most once)."""
+        if self.window <= 0:
+            return
+        self._serial += 1
+        oldest = self._serial - self.window
+        while self._pairs and self._pairs[0][0] <= oldest:
+            _, t, m = self._pairs.popleft()
+            self._sums = [a - x for a, x in zip(self._sums, (t, m, t * t, t * m, m * m))]
+        if not self._pairs:
+            self._sums = [0.0] * 5   # no rounding left over
+        last, self._last = self._last, {}
+        if len(names) < 2:
+            return
+        frame = [G, b, noise, V, None]   # None: its terms (N, M) not computed yet
+        matched = []
+        for c, (n, m) in enumerate(zip(names, ids)):
+            key = tuple(m)
+            q = last.get(n)
+            if q is not None and q[0] == self._serial - 1 and q[1] == key:
+                matched.append((c, q[2], q[3]))   # each frame in one pair at most: not kept
+            else:
+                self._last[n] = (self._serial, key, frame, c)
+        if not matched:
+            return
+        one = self._frame_terms(frame)
+        two = self._frame_terms(matched[0][1])   # the frame just before: every pair's other frame
+        if one is None or two is None:
+            return
+        c = [k for k, _, _ in matched]
+        k = [j for _, _, j in matched]
+        d = np.asarray(b, dtype=np.float64)[c] - np.asarray(matched[0][1][1], dtype=np.float64)[k]
+        Mm = one[1][c] + two[1][k]
+        S = one[0][c] + two[0][k] + Mm
+        try:
+            X = _solve_spd_batch(0.5 * (S + np.transpose(S, (0, 2, 1))), np.concatenate([d[:, :, None], Mm], axis=2))
+        except np.linalg.LinAlgError:
+            return
+        # tr(W N) = 6 - tr(W M): W = (N + M)^-1.
+        m = X[:, _I6, _I6 + 1].sum(axis=1)
+        t = (d * X[:, :, 0]).sum(axis=1) - (6.0 - m)
+        for tk, mk in zip(t.tolist(), m.tolist()):
+            if mk > 0.0:
+                self._pairs.append((self._serial, tk, mk))
+                self._sums = [a + x for a, x in zip(self._sums, (tk, mk, tk * tk, tk * mk, mk * mk))]
+
+    @staticmethod
+    def _frame_terms(frame: list) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+        """``(N, M)`` (C, 6, 6) of every camera of ``frame`` (:meth:`add`'s record), computed once,
+        or None when the frame's noise or normal equations are unusable."""
+        if frame[4] is None:
+            G, _, noise, V, _ = frame
+            frame[4] = False
+            noise = float(noise() if callable(noise) else noise)
+            if noise > 0.0 and np.isfinite(noise):
+                G = np.asarray(G, dtype=np.float64)
+                V = np.asarray(V, dtype=np.float64)
+                C = G.shape[0]
+                _, X, info = _lapack.dposv(G.sum(axis=0), np.transpose(G, (1, 0, 2)).reshape(6, 6 * C), lower=False)
+                if info == 0:
+                    K = np.transpose(X.reshape(6, C, 6), (1, 0, 2))   # K_d = H^-1 G_d
+                    KV = np.matmul(K, V)
+                    Q = np.matmul(KV, np.transpose(K, (0, 2, 1))).sum(axis=0)   # sum_d K_d V_d K_d^T
+                    inner = V - KV - np.transpose(KV, (0, 2, 1)) + Q
+                    frame[4] = (noise * (G - np.matmul(G, K)), np.matmul(np.matmul(G, inner), G))
+        return frame[4] or None
+
+    def estimate(self) -> Tuple[float, float, int]:
+        """``(kappa^2, its standard error, pairs)`` over the window (nan, nan, 0: no pair)."""
+        if not self._pairs:
+            return float("nan"), float("nan"), 0
+        st, sm, stt, stm, smm = self._sums
+        if not sm > 0.0:
+            return float("nan"), float("nan"), 0
+        k2 = st / sm
+        # sum (t - k2 m)^2 from the running sums (rounding can leave it a hair below 0)
+        return k2, float(np.sqrt(max(stt - 2.0 * k2 * stm + k2 * k2 * smm, 0.0))) / sm, len(self._pairs)
+
+
 class RingLocalizer:
     """Robot pose from ring frames against a marker map.
 
@@ -1467,6 +1611,9 @@ class RingLocalizer:
         self.last_views: Dict[str, CameraView] = {}
         #: (rho, pairs) of the window after the last multi-camera frame (:class:`CalibrationPersistence`).
         self.last_persistence: Tuple[float, int] = (float("nan"), 0)
+        #: (kappa^2, its standard error, pairs) of the window's vibration estimate after the last
+        #: multi-camera frame (:class:`VibrationEstimate`; kappa: the jitter over the declared one).
+        self.last_vibration: Tuple[float, float, int] = (float("nan"), float("nan"), 0)
         #: ((camera, marker ids) of the views, frames it was reused, the robot's position in the map
         #: and T_base_map's rotation) of the last clearly inconsistent frame (:meth:`_exact_if_consistent`),
         #: or None.
@@ -1492,6 +1639,10 @@ class RingLocalizer:
             #: out by the data (:meth:`_window_update`); the next frames are solved without its
             #: uncertainty, the vibration's only.
             self._calibration_cleared = False
+            #: The cameras' per-frame jitter measured over the same window (estimate_vibration), and
+            #: the scale (kappa^2, at most 1) of the declared vibration the frames are solved with.
+            self.vibration = VibrationEstimate(self.params.persistence_window)
+            self.vibration_scale = 1.0
         #: Cameras the ring declares non-rigid (``wiggle``): the window never clears their frames.
         self._wiggling = {c.name for c in ring.cameras if c.wiggle is not None}
         self.ring = ring
@@ -1521,20 +1672,30 @@ class RingLocalizer:
         self._cal_cov = {n: C if self.extrinsics_source[n] == "ring file" and C is not None and np.any(C) else None
                          for n, C in self._ext_cov.items()}
         p = self.params
-        for c in ring.cameras:   # the ring's vibration: independent per camera and frame (no cross terms)
-            self._ext_cov[c.name] = self._ext_cov[c.name] + jitter_covariance(
-                self._T_base_cam[c.name], np.radians(p.extrinsic_jitter_deg), p.extrinsic_jitter_m)
+        #: The declared vibration per camera (estimator/extrinsic_jitter_*), and each camera's
+        #: calibration covariance without it.
+        self._vib_declared = {c.name: jitter_covariance(self._T_base_cam[c.name], np.radians(p.extrinsic_jitter_deg),
+                                                        p.extrinsic_jitter_m) for c in ring.cameras}
+        self._base_cov = dict(self._ext_cov)
+        self._apply_vibration(self.vibration_scale)
+
+    def _apply_vibration(self, scale: float) -> None:
+        """The noise model's covariances with the declared vibration scaled by ``scale`` (kappa^2,
+        :class:`VibrationEstimate`; 1: as declared)."""
+        self.vibration_scale = float(scale)
+        declared = self.params.extrinsic_jitter_deg > 0 or self.params.extrinsic_jitter_m > 0
+        vib = {n: V * self.vibration_scale for n, V in self._vib_declared.items()}
+        # The ring's vibration: independent per camera and frame (no cross terms).
+        self._ext_cov = {n: self._base_cov[n] + vib[n] for n in self._base_cov}
         self._ext_factor = {n: None if C is None else _psd_factor(C) for n, C in self._ext_cov.items()}
         self._ext_factor_any = any(F is not None for F in self._ext_factor.values())
         # The vibration alone (what a frame is solved with once the window cleared the calibration).
-        self._vib_cov = {c.name: (jitter_covariance(self._T_base_cam[c.name], np.radians(p.extrinsic_jitter_deg),
-                                                    p.extrinsic_jitter_m)
-                                  if p.extrinsic_jitter_deg > 0 or p.extrinsic_jitter_m > 0 else None)
-                         for c in ring.cameras}
+        self._vib_cov = {n: (vib[n] if declared and self.vibration_scale > 0 else None) for n in self._base_cov}
         self._vib_factor = {n: None if C is None else _psd_factor(C) for n, C in self._vib_cov.items()}
         for n, C in self._cal_cov.items():   # a camera whose calibration is the map's keeps it
             if C is None:
                 self._vib_cov[n], self._vib_factor[n] = self._ext_cov[n], self._ext_factor[n]
+        self._verdict = None   # the model changed: the consistency is tested again
 
     def _use_map_covariance(self, ring: CameraRing) -> None:
         """The map's covariance for the cameras whose extrinsics in force are the map's."""
@@ -2172,7 +2333,35 @@ class RingLocalizer:
         self.persistence.add([v.name for v in exact.views], [v.ids for v in exact.views], G, b)
         rho, pairs = self.last_persistence = self.persistence.correlation()
         self._calibration_cleared = bool(pairs >= max(p.persistence_min_pairs, 1) and rho <= p.persistence_max)
+        if p.estimate_vibration and (p.extrinsic_jitter_deg > 0 or p.extrinsic_jitter_m > 0):
+            self._vibration_update(exact, fit, G, b)
         return True
+
+    def _vibration_update(self, exact: JointProblem, fit: JointFit, G: np.ndarray, b: np.ndarray) -> None:
+        """This frame into the vibration estimate (:class:`VibrationEstimate`), and the scale of the
+        declared vibration the next frames are solved with: the estimate's upper one-sigma bound
+        ``kappa^2 + se``, within [0, 1] (the declared jitter is an upper bound), once the window
+        holds ``vibration_min_pairs`` pairs and the estimate is not more than two standard errors
+        below zero; else 1 (the declared). The covariances are rebuilt
+        only when the jitter (``kappa``) moves by more than 2 % of the declared."""
+        p = self.params
+
+        def noise() -> float:   # px^2: the pixel noise within the cameras (extrinsics_consistency's)
+            d2 = 2 * exact.n - 6 * len(exact.views)
+            if d2 < 1:
+                return float("nan")
+            rr = np.where(np.isfinite(fit.r), fit.r, 0.0)
+            return (float(np.sum(fit.w * np.sum(rr * rr, axis=1))) - _sum_pinv_quadratic(G, b)) / d2
+
+        self.vibration.add([v.name for v in exact.views], [v.ids for v in exact.views], G, b, noise,
+                           [self._vib_declared[v.name] for v in exact.views])
+        k2, se, pairs = self.last_vibration = self.vibration.estimate()
+        # More than two standard errors below zero: the pixel noise term predicts more spread than
+        # there is (it holds errors the pairs remove), so the estimate is no evidence: declared.
+        usable = pairs >= max(p.vibration_min_pairs, 1) and k2 + 2.0 * se >= 0.0
+        scale = float(np.clip(k2 + se, 0.0, 1.0)) if usable else 1.0
+        if abs(np.sqrt(scale) - np.sqrt(self.vibration_scale)) > 0.02:
+            self._apply_vibration(scale)
 
     def _finish_joint(self, result: LocalizationResult, sol: _JointSolution, per_camera: bool) -> None:
         problem = sol.problem

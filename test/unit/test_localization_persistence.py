@@ -104,8 +104,11 @@ def _off_map(truth: MarkerMap, pos: float, rot_deg: float, seed: int) -> MarkerM
 
 
 def _run(ring, marker_map, frames, poses, **kw):
-    """Each frame's result, the window's (rho, pairs) after it and the pixel noise it was solved at."""
-    loc = RingLocalizer(ring, marker_map, LocalizationParams(pixel_noise=SIGMA, **kw))
+    """Each frame's result, the window's (rho, pairs) after it and the pixel noise it was solved at.
+    The declared vibration is kept (``estimate_vibration`` off unless given): these tests compare the
+    window's calibration verdict with ``persistence_window: 0``, which has no vibration estimate
+    (test_localization_vibration.py tests it)."""
+    loc = RingLocalizer(ring, marker_map, LocalizationParams(pixel_noise=SIGMA, **{"estimate_vibration": False, **kw}))
     out = []
     for T, f in zip(poses, frames):
         guess = loc.pixel_noise_guess
