@@ -9,7 +9,8 @@ Nothing is saved: the sanity checks' verdict is printed.
 
 A variant is ``name:key=value,...`` with ``MappingOptions`` keys, ``ba.<key>`` for the adjustment's
 (``BAOptions``); ``ODOM=tagslam`` in the environment reads tagslam.yaml's odometry noise
-(bench_real ``--odom-noise tagslam``).
+(bench_real ``--odom-noise tagslam``); ``odo.<key>`` sets a key of the odometry links'
+(``MappingOdometryOptions``, recordings with odometry only).
 
 Usage: ``python bench/real_map_variants.py test_10 default: "linear:ba.loss='linear'"
 "frames:ba.loss='linear',min_station_motion_px=0"``.
@@ -61,12 +62,16 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         name, _, spec = variant.partition(":")
         kw: Dict[str, Any] = {}
         ba: Dict[str, Any] = {}
+        odo_kw: Dict[str, Any] = {}
         for item in filter(None, spec.split(",")):
             key, _, val = item.partition("=")
-            (ba if key.startswith("ba.") else kw)[key[3:] if key.startswith("ba.") else key] = _value(val)
+            if key.startswith("odo."):
+                odo_kw[key[4:]] = _value(val)
+            else:
+                (ba if key.startswith("ba.") else kw)[key[3:] if key.startswith("ba.") else key] = _value(val)
         t0 = time.process_time()
         options = MappingOptions(frame="marker") if odo_opts is None else \
-            MappingOptions(frame="marker", odometry=odo_opts)
+            MappingOptions(frame="marker", odometry=dataclasses.replace(odo_opts, **odo_kw))
         if (survey is not None or meas is not None) and tags.pixel_noise:
             ba.setdefault("pixel_noise", tags.pixel_noise)
         options = dataclasses.replace(options, ba=dataclasses.replace(options.ba, **ba), extrinsics_prior="ring", **kw)
