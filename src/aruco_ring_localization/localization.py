@@ -910,7 +910,7 @@ class JointProblem:
             chi2 = np.inf
         return JointFit(r, J, w, H_cam.sum(axis=0), g.sum(axis=0), chi2, chi2, H_cam, G, b, sp)
 
-    def pixel_noise_estimate(self, fit: JointFit, lo: float, hi: float) -> float:
+    def pixel_noise_estimate(self, fit: JointFit, lo: float, hi: float, start: Optional[float] = None) -> float:
         """The pixel noise (px) that makes the whitened residuals of ``fit`` (a fit of this problem,
         with a calibration model) as large as they should be: ``chi2(sigma) = 2N - 6``, within
         ``[lo, hi]`` (``lo`` when they are smaller even there).
@@ -918,7 +918,9 @@ class JointProblem:
         ``chi2(sigma) = sum_c (q_c - b_c^T L_c (sigma^2 I + L_c^T G_c L_c)^-1 L_c^T b_c) / sigma^2``
         falls monotonically with sigma; with the eigen-decomposition ``L_c^T G_c L_c = U Λ U^T`` (the
         fit's :class:`_Spectrum`) it is a scalar function of sigma^2 (no solve per trial), whose
-        crossing is found on log sigma by a bracketed Newton iteration."""
+        crossing is found on log sigma by a bracketed Newton iteration, from ``start`` when given
+        (the last frame's noise: a parked or slow robot's frames measure nearly the same, so a few
+        evaluations fewer; the root is the same to the iteration's 1e-10)."""
         if fit.G_cam is None or self.extrinsics_factor is None:
             raise ValueError("pixel_noise_estimate needs a calibration model")
         rr = np.where(np.isfinite(fit.r), fit.r, 0.0)
@@ -945,7 +947,8 @@ class JointProblem:
         # of scalar evaluations (the grids this replaced took 5 rounds of 33 for 2e-7).
         # Start at sqrt(q / dof), where the unmarginalised chi2 crosses: an upper bound of the root
         # (the marginalisation only lowers chi2), near it when the extrinsics' part is small.
-        x = min(max(0.5 * math.log(max(q / dof, 1e-300)), a), b)
+        x = min(max(0.5 * math.log(max(q / dof, 1e-300)) if start is None or not start > 0.0 else math.log(start),
+                    a), b)
         if not a < x < b:
             x = 0.5 * (a + b)
         for _ in range(60):
@@ -2090,7 +2093,7 @@ class RingLocalizer:
         measured pixel noise, :meth:`JointProblem.shared_gain` or None)."""
         p = self.params
         solved_at = self.pixel_noise_guess
-        sigma = problem.pixel_noise_estimate(fit, p.min_pixel_noise, 100.0 * p.pixel_noise)
+        sigma = problem.pixel_noise_estimate(fit, p.min_pixel_noise, 100.0 * p.pixel_noise, start=solved_at)
         at = problem.with_sigma(sigma)
         if abs(np.log(sigma / solved_at)) > np.log(1.25):
             T_bm, fit_s, it3 = at.solve(T_bm, p.robust_scale, p.max_iterations)
