@@ -52,6 +52,7 @@ from __future__ import annotations
 import collections
 import logging
 import math
+from collections.abc import MutableMapping
 from dataclasses import dataclass, field
 from typing import Callable, Deque, Dict, List, Optional, Sequence, Tuple, Union
 
@@ -245,6 +246,58 @@ class CameraEstimate:
     @property
     def se2(self) -> np.ndarray:
         return geo.se2_from_transform(self.T_map_base)
+
+
+class LazyMapping(MutableMapping):
+    """A dict filled by ``fill(d)`` when first read or written (per-camera estimates that most
+    frames never read). Copies and pickles are plain dicts."""
+
+    __slots__ = ("_fill", "_data")
+
+    def __init__(self, fill: Callable[[dict], None]):
+        self._fill: Optional[Callable[[dict], None]] = fill
+        self._data: dict = {}
+
+    def _get(self) -> dict:
+        fill = self._fill
+        if fill is not None:
+            self._fill = None   # first: a fill that reads the mapping sees what it wrote so far
+            fill(self._data)
+        return self._data
+
+    def __getitem__(self, key):
+        return self._get()[key]
+
+    def __setitem__(self, key, value) -> None:
+        self._get()[key] = value
+
+    def __delitem__(self, key) -> None:
+        del self._get()[key]
+
+    def __iter__(self):
+        return iter(self._get())
+
+    def __len__(self) -> int:
+        return len(self._get())
+
+    def __contains__(self, key) -> bool:
+        return key in self._get()
+
+    def __repr__(self) -> str:
+        return repr(self._get())
+
+    def copy(self) -> dict:
+        return dict(self._get())
+
+    def __copy__(self) -> dict:
+        return dict(self._get())
+
+    def __deepcopy__(self, memo) -> dict:
+        import copy
+        return copy.deepcopy(self._get(), memo)
+
+    def __reduce__(self):
+        return dict, (dict(self._get()),)
 
 
 @dataclass
@@ -872,7 +925,7 @@ class JointProblem:
             chi2 = np.inf
         return JointFit(r, J, w, H_cam.sum(axis=0), g.sum(axis=0), chi2, chi2, H_cam, G, b, sp)
 
-    def pixel_noise_estimate(self, fit: JointFit, lo: float, hi: float) -> float:
+    def pixel_noise_estimate(self, fit: JointFit, lo: float, hi: float, start: Optional[float] = None) -> float:
         """The pixel noise (px) that makes the whitened residuals of ``fit`` (a fit of this problem,
         with a calibration model) as large as they should be: ``chi2(sigma) = 2N - 6``, within
         ``[lo, hi]`` (``lo`` when they are smaller even there).
@@ -880,7 +933,9 @@ class JointProblem:
         ``chi2(sigma) = sum_c (q_c - b_c^T L_c (sigma^2 I + L_c^T G_c L_c)^-1 L_c^T b_c) / sigma^2``
         falls monotonically with sigma; with the eigen-decomposition ``L_c^T G_c L_c = U Λ U^T`` (the
         fit's :class:`_Spectrum`) it is a scalar function of sigma^2 (no solve per trial), whose
-        crossing is found on log sigma by a bracketed Newton iteration."""
+        crossing is found on log sigma by a bracketed Newton iteration, from ``start`` when given
+        (the last frame's noise: a parked or slow robot's frames measure nearly the same, so a few
+        evaluations fewer; the root is the same to the iteration's 1e-10)."""
         if fit.G_cam is None or self.extrinsics_factor is None:
             raise ValueError("pixel_noise_estimate needs a calibration model")
         rr = np.where(np.isfinite(fit.r), fit.r, 0.0)
@@ -907,7 +962,8 @@ class JointProblem:
         # of scalar evaluations (the grids this replaced took 5 rounds of 33 for 2e-7).
         # Start at sqrt(q / dof), where the unmarginalised chi2 crosses: an upper bound of the root
         # (the marginalisation only lowers chi2), near it when the extrinsics' part is small.
-        x = min(max(0.5 * math.log(max(q / dof, 1e-300)), a), b)
+        x = min(max(0.5 * math.log(max(q / dof, 1e-300)) if start is None or not start > 0.0 else math.log(start),
+                    a), b)
         if not a < x < b:
             x = 0.5 * (a + b)
         for _ in range(60):
@@ -2198,7 +2254,7 @@ class RingLocalizer:
         measured pixel noise, :meth:`JointProblem.shared_gain` or None)."""
         p = self.params
         solved_at = self.pixel_noise_guess
-        sigma = problem.pixel_noise_estimate(fit, p.min_pixel_noise, 100.0 * p.pixel_noise)
+        sigma = problem.pixel_noise_estimate(fit, p.min_pixel_noise, 100.0 * p.pixel_noise, start=solved_at)
         at = problem.with_sigma(sigma)
         if abs(np.log(sigma / solved_at)) > np.log(1.25):
             T_bm, fit_s, it3 = at.solve(T_bm, p.robust_scale, p.max_iterations)
@@ -2380,7 +2436,9 @@ class RingLocalizer:
         if sol.outliers:
             result.rejected[REJECT_OUTLIER] = result.rejected.get(REJECT_OUTLIER, 0) + sol.outliers
         if per_camera:
-            self._per_camera_from_joint(result, sol)
+            # Computed when first read (the node's ~camera_estimates with a subscriber, the
+            # benchmarks): most frames nobody reads them (issue 16: ~0.2 ms a frame).
+            result.estimates = LazyMapping(lambda out: self._per_camera_from_joint(out, sol, self.params))
 
     def forget_marker(self, marker_id: int) -> None:
         """Drop what is cached of a marker (its pose in the map changed: re-mapped)."""
@@ -2400,12 +2458,12 @@ class RingLocalizer:
         arr = np.array(rows)
         return arr[:, :3], arr[:, 3:]
 
-    def _per_camera_from_joint(self, result: LocalizationResult, sol: _JointSolution) -> None:
+    def _per_camera_from_joint(self, out: Dict[str, CameraEstimate], sol: _JointSolution,
+                               p: LocalizationParams) -> None:
         """Each camera's own estimate as one Gauss-Newton step on its rows from the joint pose
-        (first order; its rows are already computed, so this is a batched 6x6 solve). The
-        reprojection error is the linearised one. Vectorised over cameras."""
+        (first order; its rows are already computed, so this is a batched 6x6 solve), into ``out``.
+        The reprojection error is the linearised one. Vectorised over cameras."""
         prob = sol.problem
-        p = self.params
         starts = prob.offsets[:-1]
         if sol.fit.G_cam is not None:  # the joint fit's own per-camera blocks (Huber-weighted)
             Hc, gc = sol.fit.G_cam + _EYE6_TINY, sol.fit.b_cam
@@ -2447,7 +2505,7 @@ class RingLocalizer:
             if not errs_l[k] <= max_err:
                 est.valid = False
                 est.reject_reason = REJECT_REPROJECTION
-            result.estimates[view.name] = est
+            out[view.name] = est
 
     def _marker_axes_of(self, prob: JointProblem) -> np.ndarray:
         """(k, 6) centres and z axes of ``prob``'s markers (in its order), in the map frame."""

@@ -52,7 +52,7 @@ from .gating import REJECTED_AMBIGUOUS, REJECTED_JUMP, REJECTED_TILT, GateDecisi
 from .kalman import PoseFilter
 from .localization import se2_covariance
 from .tracker6 import Tracker6, move_pose
-from .localization import LocalizationResult, RingLocalizer
+from .localization import LazyMapping, LocalizationResult, RingLocalizer
 from .mapping import MapBuilder
 from .marker_check import MarkerCheck
 from .marker_map import MarkerMap
@@ -1111,7 +1111,9 @@ class LocalizationPipeline(_RingPipeline):
         x, y, yaw = track.pose
         T = geo.transform_from_se2(x, y, yaw, self._z)
         T6 = geo.transform_from_rpy(self._roll_pitch[0], self._roll_pitch[1], yaw, (x, y, self._z))
-        estimates = {name: e.T_map_base for name, e in track.localization.estimates.items() if e.valid}
+        # Read only by a ~camera_estimates subscriber: the per-camera estimates are computed then.
+        estimates = LazyMapping(lambda out: out.update((name, e.T_map_base) for name, e
+                                                       in track.localization.estimates.items() if e.valid))
         return PoseOutput(stamp=track.stamp, T_map_base=T, T_map_base_6dof=T6,
                           covariance=pose_covariance_from_se2(track.covariance),
                           twist=self.filter.body_twist,

@@ -208,6 +208,12 @@ def test_pixel_noise_estimate_recovers_the_images_noise(lab, true_sigma):
         est.append(prob.pixel_noise_estimate(fit, 0.05, 50.0))
     assert np.all(np.abs(np.array(est) / true_sigma - 1.0) < 0.15), est
     assert prob.pixel_noise_estimate(fit, 2.0, 50.0) == 2.0
+    # Started from another frame's noise (the localizer passes the last frame's), anywhere in the
+    # bracket or outside it: the same root to the iteration's tolerance; the floor still holds.
+    for start in (0.05, 0.8 * est[-1], est[-1], 3.0 * est[-1], 50.0, 1e3, None):
+        got = prob.pixel_noise_estimate(fit, 0.05, 50.0, start=start)
+        assert abs(np.log(got / est[-1])) < 1e-9, (start, got, est[-1])
+    assert prob.pixel_noise_estimate(fit, 2.0, 50.0, start=0.3) == 2.0
 
 
 def test_map_covariance_matches_a_monte_carlo_of_perturbed_maps(lab):

@@ -405,3 +405,34 @@ def test_save_answer_names_the_map_frame_once_and_the_robot_pose_is_the_station(
         seen = geo.inverse(T_map_base) @ e.T_map_marker
         true = T_base_world @ truth[e.marker_id]
         assert np.linalg.norm(seen[:2, 3] - true[:2, 3]) < 0.03, (e.marker_id, seen[:3, 3], true[:3, 3])
+
+
+def test_camera_estimates_read_late_are_those_of_their_frame(setup):
+    """The per-camera estimates are computed when first read (issue 16): read after later frames
+    have gone through, they are the same numbers as read at once, and a copy or a pickle is a dict."""
+    import copy
+    import pickle
+
+    scene, ring, sim = setup
+    frames = [sim.observe(scene.T_world_base(_pose(0.1 * k)), 0.1 * k) for k in range(12)]
+    at_once, later = [], []
+    for read_now, sink in ((True, at_once), (False, later)):
+        p = LocalizationPipeline(_config(), ring, scene.truth_map())
+        outs = []
+        for k, f in enumerate(frames):
+            p.on_motion("cmd_vel", None, (0.2, 0.0), 0.3, 0.1 * k)
+            (out,) = feed_ring_frame(p, f)
+            outs.append(out)
+            if read_now:
+                sink.append({n: T.copy() for n, T in out.camera_estimates.items()})
+        if not read_now:
+            sink += [{n: T.copy() for n, T in o.camera_estimates.items()} for o in outs]
+    assert len(at_once) == len(later) == len(frames)
+    assert sum(len(e) for e in at_once) >= 2 * len(frames), "too few camera estimates to compare"
+    for a, b in zip(at_once, later):
+        assert sorted(a) == sorted(b)
+        for n in a:
+            assert np.array_equal(a[n], b[n]), n
+    est = outs[-1].track.localization.estimates
+    for c in (copy.copy(est), copy.deepcopy(est), pickle.loads(pickle.dumps(est))):
+        assert type(c) is dict and sorted(c) == sorted(est)
