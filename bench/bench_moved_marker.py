@@ -13,7 +13,7 @@ uncaught), ``moved_marker_reported_cm`` (how far the check says it moved), ``mov
 and ``moved_marker_false_alarm_per_hour`` (declarations in runs without a move: static and driving,
 several seeds), ``moved_marker_false_alarm_hours`` (simulated time they cover), and the check's CPU
 cost per ring frame (``moved_marker_check_cpu_ms``: parked at 10 Hz, so every frame is a slow one, checked at
-``marker_check/rate``, 4 Hz: every third frame; one BLAS thread,
+``marker_check/rate``, 5 Hz: every other frame; one BLAS thread,
 as the launch files run the node).
 
 The same without a move on the **harsh lab** (:func:`harsh_run`, corners mode, driving around the

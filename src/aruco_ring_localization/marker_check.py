@@ -101,11 +101,10 @@ class MarkerCheckParams:
                              unit="m/s")
     max_yaw_rate: float = param(0.02, "and turns this slowly (the same sources)", unit="rad/s")
     min_move: float = param(0.02, "and its estimated displacement |d| must exceed this", unit="m")
-    rate: float = param(4.0, "such frames are checked at most this often (stamps; one within 0.9 / rate of the last "
+    rate: float = param(5.0, "such frames are checked at most this often (stamps; one within 0.9 / rate of the last "
                              "checked is skipped at no cost): the check's CPU per ring frame scales with rate / the "
-                             "ring's frame rate (4: every third frame of a 10 Hz ring, so the median frame is an "
-                             "unchecked one); at least min_observations / window (a marker is judged on that many); "
-                             "0: every frame",
+                             "ring's frame rate; at least min_observations / window (a marker is judged on that many); 0: every "
+                             "frame",
                         unit="Hz")
     remap_window: float = param(30.0, "~remap_marker uses a marker's observations of the last this many "
                                       "seconds", unit="s")
@@ -424,8 +423,7 @@ class MarkerCheck:
         rate = max(float(p.rate), p.min_observations / p.window) if p.rate > 0 else 0.0
         if rate > 0 and self._last_checked is not None and 0.0 <= stamp - self._last_checked < 0.9 / rate:
             # At most ``rate`` checks per second (0.9: a ring at 2 x rate, its stamps jittering, is
-            # checked every other frame, not every third; at 2.5 x rate, the default's 4 Hz on a
-            # 10 Hz ring, every third frame).
+            # checked every other frame, not every third).
             self.frames_skipped += 1
             return []
         self._last_checked = stamp
