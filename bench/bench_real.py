@@ -432,7 +432,6 @@ def _odometry(test: str, src: str, rig_body: str, frames) -> Tuple[Optional[Mapp
     found = tagslam_odometry(os.path.join(src, "tagslam.yaml"), rig_body)
     if found is None:
         return None, ()
-    rvec, tvec = geo.rvec_tvec_from_transform(found.T_body_odom)
     with open(os.devnull, "w", encoding="utf-8") as null:
         stamps, poses, _ = read_reference(cached_bag(test, "tag_detections"), topic=found.topic, out=null)
     # ODOM_NOISE "package": the package's default noise model (docs/mapping.md); "tagslam": TagSLAM's,
@@ -440,7 +439,7 @@ def _odometry(test: str, src: str, rig_body: str, frames) -> Tuple[Optional[Mapp
     # that model with its defaults (TagSLAM's: 5 m/s^2, 5 rad/s^2, maxima 10 x), tagslam.yaml's values unread.
     noise = (found.link_noise() if ODOM_NOISE == "tagslam" else
              {"noise_model": ODOM_NOISE} if ODOM_NOISE in ("per_message", "random_walk") else {})
-    opts = MappingOdometryOptions(topic=found.topic, base_to_odom=tuple(float(v) for v in np.r_[tvec, rvec]), **noise)
+    opts = MappingOdometryOptions(topic=found.topic, base_to_odom=found.base_to_odom, **noise)
     if frames:
         keep = stamps <= frames[-1].stamp + 1.0
         stamps, poses = stamps[keep], poses[keep]

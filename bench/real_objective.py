@@ -114,9 +114,7 @@ class Objective:
         if found is not None:
             from aruco_ring_localization.ros.bag_source import read_reference
 
-            rvec, tvec = geo.rvec_tvec_from_transform(found.T_body_odom)
-            opts = MappingOdometryOptions(topic=found.topic, base_to_odom=tuple(float(v) for v in np.r_[tvec, rvec]),
-                                          **found.link_noise())
+            opts = MappingOdometryOptions(topic=found.topic, base_to_odom=found.base_to_odom, **found.link_noise())
             with open(os.devnull, "w", encoding="utf-8") as null:
                 st, poses, _ = read_reference(bench_real.cached_bag(test, "tag_detections"), topic=found.topic,
                                               out=null)

@@ -139,9 +139,7 @@ def odometry_options(args: argparse.Namespace, ring: CameraRing) -> Tuple[Mappin
         if found is None:
             raise ConfigError(f"no body {ring.base_frame!r} (the ring's base frame) with an odom_topic",
                               path=args.odom_tagslam)
-        rvec, tvec = geo.rvec_tvec_from_transform(found.T_body_odom)
-        opts = dataclasses.replace(opts, topic=found.topic, base_to_odom=tuple(float(v) for v in np.r_[tvec, rvec]),
-                                   **found.link_noise())
+        opts = dataclasses.replace(opts, topic=found.topic, base_to_odom=found.base_to_odom, **found.link_noise())
         source = f"{args.odom_tagslam} (body {ring.base_frame}: odom_topic, T_body_odom, odom_* noise)"
     if args.odom_topic:
         opts = dataclasses.replace(opts, topic=args.odom_topic)
@@ -222,23 +220,14 @@ def run_smooth(args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    if getattr(args, "smooth", False):
-        try:
-            from ..ros import bag_source  # noqa: F401
-        except ImportError as exc:
-            sys.stderr.write(f"localize: needs the ROS Python packages (rosbag; source .ws/env.sh): {exc}\n")
-            return 2
-        try:
-            return run_smooth(args)
-        except ConfigError as exc:
-            sys.stderr.write(f"localize: {exc}\n")
-            return 1
     try:
         from ..ros.bag_source import BagSource, package_file
     except ImportError as exc:
         sys.stderr.write(f"localize: needs the ROS Python packages (rosbag; source .ws/env.sh): {exc}\n")
         return 2
     try:
+        if getattr(args, "smooth", False):
+            return run_smooth(args)
         config = load_config(args)
         ring = CameraRing.load(args.ring or config.ring_file or package_file("config", "ring.yaml"))
         marker_map = MarkerMap.load(args.map_file)

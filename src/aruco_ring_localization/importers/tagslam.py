@@ -182,6 +182,12 @@ class TagslamOdometry:
     translation_noise: float = 0.0
     rotation_noise: float = 0.0
 
+    @property
+    def base_to_odom(self) -> Tuple[float, float, float, float, float, float]:
+        """``T_body_odom`` as ``mapping.odometry.base_to_odom`` (x, y, z, then the rotation vector)."""
+        rvec, tvec = geo.rvec_tvec_from_transform(self.T_body_odom)
+        return tuple(float(v) for v in np.r_[tvec, rvec])
+
     def link_noise(self) -> Dict[str, Any]:
         """``mapping.odometry`` keys for TagSLAM's noise of these messages (``noise_model:
         per_message``: a sigma per message, summed over the messages a link spans)."""
