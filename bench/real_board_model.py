@@ -47,7 +47,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
-import scipy.sparse.linalg as spla  # noqa: E402
 import yaml  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
@@ -56,6 +55,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(HERE), "src"))
 sys.path.insert(0, HERE)
 
 import bench_real  # noqa: E402
+from sparse_lm import levenberg_marquardt  # noqa: E402
 from aruco_ring_localization import geometry as geo  # noqa: E402
 from aruco_ring_localization.evaluation.maps import map_error  # noqa: E402
 from aruco_ring_localization.importers import tagslam_boards  # noqa: E402
@@ -299,38 +299,12 @@ def solve(model: Model, iterations: int = 50, x0: Optional[np.ndarray] = None,
           free: Optional[np.ndarray] = None) -> Tuple[np.ndarray, float, int]:
     """Levenberg-Marquardt from ``x0`` (zero: the starting values) over the columns ``free`` (all by
     default); (x, cost, iterations)."""
-    x = np.zeros(model.n) if x0 is None else np.array(x0, dtype=float)
-    r = model.residuals(x)
-    cost, lam = 0.5 * float(r @ r), 1e-3
-    for it in range(1, iterations + 1):
+    def jac(x: np.ndarray, r: np.ndarray) -> sp.spmatrix:
         J = model.jacobian(x, r)
-        if free is not None:
-            J = J.tocsc()[:, free].tocsr()
-        H = (J.T @ J).tocsc()
-        g = J.T @ r
-        d = H.diagonal()
-        floor = 1e-9 * float(d.max()) * (d == 0)
-        done = False
-        while True:
-            step = spla.spsolve(H + sp.diags(lam * d + floor), -g)
-            x2 = x.copy()
-            if free is None:
-                x2 += step
-            else:
-                x2[free] += step
-            r2 = model.residuals(x2)
-            c2 = 0.5 * float(r2 @ r2)
-            if c2 < cost:
-                done = cost - c2 < 1e-9 * cost
-                x, r, cost, lam = x2, r2, c2, max(lam / 3.0, 1e-9)
-                break
-            lam *= 4.0
-            if lam > 1e8:
-                done = True
-                break
-        if done:
-            return x, cost, it
-    return x, cost, iterations
+        return J if free is None else J.tocsc()[:, free].tocsr()
+
+    return levenberg_marquardt(model.residuals, jac, np.zeros(model.n) if x0 is None else x0, free, iterations,
+                               damping=1e-3, rel_tol=1e-9, floor=1e-9)
 
 
 def x_at(model: Model, T_W_base: np.ndarray, T_W_tag: np.ndarray) -> np.ndarray:

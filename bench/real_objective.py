@@ -37,7 +37,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
-import scipy.sparse.linalg as spla  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -45,6 +44,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(HERE), "src"))
 sys.path.insert(0, HERE)
 
 import bench_real  # noqa: E402
+from sparse_lm import levenberg_marquardt  # noqa: E402
 from aruco_ring_localization import geometry as geo  # noqa: E402
 from aruco_ring_localization.evaluation.maps import map_error  # noqa: E402
 from aruco_ring_localization.importers.tagslam import tagslam_odometry  # noqa: E402
@@ -208,47 +208,26 @@ class Objective:
         S = self.S.tocsc()
         fpos = -np.ones(self.n, dtype=int)
         fpos[free] = np.arange(len(free))
-        x = np.zeros(self.n)
 
         def res(xx):
             return np.concatenate(self.residuals(*self.unpack(xx, Tb0, Tt0)))
 
-        r = res(x)
-        cost, lam = float(r @ r), 1e-4
-        for it in range(1, iterations + 1):
+        def jac(xx, r):   # forward differences, one residual evaluation per group of columns
             data, ri, ci = [], [], []
             for g in groups:
                 dx = np.zeros(self.n)
                 dx[g] = h
-                dr = (res(x + dx) - r) / h
+                dr = (res(xx + dx) - r) / h
                 for c in g:
                     rows = S.indices[S.indptr[c]:S.indptr[c + 1]]
                     data.append(dr[rows])
                     ri.append(rows)
                     ci.append(np.full(len(rows), fpos[c]))
-            J = sp.csr_matrix((np.concatenate(data), (np.concatenate(ri), np.concatenate(ci))),
-                              shape=(self.m, len(free)))
-            H = (J.T @ J).tocsc()
-            g_ = J.T @ r
-            d = H.diagonal()
-            floor = 1e-12 * float(d.max()) * (d <= 0)
-            done = False
-            while True:
-                step = spla.spsolve(H + sp.diags(lam * d + floor), -g_)
-                x2 = x.copy()
-                x2[free] += step
-                r2 = res(x2)
-                c2 = float(r2 @ r2)
-                if c2 < cost:
-                    done = cost - c2 < 1e-7 * cost
-                    x, r, cost, lam = x2, r2, c2, max(lam / 3.0, 1e-9)
-                    break
-                lam *= 4.0
-                if lam > 1e8:
-                    done = True
-                    break
-            if done:
-                break
+            return sp.csr_matrix((np.concatenate(data), (np.concatenate(ri), np.concatenate(ci))),
+                                 shape=(self.m, len(free)))
+
+        x, _, it = levenberg_marquardt(res, jac, np.zeros(self.n), free, iterations, damping=1e-4, rel_tol=1e-7,
+                                       floor=1e-12)
         Tb, Tt = self.unpack(x, Tb0, Tt0)
         return Tb, Tt, it
 
