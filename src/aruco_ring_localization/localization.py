@@ -630,6 +630,7 @@ class _Spectrum:
 
 
 _SKEW_TEMPLATE = np.zeros((0, 3, 7))
+_EPS = float(np.finfo(np.float64).eps)
 _I6 = np.arange(6)
 
 
@@ -668,6 +669,53 @@ def _extrinsics_stacks(views: Sequence["CameraView"], covs: Sequence[Optional[np
         _EXT_STACKS.clear()
     out = (cov, factor, LT)
     _EXT_STACKS[key] = ([(c, v.extrinsics_factor) for v, c in zip(views, covs)], out)
+    return out
+
+
+class _Layout:
+    """What :class:`JointProblem` derives from its views' cameras, extrinsics and corner counts
+    alone (not from their pixels): kept across frames for the same cameras seeing as many markers
+    (:func:`_layout`). Read-only arrays."""
+
+    def __init__(self, views: Sequence["CameraView"]):
+        counts = [v.X.shape[0] for v in views]
+        self.cam_index = np.repeat(np.arange(len(views)), counts)
+        self.offsets = np.concatenate([[0], np.cumsum(counts)])
+        self.counts = np.array(counts)
+        A = np.stack([v.model.K for v in views])[:, :2, :2]
+        A[:, 1, 0] = 0.0
+        self.A = A[self.cam_index]
+        #: some view has a fisheye's per-corner lens Jacobian: the problem writes it into a copy of A.
+        self.per_frame_A = any(v.pixel_jacobian is not None for v in views)
+        self.T_cam_bases = np.stack([v.T_cam_base for v in views])
+        self.T_base_cams = np.stack([v.T_base_cam for v in views])
+        T_cb = self.T_cam_bases[self.cam_index]
+        self.R = T_cb[:, :3, :3]
+        self.t = T_cb[:, :3, 3]
+        self.AR = np.matmul(self.A, self.R[:, :2, :])
+        self.R2 = self.R[:, 2:3, :].copy()
+        for a in (self.cam_index, self.offsets, self.counts, self.A, self.T_cam_bases, self.T_base_cams, self.R,
+                  self.t, self.AR, self.R2):
+            a.flags.writeable = False
+
+
+#: (per view: id of its model, T_cam_base, T_base_cam, corner count; fisheye or not) -> (the views'
+#: objects, kept so that the ids stay theirs; the :class:`_Layout`): a parked or slow robot's frames
+#: see the same markers with the same cameras frame after frame (issue 16).
+_LAYOUTS: Dict[tuple, tuple] = {}
+
+
+def _layout(views: Sequence["CameraView"]) -> _Layout:
+    """The :class:`_Layout` of ``views``, cached by the identity of their models and extrinsics."""
+    key = tuple((id(v.model), id(v.T_cam_base), id(v.T_base_cam), v.X.shape[0], v.pixel_jacobian is None)
+                for v in views)
+    hit = _LAYOUTS.get(key)
+    if hit is not None:
+        return hit[1]
+    out = _Layout(views)
+    if len(_LAYOUTS) >= 64:
+        _LAYOUTS.clear()
+    _LAYOUTS[key] = ([(v.model, v.T_cam_base, v.T_base_cam) for v in views], out)
     return out
 
 
@@ -719,25 +767,20 @@ class JointProblem:
         self.sigma = float(sigma)
         self.X = np.concatenate([v.X for v in views])
         self.xy = np.concatenate([v.xy for v in views])
-        counts = [v.X.shape[0] for v in views]
-        self.cam_index = np.repeat(np.arange(len(views)), counts)
-        self.offsets = np.concatenate([[0], np.cumsum(counts)])
-        #: (C,) corners per camera.
-        self.counts = np.array(counts)
+        layout = _layout(self.views)
+        #: (N,) camera of each corner; (C + 1,) first corner of each camera; (C,) corners per camera.
+        self.cam_index, self.offsets, self.counts = layout.cam_index, layout.offsets, layout.counts
         # Per corner, the 2x2 map from normalised to pixel errors: K2 = [[fx, s], [0, fy]], or a
         # fisheye's local lens Jacobian.
-        A = np.stack([v.model.K for v in views])[:, :2, :2]
-        A[:, 1, 0] = 0.0
-        self.A = A[self.cam_index]
-        for k, v in enumerate(views):
-            if v.pixel_jacobian is not None:
-                self.A[self.offsets[k]:self.offsets[k + 1]] = v.pixel_jacobian
+        self.A = layout.A
+        if layout.per_frame_A:
+            self.A = self.A.copy()
+            for k, v in enumerate(views):
+                if v.pixel_jacobian is not None:
+                    self.A[self.offsets[k]:self.offsets[k + 1]] = v.pixel_jacobian
         #: (C, 4, 4) the views' T_cam_base and T_base_cam.
-        self.T_cam_bases = np.stack([v.T_cam_base for v in views])
-        self.T_base_cams = np.stack([v.T_base_cam for v in views])
-        T_cb = self.T_cam_bases[self.cam_index]
-        self.R = T_cb[:, :3, :3]
-        self.t = T_cb[:, :3, 3]
+        self.T_cam_bases, self.T_base_cams = layout.T_cam_bases, layout.T_base_cams
+        self.R, self.t = layout.R, layout.t
         self.n = self.X.shape[0]
         covs = [v.extrinsics_cov for v in self.views]
         self.extrinsics_cov: Optional[np.ndarray] = None
@@ -764,6 +807,9 @@ class JointProblem:
                                               else v.map_factor for v in self.views])
         self.marker_ids = np.array([i for v in self.views for i in v.ids], dtype=np.int64)
         self._Axy = np.matmul(self.A, self.xy[:, :, None])[:, :, 0]
+        #: (N, 2, 3) ``A R[:2]`` and (N, 1, 3) ``R[2]`` per corner: the Jacobian's constant parts (:meth:`_rows`).
+        self._AR = np.matmul(self.A, self.R[:, :2, :]) if layout.per_frame_A else layout.AR
+        self._R2 = layout.R2
         # :meth:`_rows`' (N, 3, 7) right factor [-[p_b]x | I | 0]: only the skew part changes per call.
         self._skew = _skew_template(self.n)
 
@@ -797,9 +843,8 @@ class JointProblem:
             return r, None
         # d u / d p_c = [[1, 0, -u], [0, 1, -v]] / z (u = x/z, v = y/z), so
         # A · du/dp_c = [A[:, 0], A[:, 1], -A u] / z (columns); d p_c / d delta = R [-[p_b]x | I].
-        AJ = np.empty((self.n, 2, 3))
-        AJ[:, :, :2] = A * inv_z[:, None, None]
-        AJ[:, :, 2] = Au * -inv_z[:, None]
+        # A · du/dp_c · R = (A R[:2] - (A u) R[2]) / z: A R[:2] is the problem's (:attr:`_AR`).
+        AJR = (self._AR - Au[:, :, None] * self._R2) * inv_z[:, None, None]
         B = self._skew   # (N, 3, 7): [-[p_b]x | I | 0], the identity and the zeros kept across calls
         B[:, 0, 1] = p_b[:, 2]
         B[:, 1, 2] = p_b[:, 0]
@@ -807,7 +852,7 @@ class JointProblem:
         B[:, 1, 0] = -p_b[:, 2]
         B[:, 2, 1] = -p_b[:, 0]
         B[:, 0, 2] = -p_b[:, 1]
-        Ja = np.matmul(np.matmul(AJ, self.R), B)   # (N, 2, 7), last column zero: the residual's slot
+        Ja = np.matmul(AJR, B)   # (N, 2, 7), last column zero: the residual's slot
         Ja[:, :, 6] = r
         if any_bad:
             Ja[bad] = 0.0
@@ -815,29 +860,36 @@ class JointProblem:
         return r, Ja
 
     @staticmethod
-    def _huber(r: np.ndarray, scale: float) -> Tuple[float, np.ndarray]:
-        """(Huber cost of the per-corner residual norms, IRLS weights)."""
-        e2 = r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1]
-        if e2.size and float(e2.max()) <= scale * scale:   # every corner within the scale (usual; NaN-safe)
+    def _huber(r: np.ndarray, scale: float, e2: Optional[np.ndarray] = None) -> Tuple[float, np.ndarray]:
+        """(Huber cost of the per-corner residual norms, IRLS weights); ``e2``: the squared norms
+        ``r[:, 0]^2 + r[:, 1]^2`` when the caller has them."""
+        if e2 is None:
+            e2 = r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1]
+        if not e2.size:
+            return 0.0, np.ones(0)
+        top = float(e2.max())   # NaN or inf when any corner is not finite
+        if top <= scale * scale:   # every corner within the scale (usual)
             return 0.5 * float(e2.sum()), np.ones(len(e2))
         e = np.sqrt(e2)
-        if not np.all(np.isfinite(e)):
+        if not math.isfinite(top):
             w = np.where(np.isfinite(e), np.where(e <= scale, 1.0, scale / np.maximum(e, 1e-12)), 0.0)
             return np.inf, w
-        cost = float(np.sum(np.where(e <= scale, 0.5 * e * e, scale * (e - 0.5 * scale))))
-        return cost, np.where(e <= scale, 1.0, scale / np.maximum(e, 1e-12))
+        inside = e <= scale
+        cost = float(np.where(inside, 0.5 * e * e, scale * (e - 0.5 * scale)).sum())
+        # scale / e >= 1 exactly where e <= scale: the same weights as where(inside, 1, scale / e).
+        return cost, np.minimum(scale / np.maximum(e, 1e-12), 1.0)
 
     def fit(self, T_base_map: np.ndarray, scale: float) -> JointFit:
         """Residuals, Jacobian, weights and the (whitened) normal equations at ``T_base_map``."""
         r, Ja = self._rows(T_base_map)
         J = Ja[:, :, :6]
-        e2 = np.einsum("ni,ni->n", r, r)
+        e2 = r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1]
         if e2.size and float(e2.max()) <= scale * scale:
             # Every corner within the Huber scale (the usual frame; NaN-safe): unit weights, no
             # weighting pass ([J r]^T [J r] directly).
             huber, w, Jw = 0.5 * float(e2.sum()), np.ones(self.n), Ja
         else:
-            huber, w = self._huber(r, scale)
+            huber, w = self._huber(r, scale, e2)
             if not np.isfinite(huber):   # finite cost: every r finite; else the non-finite rows out
                 Ja[:, :, 6] = np.where(np.isfinite(r), r, 0.0)
             Jw = Ja * w[:, None, None]
@@ -896,22 +948,25 @@ class JointProblem:
                 self._LT = np.ascontiguousarray(np.transpose(self.extrinsics_factor, (0, 2, 1)))
             Q = np.matmul(self._LT, Gb)                      # L^T [G | b]
             M = np.matmul(Q[:, :, :6], self.extrinsics_factor)
-            M[:, _I6, _I6] += s2
+            C = M.shape[0]
+            diag = M.reshape(C, 36)[:, ::7]                  # M's diagonals (a view: M is fresh)
+            diag += s2
             K = np.linalg.cholesky(M)                        # raises LinAlgError: not positive definite
-            piv = K[:, _I6, _I6]
+            piv = K.reshape(C, 36)[:, ::7]
             piv = piv * piv
-            if not piv.min() > np.finfo(np.float64).eps * M[:, _I6, _I6].max():
+            if not piv.min() > _EPS * diag.max():
                 raise np.linalg.LinAlgError("whitening: the 6x6 normal matrix is not positive definite")
             Z = np.linalg.solve(K, Q)
             Y = (Gb - np.matmul(np.transpose(Z[:, :, :6], (0, 2, 1)), Z)) / s2
             H_cam, g = Y[:, :, :6], Y[:, :, 6]
-            chi2 = float(np.sum(q) - np.sum(Z[:, :, 6] * Z[:, :, 6])) / s2
+            z = Z[:, :, 6]
+            chi2 = float(np.asarray(q).sum() - (z * z).sum()) / s2
             if not np.isfinite(huber):
                 chi2 = np.inf
             return JointFit(r, J, w, H_cam.sum(axis=0), g.sum(axis=0), chi2, chi2, H_cam, G, b, None)
         sp = spectrum
         m = s2 + sp.lam
-        if not m.min() > np.finfo(np.float64).eps * m.max():
+        if not m.min() > _EPS * m.max():
             raise np.linalg.LinAlgError("whitening: the 6x6 normal matrix is not positive definite")
         d = 1.0 / m
         # [G | b] and Q = U^T L^T [G | b] = [P^T | beta] (P = G L U: G is symmetric): then
@@ -920,7 +975,7 @@ class JointProblem:
         Qd = Q * d[:, :, None]
         Y = (Gb - np.matmul(np.transpose(Q[:, :, :6], (0, 2, 1)), Qd)) / s2
         H_cam, g = Y[:, :, :6], Y[:, :, 6]
-        chi2 = float(np.sum(q) - np.sum(Qd[:, :, 6] * Q[:, :, 6])) / s2
+        chi2 = float(np.asarray(q).sum() - (Qd[:, :, 6] * Q[:, :, 6]).sum()) / s2
         if not np.isfinite(huber):
             chi2 = np.inf
         return JointFit(r, J, w, H_cam.sum(axis=0), g.sum(axis=0), chi2, chi2, H_cam, G, b, sp)
