@@ -1062,7 +1062,7 @@ class JointProblem:
         H = fit.G_cam.sum(axis=0) / s2
         g = fit.b_cam.sum(axis=0) / s2
         try:
-            delta = -_solve_spd_batch(H[None], g[None, :, None])[0, :, 0]
+            delta = -_solve_spd(H, g)
         except np.linalg.LinAlgError:
             raise MeasurementError("joint estimator: singular normal equations (degenerate geometry)") from None
         r = fit.r + fit.J @ delta
@@ -1147,7 +1147,7 @@ class JointProblem:
         it = 0
         for it in range(1, max_iterations + 1):
             try:
-                delta = -_solve_spd_batch(fit.H[None], fit.g[None, :, None])[0, :, 0]
+                delta = -_solve_spd(fit.H, fit.g)
             except np.linalg.LinAlgError:
                 raise MeasurementError("joint estimator: singular normal equations (degenerate geometry)") from None
             norm = float(np.sqrt(delta @ delta))
@@ -1266,6 +1266,15 @@ def _solve_spd_batch(M: np.ndarray, B: np.ndarray) -> np.ndarray:
             raise np.linalg.LinAlgError("matrix is not positive definite")
         out[c] = x
     return out
+
+
+def _solve_spd(H: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """(n,) ``H^-1 g`` for one symmetric positive-definite ``H``: :func:`_solve_spd_batch` of a single
+    system (the same LAPACK call) without the batch's arrays. Raises LinAlgError."""
+    _, x, info = _lapack.dposv(H, g[:, None], lower=False)
+    if info != 0:
+        raise np.linalg.LinAlgError("matrix is not positive definite")
+    return x[:, 0]
 
 
 def _psd_factor(S: np.ndarray) -> np.ndarray:
@@ -2210,8 +2219,12 @@ class RingLocalizer:
         try:
             T_bm, fit, iters = self._solver(problem).solve(geo.inverse(T0), p.robust_scale, p.max_iterations)
             # Drop whole markers that do not fit (a moved or mis-mapped marker) and solve again.
-            e2 = np.sum(np.where(np.isfinite(fit.r), fit.r, 1e6) ** 2, axis=1).reshape(-1, 4)
-            bad = np.sqrt(e2.mean(axis=1)) > p.joint_outlier_threshold
+            r = fit.r
+            e2 = r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1]
+            finite = math.isfinite(float(e2.sum()))   # finite only when every residual is
+            if not finite:
+                e2 = np.sum(np.where(np.isfinite(r), r, 1e6) ** 2, axis=1)
+            bad = np.sqrt(e2.reshape(-1, 4).mean(axis=1)) > p.joint_outlier_threshold
             outliers = int(bad.sum())
             if outliers:
                 if outliers * 2 > bad.size or bad.size - outliers < p.min_markers_joint:
@@ -2229,10 +2242,13 @@ class RingLocalizer:
         except MeasurementError as exc:
             logger.debug("joint estimator: %s", exc)
             return None
-        r = fit.r
-        if not np.isfinite(r).all():
+        if outliers:
+            r = fit.r
+            e2 = r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1]
+            finite = math.isfinite(float(e2.sum()))
+        if not finite:   # a residual not finite (or, as before, an RMS that would be infinite)
             return None
-        rms = float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
+        rms = float(np.sqrt(e2.mean()))
         if rms > p.joint_outlier_threshold:
             return None
         sigma = float("nan")
@@ -2319,7 +2335,7 @@ class RingLocalizer:
         else:
             fit_s = at.refit(fit)   # the same residuals and Huber weights (the scale is in px)
             try:
-                delta = -_solve_spd_batch(fit_s.H[None], fit_s.g[None, :, None])[0, :, 0]
+                delta = -_solve_spd(fit_s.H, fit_s.g)
             except np.linalg.LinAlgError:
                 raise MeasurementError("joint estimator: singular normal equations (degenerate geometry)") from None
             # The step keeps the blocks G_c (and so H, H_cam: what the covariances below read); only
@@ -2478,7 +2494,7 @@ class RingLocalizer:
         problem = sol.problem
         if np.isfinite(sol.pixel_noise):
             self.pixel_noise_guess = sol.pixel_noise   # the next frame is solved at it
-        T_map_base = geo.inverse(sol.T_base_map)
+        T_map_base = _inv(sol.T_base_map)
         result.covariance = map_frame_covariance(sol.covariance, T_map_base)
         result.T_map_base = T_map_base
         result.method = "joint"
