@@ -1723,6 +1723,9 @@ class RingLocalizer:
         self.marker_map = marker_map
         self._axes_cache: Dict[int, np.ndarray] = {}
         self._map_factor_cache: Dict[int, object] = {}   # id -> (4, 3, 6) factor, or False: exact
+        #: the ids of one view (in order) -> their stacked factors or None (:meth:`_map_factor`): a
+        #: camera sees the same markers frame after frame. Cleared with the per-id cache.
+        self._view_factor_cache: Dict[Tuple[int, ...], Optional[np.ndarray]] = {}
         #: px: the pixel noise the joint estimate is solved at (``estimate_pixel_noise``): the noise
         #: measured in the last frame posed by the joint estimator, ``pixel_noise`` before it.
         self.pixel_noise_guess = float(self.params.pixel_noise)
@@ -1916,6 +1919,21 @@ class RingLocalizer:
         or None when the model is off or these markers' poses are exact (a surveyed or true map)."""
         if self.params.fusion != "joint" or not self.params.map_uncertainty:
             return None
+        key = tuple(ids)
+        try:
+            return self._view_factor_cache[key]
+        except KeyError:
+            pass
+        out = self._view_factor(ids)
+        if out is not None:
+            out.flags.writeable = False   # shared by every frame that sees these markers
+        if len(self._view_factor_cache) >= 256:
+            self._view_factor_cache.clear()
+        self._view_factor_cache[key] = out
+        return out
+
+    def _view_factor(self, ids: Sequence[int]) -> Optional[np.ndarray]:
+        """:meth:`_map_factor` computed (from the per-id cache)."""
         cache = self._map_factor_cache
         rows = []
         for i in ids:
@@ -2515,6 +2533,7 @@ class RingLocalizer:
         """Drop what is cached of a marker (its pose in the map changed: re-mapped)."""
         self._axes_cache.pop(int(marker_id), None)
         self._map_factor_cache.pop(int(marker_id), None)
+        self._view_factor_cache.clear()
 
     def _marker_axes(self, ids: Sequence[int]) -> Tuple[np.ndarray, np.ndarray]:
         """(k, 3) centres and (k, 3) z axes of mapped markers, in the map frame (cached by id)."""
