@@ -682,6 +682,7 @@ class _Layout:
         self.cam_index = np.repeat(np.arange(len(views)), counts)
         self.offsets = np.concatenate([[0], np.cumsum(counts)])
         self.counts = np.array(counts)
+        self.row_offsets = tuple(2 * int(k) for k in self.offsets)
         A = np.stack([v.model.K for v in views])[:, :2, :2]
         A[:, 1, 0] = 0.0
         self.A = A[self.cam_index]
@@ -770,6 +771,7 @@ class JointProblem:
         layout = _layout(self.views)
         #: (N,) camera of each corner; (C + 1,) first corner of each camera; (C,) corners per camera.
         self.cam_index, self.offsets, self.counts = layout.cam_index, layout.offsets, layout.counts
+        self._row_offsets = layout.row_offsets   # (C + 1,) first residual row (2 per corner) of each camera
         # Per corner, the 2x2 map from normalised to pixel errors: K2 = [[fx, s], [0, fy]], or a
         # fisheye's local lens Jacobian.
         self.A = layout.A
@@ -897,8 +899,15 @@ class JointProblem:
         if self.extrinsics_cov is None:
             A7 = np.matmul(Jw.reshape(-1, 7).T, Ja.reshape(-1, 7)) / s2
             return JointFit(r, J, w, A7[:6, :6], A7[:6, 6], float(A7[6, 6]), huber)
-        # Per camera, [J_c r_c]^T D_c [J_c r_c] in one pass: J_c^T D_c J_c, J_c^T D_c r_c, r_c^T D_c r_c.
-        A7 = np.add.reduceat(np.matmul(np.transpose(Jw, (0, 2, 1)), Ja), self.offsets[:-1], axis=0)
+        # Per camera, [J_c r_c]^T D_c [J_c r_c] in one product: J_c^T D_c J_c, J_c^T D_c r_c, r_c^T D_c r_c
+        # (one BLAS product per camera on its rows: half the cost of the per-corner outer products
+        # summed by reduceat at the lab's 8 cameras).
+        A7 = np.empty((len(self.counts), 7, 7))
+        Ja2, Jw2 = Ja.reshape(-1, 7), Jw.reshape(-1, 7)
+        rows = self._row_offsets
+        for c in range(len(rows) - 1):
+            a, b = rows[c], rows[c + 1]
+            np.dot(Jw2[a:b].T, Ja2[a:b], out=A7[c])
         return self._whitened(r, J, w, A7[:, :6, :6], A7[:, :6, 6], A7[:, 6, 6], huber, Gb=A7[:, :6, :])
 
     def refit(self, fit: JointFit) -> JointFit:
