@@ -630,6 +630,7 @@ class _Spectrum:
 
 
 _SKEW_TEMPLATE = np.zeros((0, 3, 7))
+_EPS = float(np.finfo(np.float64).eps)
 _I6 = np.arange(6)
 
 
@@ -668,6 +669,54 @@ def _extrinsics_stacks(views: Sequence["CameraView"], covs: Sequence[Optional[np
         _EXT_STACKS.clear()
     out = (cov, factor, LT)
     _EXT_STACKS[key] = ([(c, v.extrinsics_factor) for v, c in zip(views, covs)], out)
+    return out
+
+
+class _Layout:
+    """What :class:`JointProblem` derives from its views' cameras, extrinsics and corner counts
+    alone (not from their pixels): kept across frames for the same cameras seeing as many markers
+    (:func:`_layout`). Read-only arrays."""
+
+    def __init__(self, views: Sequence["CameraView"]):
+        counts = [v.X.shape[0] for v in views]
+        self.cam_index = np.repeat(np.arange(len(views)), counts)
+        self.offsets = np.concatenate([[0], np.cumsum(counts)])
+        self.counts = np.array(counts)
+        self.row_offsets = tuple(2 * int(k) for k in self.offsets)
+        A = np.stack([v.model.K for v in views])[:, :2, :2]
+        A[:, 1, 0] = 0.0
+        self.A = A[self.cam_index]
+        #: some view has a fisheye's per-corner lens Jacobian: the problem writes it into a copy of A.
+        self.per_frame_A = any(v.pixel_jacobian is not None for v in views)
+        self.T_cam_bases = np.stack([v.T_cam_base for v in views])
+        self.T_base_cams = np.stack([v.T_base_cam for v in views])
+        T_cb = self.T_cam_bases[self.cam_index]
+        self.R = T_cb[:, :3, :3]
+        self.t = T_cb[:, :3, 3]
+        self.AR = np.matmul(self.A, self.R[:, :2, :])
+        self.R2 = self.R[:, 2:3, :].copy()
+        for a in (self.cam_index, self.offsets, self.counts, self.A, self.T_cam_bases, self.T_base_cams, self.R,
+                  self.t, self.AR, self.R2):
+            a.flags.writeable = False
+
+
+#: (per view: id of its model, T_cam_base, T_base_cam, corner count; fisheye or not) -> (the views'
+#: objects, kept so that the ids stay theirs; the :class:`_Layout`): a parked or slow robot's frames
+#: see the same markers with the same cameras frame after frame (issue 16).
+_LAYOUTS: Dict[tuple, tuple] = {}
+
+
+def _layout(views: Sequence["CameraView"]) -> _Layout:
+    """The :class:`_Layout` of ``views``, cached by the identity of their models and extrinsics."""
+    key = tuple((id(v.model), id(v.T_cam_base), id(v.T_base_cam), v.X.shape[0], v.pixel_jacobian is None)
+                for v in views)
+    hit = _LAYOUTS.get(key)
+    if hit is not None:
+        return hit[1]
+    out = _Layout(views)
+    if len(_LAYOUTS) >= 64:
+        _LAYOUTS.clear()
+    _LAYOUTS[key] = ([(v.model, v.T_cam_base, v.T_base_cam) for v in views], out)
     return out
 
 
@@ -719,25 +768,21 @@ class JointProblem:
         self.sigma = float(sigma)
         self.X = np.concatenate([v.X for v in views])
         self.xy = np.concatenate([v.xy for v in views])
-        counts = [v.X.shape[0] for v in views]
-        self.cam_index = np.repeat(np.arange(len(views)), counts)
-        self.offsets = np.concatenate([[0], np.cumsum(counts)])
-        #: (C,) corners per camera.
-        self.counts = np.array(counts)
+        layout = _layout(self.views)
+        #: (N,) camera of each corner; (C + 1,) first corner of each camera; (C,) corners per camera.
+        self.cam_index, self.offsets, self.counts = layout.cam_index, layout.offsets, layout.counts
+        self._row_offsets = layout.row_offsets   # (C + 1,) first residual row (2 per corner) of each camera
         # Per corner, the 2x2 map from normalised to pixel errors: K2 = [[fx, s], [0, fy]], or a
         # fisheye's local lens Jacobian.
-        A = np.stack([v.model.K for v in views])[:, :2, :2]
-        A[:, 1, 0] = 0.0
-        self.A = A[self.cam_index]
-        for k, v in enumerate(views):
-            if v.pixel_jacobian is not None:
-                self.A[self.offsets[k]:self.offsets[k + 1]] = v.pixel_jacobian
+        self.A = layout.A
+        if layout.per_frame_A:
+            self.A = self.A.copy()
+            for k, v in enumerate(views):
+                if v.pixel_jacobian is not None:
+                    self.A[self.offsets[k]:self.offsets[k + 1]] = v.pixel_jacobian
         #: (C, 4, 4) the views' T_cam_base and T_base_cam.
-        self.T_cam_bases = np.stack([v.T_cam_base for v in views])
-        self.T_base_cams = np.stack([v.T_base_cam for v in views])
-        T_cb = self.T_cam_bases[self.cam_index]
-        self.R = T_cb[:, :3, :3]
-        self.t = T_cb[:, :3, 3]
+        self.T_cam_bases, self.T_base_cams = layout.T_cam_bases, layout.T_base_cams
+        self.R, self.t = layout.R, layout.t
         self.n = self.X.shape[0]
         covs = [v.extrinsics_cov for v in self.views]
         self.extrinsics_cov: Optional[np.ndarray] = None
@@ -764,6 +809,9 @@ class JointProblem:
                                               else v.map_factor for v in self.views])
         self.marker_ids = np.array([i for v in self.views for i in v.ids], dtype=np.int64)
         self._Axy = np.matmul(self.A, self.xy[:, :, None])[:, :, 0]
+        #: (N, 2, 3) ``A R[:2]`` and (N, 1, 3) ``R[2]`` per corner: the Jacobian's constant parts (:meth:`_rows`).
+        self._AR = np.matmul(self.A, self.R[:, :2, :]) if layout.per_frame_A else layout.AR
+        self._R2 = layout.R2
         # :meth:`_rows`' (N, 3, 7) right factor [-[p_b]x | I | 0]: only the skew part changes per call.
         self._skew = _skew_template(self.n)
 
@@ -797,9 +845,8 @@ class JointProblem:
             return r, None
         # d u / d p_c = [[1, 0, -u], [0, 1, -v]] / z (u = x/z, v = y/z), so
         # A · du/dp_c = [A[:, 0], A[:, 1], -A u] / z (columns); d p_c / d delta = R [-[p_b]x | I].
-        AJ = np.empty((self.n, 2, 3))
-        AJ[:, :, :2] = A * inv_z[:, None, None]
-        AJ[:, :, 2] = Au * -inv_z[:, None]
+        # A · du/dp_c · R = (A R[:2] - (A u) R[2]) / z: A R[:2] is the problem's (:attr:`_AR`).
+        AJR = (self._AR - Au[:, :, None] * self._R2) * inv_z[:, None, None]
         B = self._skew   # (N, 3, 7): [-[p_b]x | I | 0], the identity and the zeros kept across calls
         B[:, 0, 1] = p_b[:, 2]
         B[:, 1, 2] = p_b[:, 0]
@@ -807,7 +854,7 @@ class JointProblem:
         B[:, 1, 0] = -p_b[:, 2]
         B[:, 2, 1] = -p_b[:, 0]
         B[:, 0, 2] = -p_b[:, 1]
-        Ja = np.matmul(np.matmul(AJ, self.R), B)   # (N, 2, 7), last column zero: the residual's slot
+        Ja = np.matmul(AJR, B)   # (N, 2, 7), last column zero: the residual's slot
         Ja[:, :, 6] = r
         if any_bad:
             Ja[bad] = 0.0
@@ -815,29 +862,36 @@ class JointProblem:
         return r, Ja
 
     @staticmethod
-    def _huber(r: np.ndarray, scale: float) -> Tuple[float, np.ndarray]:
-        """(Huber cost of the per-corner residual norms, IRLS weights)."""
-        e2 = r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1]
-        if e2.size and float(e2.max()) <= scale * scale:   # every corner within the scale (usual; NaN-safe)
+    def _huber(r: np.ndarray, scale: float, e2: Optional[np.ndarray] = None) -> Tuple[float, np.ndarray]:
+        """(Huber cost of the per-corner residual norms, IRLS weights); ``e2``: the squared norms
+        ``r[:, 0]^2 + r[:, 1]^2`` when the caller has them."""
+        if e2 is None:
+            e2 = r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1]
+        if not e2.size:
+            return 0.0, np.ones(0)
+        top = float(e2.max())   # NaN or inf when any corner is not finite
+        if top <= scale * scale:   # every corner within the scale (usual)
             return 0.5 * float(e2.sum()), np.ones(len(e2))
         e = np.sqrt(e2)
-        if not np.all(np.isfinite(e)):
+        if not math.isfinite(top):
             w = np.where(np.isfinite(e), np.where(e <= scale, 1.0, scale / np.maximum(e, 1e-12)), 0.0)
             return np.inf, w
-        cost = float(np.sum(np.where(e <= scale, 0.5 * e * e, scale * (e - 0.5 * scale))))
-        return cost, np.where(e <= scale, 1.0, scale / np.maximum(e, 1e-12))
+        inside = e <= scale
+        cost = float(np.where(inside, 0.5 * e * e, scale * (e - 0.5 * scale)).sum())
+        # scale / e >= 1 exactly where e <= scale: the same weights as where(inside, 1, scale / e).
+        return cost, np.minimum(scale / np.maximum(e, 1e-12), 1.0)
 
     def fit(self, T_base_map: np.ndarray, scale: float) -> JointFit:
         """Residuals, Jacobian, weights and the (whitened) normal equations at ``T_base_map``."""
         r, Ja = self._rows(T_base_map)
         J = Ja[:, :, :6]
-        e2 = np.einsum("ni,ni->n", r, r)
+        e2 = r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1]
         if e2.size and float(e2.max()) <= scale * scale:
             # Every corner within the Huber scale (the usual frame; NaN-safe): unit weights, no
             # weighting pass ([J r]^T [J r] directly).
             huber, w, Jw = 0.5 * float(e2.sum()), np.ones(self.n), Ja
         else:
-            huber, w = self._huber(r, scale)
+            huber, w = self._huber(r, scale, e2)
             if not np.isfinite(huber):   # finite cost: every r finite; else the non-finite rows out
                 Ja[:, :, 6] = np.where(np.isfinite(r), r, 0.0)
             Jw = Ja * w[:, None, None]
@@ -845,8 +899,15 @@ class JointProblem:
         if self.extrinsics_cov is None:
             A7 = np.matmul(Jw.reshape(-1, 7).T, Ja.reshape(-1, 7)) / s2
             return JointFit(r, J, w, A7[:6, :6], A7[:6, 6], float(A7[6, 6]), huber)
-        # Per camera, [J_c r_c]^T D_c [J_c r_c] in one pass: J_c^T D_c J_c, J_c^T D_c r_c, r_c^T D_c r_c.
-        A7 = np.add.reduceat(np.matmul(np.transpose(Jw, (0, 2, 1)), Ja), self.offsets[:-1], axis=0)
+        # Per camera, [J_c r_c]^T D_c [J_c r_c] in one product: J_c^T D_c J_c, J_c^T D_c r_c, r_c^T D_c r_c
+        # (one BLAS product per camera on its rows: half the cost of the per-corner outer products
+        # summed by reduceat at the lab's 8 cameras).
+        A7 = np.empty((len(self.counts), 7, 7))
+        Ja2, Jw2 = Ja.reshape(-1, 7), Jw.reshape(-1, 7)
+        rows = self._row_offsets
+        for c in range(len(rows) - 1):
+            a, b = rows[c], rows[c + 1]
+            np.dot(Jw2[a:b].T, Ja2[a:b], out=A7[c])
         return self._whitened(r, J, w, A7[:, :6, :6], A7[:, :6, 6], A7[:, 6, 6], huber, Gb=A7[:, :6, :])
 
     def refit(self, fit: JointFit) -> JointFit:
@@ -896,22 +957,25 @@ class JointProblem:
                 self._LT = np.ascontiguousarray(np.transpose(self.extrinsics_factor, (0, 2, 1)))
             Q = np.matmul(self._LT, Gb)                      # L^T [G | b]
             M = np.matmul(Q[:, :, :6], self.extrinsics_factor)
-            M[:, _I6, _I6] += s2
+            C = M.shape[0]
+            diag = M.reshape(C, 36)[:, ::7]                  # M's diagonals (a view: M is fresh)
+            diag += s2
             K = np.linalg.cholesky(M)                        # raises LinAlgError: not positive definite
-            piv = K[:, _I6, _I6]
+            piv = K.reshape(C, 36)[:, ::7]
             piv = piv * piv
-            if not piv.min() > np.finfo(np.float64).eps * M[:, _I6, _I6].max():
+            if not piv.min() > _EPS * diag.max():
                 raise np.linalg.LinAlgError("whitening: the 6x6 normal matrix is not positive definite")
             Z = np.linalg.solve(K, Q)
             Y = (Gb - np.matmul(np.transpose(Z[:, :, :6], (0, 2, 1)), Z)) / s2
             H_cam, g = Y[:, :, :6], Y[:, :, 6]
-            chi2 = float(np.sum(q) - np.sum(Z[:, :, 6] * Z[:, :, 6])) / s2
+            z = Z[:, :, 6]
+            chi2 = float(np.asarray(q).sum() - (z * z).sum()) / s2
             if not np.isfinite(huber):
                 chi2 = np.inf
             return JointFit(r, J, w, H_cam.sum(axis=0), g.sum(axis=0), chi2, chi2, H_cam, G, b, None)
         sp = spectrum
         m = s2 + sp.lam
-        if not m.min() > np.finfo(np.float64).eps * m.max():
+        if not m.min() > _EPS * m.max():
             raise np.linalg.LinAlgError("whitening: the 6x6 normal matrix is not positive definite")
         d = 1.0 / m
         # [G | b] and Q = U^T L^T [G | b] = [P^T | beta] (P = G L U: G is symmetric): then
@@ -920,7 +984,7 @@ class JointProblem:
         Qd = Q * d[:, :, None]
         Y = (Gb - np.matmul(np.transpose(Q[:, :, :6], (0, 2, 1)), Qd)) / s2
         H_cam, g = Y[:, :, :6], Y[:, :, 6]
-        chi2 = float(np.sum(q) - np.sum(Qd[:, :, 6] * Q[:, :, 6])) / s2
+        chi2 = float(np.asarray(q).sum() - (Qd[:, :, 6] * Q[:, :, 6]).sum()) / s2
         if not np.isfinite(huber):
             chi2 = np.inf
         return JointFit(r, J, w, H_cam.sum(axis=0), g.sum(axis=0), chi2, chi2, H_cam, G, b, sp)
@@ -1007,7 +1071,7 @@ class JointProblem:
         H = fit.G_cam.sum(axis=0) / s2
         g = fit.b_cam.sum(axis=0) / s2
         try:
-            delta = -_solve_spd_batch(H[None], g[None, :, None])[0, :, 0]
+            delta = -_solve_spd(H, g)
         except np.linalg.LinAlgError:
             raise MeasurementError("joint estimator: singular normal equations (degenerate geometry)") from None
         r = fit.r + fit.J @ delta
@@ -1092,7 +1156,7 @@ class JointProblem:
         it = 0
         for it in range(1, max_iterations + 1):
             try:
-                delta = -_solve_spd_batch(fit.H[None], fit.g[None, :, None])[0, :, 0]
+                delta = -_solve_spd(fit.H, fit.g)
             except np.linalg.LinAlgError:
                 raise MeasurementError("joint estimator: singular normal equations (degenerate geometry)") from None
             norm = float(np.sqrt(delta @ delta))
@@ -1211,6 +1275,15 @@ def _solve_spd_batch(M: np.ndarray, B: np.ndarray) -> np.ndarray:
             raise np.linalg.LinAlgError("matrix is not positive definite")
         out[c] = x
     return out
+
+
+def _solve_spd(H: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """(n,) ``H^-1 g`` for one symmetric positive-definite ``H``: :func:`_solve_spd_batch` of a single
+    system (the same LAPACK call) without the batch's arrays. Raises LinAlgError."""
+    _, x, info = _lapack.dposv(H, g[:, None], lower=False)
+    if info != 0:
+        raise np.linalg.LinAlgError("matrix is not positive definite")
+    return x[:, 0]
 
 
 def _psd_factor(S: np.ndarray) -> np.ndarray:
@@ -1659,6 +1732,9 @@ class RingLocalizer:
         self.marker_map = marker_map
         self._axes_cache: Dict[int, np.ndarray] = {}
         self._map_factor_cache: Dict[int, object] = {}   # id -> (4, 3, 6) factor, or False: exact
+        #: the ids of one view (in order) -> their stacked factors or None (:meth:`_map_factor`): a
+        #: camera sees the same markers frame after frame. Cleared with the per-id cache.
+        self._view_factor_cache: Dict[Tuple[int, ...], Optional[np.ndarray]] = {}
         #: px: the pixel noise the joint estimate is solved at (``estimate_pixel_noise``): the noise
         #: measured in the last frame posed by the joint estimator, ``pixel_noise`` before it.
         self.pixel_noise_guess = float(self.params.pixel_noise)
@@ -1852,6 +1928,21 @@ class RingLocalizer:
         or None when the model is off or these markers' poses are exact (a surveyed or true map)."""
         if self.params.fusion != "joint" or not self.params.map_uncertainty:
             return None
+        key = tuple(ids)
+        try:
+            return self._view_factor_cache[key]
+        except KeyError:
+            pass
+        out = self._view_factor(ids)
+        if out is not None:
+            out.flags.writeable = False   # shared by every frame that sees these markers
+        if len(self._view_factor_cache) >= 256:
+            self._view_factor_cache.clear()
+        self._view_factor_cache[key] = out
+        return out
+
+    def _view_factor(self, ids: Sequence[int]) -> Optional[np.ndarray]:
+        """:meth:`_map_factor` computed (from the per-id cache)."""
         cache = self._map_factor_cache
         rows = []
         for i in ids:
@@ -2155,8 +2246,12 @@ class RingLocalizer:
         try:
             T_bm, fit, iters = self._solver(problem).solve(geo.inverse(T0), p.robust_scale, p.max_iterations)
             # Drop whole markers that do not fit (a moved or mis-mapped marker) and solve again.
-            e2 = np.sum(np.where(np.isfinite(fit.r), fit.r, 1e6) ** 2, axis=1).reshape(-1, 4)
-            bad = np.sqrt(e2.mean(axis=1)) > p.joint_outlier_threshold
+            r = fit.r
+            e2 = r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1]
+            finite = math.isfinite(float(e2.sum()))   # finite only when every residual is
+            if not finite:
+                e2 = np.sum(np.where(np.isfinite(r), r, 1e6) ** 2, axis=1)
+            bad = np.sqrt(e2.reshape(-1, 4).mean(axis=1)) > p.joint_outlier_threshold
             outliers = int(bad.sum())
             if outliers:
                 if outliers * 2 > bad.size or bad.size - outliers < p.min_markers_joint:
@@ -2174,10 +2269,13 @@ class RingLocalizer:
         except MeasurementError as exc:
             logger.debug("joint estimator: %s", exc)
             return None
-        r = fit.r
-        if not np.isfinite(r).all():
+        if outliers:
+            r = fit.r
+            e2 = r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1]
+            finite = math.isfinite(float(e2.sum()))
+        if not finite:   # a residual not finite (or, as before, an RMS that would be infinite)
             return None
-        rms = float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
+        rms = float(np.sqrt(e2.mean()))
         if rms > p.joint_outlier_threshold:
             return None
         sigma = float("nan")
@@ -2264,7 +2362,7 @@ class RingLocalizer:
         else:
             fit_s = at.refit(fit)   # the same residuals and Huber weights (the scale is in px)
             try:
-                delta = -_solve_spd_batch(fit_s.H[None], fit_s.g[None, :, None])[0, :, 0]
+                delta = -_solve_spd(fit_s.H, fit_s.g)
             except np.linalg.LinAlgError:
                 raise MeasurementError("joint estimator: singular normal equations (degenerate geometry)") from None
             # The step keeps the blocks G_c (and so H, H_cam: what the covariances below read); only
@@ -2423,7 +2521,7 @@ class RingLocalizer:
         problem = sol.problem
         if np.isfinite(sol.pixel_noise):
             self.pixel_noise_guess = sol.pixel_noise   # the next frame is solved at it
-        T_map_base = geo.inverse(sol.T_base_map)
+        T_map_base = _inv(sol.T_base_map)
         result.covariance = map_frame_covariance(sol.covariance, T_map_base)
         result.T_map_base = T_map_base
         result.method = "joint"
@@ -2444,6 +2542,7 @@ class RingLocalizer:
         """Drop what is cached of a marker (its pose in the map changed: re-mapped)."""
         self._axes_cache.pop(int(marker_id), None)
         self._map_factor_cache.pop(int(marker_id), None)
+        self._view_factor_cache.clear()
 
     def _marker_axes(self, ids: Sequence[int]) -> Tuple[np.ndarray, np.ndarray]:
         """(k, 3) centres and (k, 3) z axes of mapped markers, in the map frame (cached by id)."""

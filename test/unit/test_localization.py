@@ -251,3 +251,59 @@ def test_fast_path_camera_estimates_agree_with_per_camera_pnp(lab):
         assert abs(e.accuracy - fast.estimates[name].accuracy) < 0.01
         compared += 1
     assert compared >= 3, f"only {compared} multi-marker cameras compared"
+
+
+# --- what the joint problem keeps across frames (issue 16) ------------------------------------
+
+def test_huber_cost_and_weights_of_mixed_residuals():
+    r = np.array([[0.5, -0.5], [3.0, 4.0], [-6.0, 8.0], [0.0, 0.0], [30.0, 40.0]])
+    scale = 5.0
+    e = np.hypot(r[:, 0], r[:, 1])
+    expected_w = np.where(e <= scale, 1.0, scale / np.maximum(e, 1e-12))
+    expected_cost = float(np.sum(np.where(e <= scale, 0.5 * e * e, scale * (e - 0.5 * scale))))
+    cost, w = JointProblem._huber(r, scale)
+    assert np.array_equal(w, expected_w)
+    assert cost == pytest.approx(expected_cost, rel=1e-15)
+    assert w[1] == 1.0 and w[2] == 0.5 and w[4] == 0.1   # 5 px at the scale: inside; 10, 50 px outside
+    cost, w = JointProblem._huber(np.array([[1.0, 0.0], [np.inf, 0.0], [np.nan, 1.0], [20.0, 0.0]]), scale)
+    assert cost == np.inf and np.array_equal(w, [1.0, 0.0, 0.0, 0.25])   # not finite: weight 0, cost inf
+
+
+def test_problem_layout_follows_each_ring(lab):
+    """Two localizers with different extrinsics on the same frame (same cameras, same markers): each
+    problem projects with its own ring's extrinsics (the layout is cached per extrinsics array)."""
+    scene, ring, truth = lab
+    other = perturb_ring(ring, seed=4)
+    frame = RingSimulator(scene, ring, pixel_noise=0.3, seed=8).observe(scene.T_world_base(scene.test_positions[1]))
+    for r in (ring, other, ring):
+        views = list(RingLocalizer(r, truth)._gather(frame, {}).values())
+        prob = JointProblem(views)
+        T_cb = np.stack([v.T_cam_base for v in views])
+        assert np.array_equal(prob.T_cam_bases, T_cb)
+        assert np.array_equal(prob.R, T_cb[prob.cam_index][:, :3, :3])
+        assert np.array_equal(prob.t, T_cb[prob.cam_index][:, :3, 3])
+        assert np.array_equal(prob._AR, np.matmul(prob.A, prob.R[:, :2, :]))
+    a = JointProblem(list(RingLocalizer(ring, truth)._gather(frame, {}).values()))
+    b = JointProblem(list(RingLocalizer(other, truth)._gather(frame, {}).values()))
+    T = geo.inverse(scene.T_world_base(scene.test_positions[1]))
+    assert np.abs(a.residuals(T, False)[0] - b.residuals(T, False)[0]).max() > 1e-3
+
+
+def test_view_map_factor_follows_a_remapped_marker(lab):
+    """A view's stacked map factors are cached by its marker ids; forget_marker (a re-mapped marker)
+    drops them with the marker's own."""
+    scene, ring, truth = lab
+    entries = [MarkerEntry(e.marker_id, e.T_map_marker, e.size, position_std=np.full(3, 0.002),
+                           rotation_std=np.full(3, 0.001)) for e in truth]
+    mm = MarkerMap(entries, frame_id=truth.frame_id)
+    loc = RingLocalizer(ring, mm, LocalizationParams(fusion="joint"))
+    ids = [entries[0].marker_id, entries[1].marker_id]
+    F1 = loc._map_factor(ids)
+    assert F1 is not None and F1.shape == (8, 3, 6)
+    assert loc._map_factor(ids) is F1   # kept
+    e0 = entries[0]
+    mm.add(MarkerEntry(e0.marker_id, e0.T_map_marker, e0.size, position_std=np.full(3, 0.004),
+                       rotation_std=np.full(3, 0.001)))
+    loc.forget_marker(e0.marker_id)
+    F2 = loc._map_factor(ids)
+    assert np.allclose(F2[:4, :, :3], 2.0 * F1[:4, :, :3]) and np.array_equal(F2[4:], F1[4:])
