@@ -343,6 +343,51 @@ def test_repeated_camera_info_is_not_deserialised_and_a_change_is_applied(node, 
     assert not node.log.warnings(), node.log.calls
 
 
+def test_camera_info_connection_pauses_after_a_repeat_only(node, world):
+    """The subscription's callback: after a repeat of the camera_info in force, the connection's
+    thread waits input/camera_info_check_period (rospy reads nothing from it meanwhile); after a
+    new, a changed, an unusable or a mistyped camera_info it does not; shutdown ends a wait."""
+    _, ring, _ = world
+    ri = node.ring_input
+    assert ri.info_check_period == LocalizerConfig().input.camera_info_check_period == 2.0
+    waits = []
+
+    class Stopping:
+        def wait(self, timeout):
+            waits.append(timeout)
+            return False
+
+    real_stopping, ri._stopping = ri._stopping, Stopping()
+    info = _info(ring, "cam0")
+    ri._on_camera_info_sub(_raw(info), "cam0")        # the first: applied, read on at once
+    assert waits == [] and node.pipeline.input.camera_model("cam0") is not None
+    info.header.seq = 2
+    ri._on_camera_info_sub(_raw(info), "cam0")        # a repeat: pause
+    assert waits == [2.0]
+    K = list(info.K)
+    K[0] *= 1.01
+    info.K = K
+    ri._on_camera_info_sub(_raw(info), "cam0")        # changed: applied, no pause
+    assert waits == [2.0]
+    assert node.pipeline.input.camera_model("cam0").K[0, 0] == pytest.approx(K[0])
+    infos = [m for lvl, _, m in node.log.calls if lvl == "info" and "cam0 intrinsics from camera_info" in m]
+    assert len(infos) == 1 and f"cam0 intrinsics from camera_info: fx {info.K[0] / 1.01:.3f}" in infos[0], infos
+    ri._on_camera_info_sub(_raw(info), "cam0")        # its repeat: pause
+    assert waits == [2.0, 2.0]
+    ri._on_camera_info_sub(_raw(_info(ring, "cam0", K=[0.0] * 9)), "cam0")   # unusable: no pause
+    ri._on_camera_info_sub(_raw(_info(ring, "cam0", width=7), md5sum=Fiducial._md5sum, type_name=Fiducial._type),
+                           "cam0")                    # another type: no pause
+    assert any(Fiducial._type in w for w in node.log.warnings(throttled=True)), node.log.calls
+    assert waits == [2.0, 2.0]
+    ri.info_check_period = 0.0                        # 0: never paused
+    ri._on_camera_info_sub(_raw(info), "cam0")
+    assert waits == [2.0, 2.0]
+    ri._stopping = real_stopping
+    assert not ri._stopping.is_set()
+    ri.shutdown()
+    assert ri._stopping.is_set() and ri._stopping.wait(10.0)   # a wait in progress returns at once
+
+
 def test_camera_info_of_another_type_or_unreadable_is_warned_and_ignored(node, world):
     _, ring, _ = world
     info = _info(ring, "cam0")
