@@ -388,6 +388,48 @@ def test_camera_info_connection_pauses_after_a_repeat_only(node, world):
     assert ri._stopping.is_set() and ri._stopping.wait(10.0)   # a wait in progress returns at once
 
 
+def test_tf_listener_drops_our_own_tf_as_bytes_and_stores_and_checks_the_others(node):
+    """Our /tf messages coming back are dropped before deserialising (what we send is put in the
+    buffer as it goes out); another node's are stored under its name and go to the authority
+    check; another type or unreadable bytes are warned about; a jump back in time clears the buffer."""
+    from tf2_msgs.msg import TFMessage
+
+    listener, buf = node.tf_listener, node.tf_buffer
+    own = listener.own_name
+    T = np.eye(4)
+    T[:3, 3] = [1.0, 2.0, 0.0]
+    stamp = rospy.Time.now()
+
+    def tf_raw(sender, child="base_link", buff=None):
+        raw = _raw(TFMessage(transforms=[make_transform_stamped(T, "map", child, stamp)]))
+        raw._connection_header["callerid"] = sender
+        if buff is not None:
+            raw._buff = buff
+        return raw
+
+    listener._on_tf(tf_raw(own, buff=b"\x01garbage"))   # ours: not even read
+    assert not buf.can_transform("map", "base_link", rospy.Time(0)) and not node.log.warnings(), node.log.calls
+    node.publish_tf(T, stamp)                             # what we send is in the buffer at once
+    assert buf.can_transform("map", "base_link", rospy.Time(0))
+    assert node._tf_child == "base_link"
+    listener._on_tf(tf_raw("/other_localizer", child="base_link"))   # another node on our child frame
+    assert any("/other_localizer also publishes tf map -> base_link" in w for w in node.log.warnings(True)), \
+        node.log.calls
+    listener._on_tf(tf_raw("/odometry", child="odom_only"))          # another frame: stored, no warning
+    assert buf.can_transform("map", "odom_only", rospy.Time(0))
+    assert sum("also publishes tf" in w for w in node.log.warnings(True)) == 1, node.log.calls
+    wrong = tf_raw("/confused")
+    wrong._connection_header["md5sum"] = Fiducial._md5sum
+    listener._on_tf(wrong)
+    listener._on_tf(tf_raw("/broken", buff=b"\x05\x00\x00\x00ab"))
+    assert any("/tf from /confused" in w and "ignored" in w for w in node.log.warnings(True)), node.log.calls
+    assert any("unreadable /tf message from /broken" in w for w in node.log.warnings(True)), node.log.calls
+    listener._last_update = rospy.Time.now() + rospy.Duration(60.0)   # ROS time went back (a bag loop)
+    node.publish_tf(T, stamp)
+    assert not buf.can_transform("map", "odom_only", rospy.Time(0)), "the buffer was not cleared"
+    assert any("jumped back" in w for w in node.log.warnings(False)), node.log.calls
+
+
 def test_camera_info_of_another_type_or_unreadable_is_warned_and_ignored(node, world):
     _, ring, _ = world
     info = _info(ring, "cam0")
