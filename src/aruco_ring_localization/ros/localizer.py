@@ -9,7 +9,8 @@ Subscribes: ``<ns>/fiducial_vertices`` + ``<ns>/camera_info`` per camera (throug
 :class:`ros.ring_input.RingSubscriber`), ``cmd_vel`` (geometry_msgs/Twist), ``odom``
 (nav_msgs/Odometry, optional; with ``motion/odometry`` its pose predicts the filter and each message
 gives a pose out), ``imu`` (sensor_msgs/Imu, with ``motion/imu`` only: its yaw rate), ``initialpose`` (geometry_msgs/PoseWithCovarianceStamped, rviz
-"2D Pose Estimate").
+"2D Pose Estimate"), ``/tf`` and ``/tf_static`` (:class:`ros.tf_output.TfListener`: our own /tf
+messages coming back are dropped unread).
 Publishes: ``~pose`` (PoseWithCovarianceStamped, REP-103 covariance order, robot_localization
 ready), ``~odometry`` (nav_msgs/Odometry with the filter's twist), ``~camera_estimates``
 (PoseArray, one per camera), ``~markers`` (MarkerArray, markers in view highlighted),
