@@ -75,6 +75,13 @@ class RingInputParams:
     max_detections: int = param(200, "a camera message with more detections than this is dropped whole (a "
                                      "flood; no real image shows that many markers): the work per message and "
                                      "per ring frame stays bounded")
+    camera_info_check_period: float = param(2.0, "nodes only: after a camera_info equal to the one in force, "
+                                                 "that connection is read again only this long after (wall "
+                                                 "time): the camera_info sent meanwhile wait in the socket and "
+                                                 "only the newest is read, so a changed camera_info is applied "
+                                                 "within this delay; 0: every camera_info is read as it comes; at "
+                                                 "most 10",
+                                            unit="s")
 
     def __post_init__(self) -> None:
         try:
@@ -82,6 +89,11 @@ class RingInputParams:
         except ValueError:
             raise ConfigError(f"expected auto or a number of seconds >= 0, got {self.slop!r}", key="slop") from None
         require_positive(self, "timeout", "silent_after", "max_stamp_ahead", "max_detections")
+        if not 0.0 <= self.camera_info_check_period <= 10.0:
+            # 10 s of 30 Hz camera_info is about 120 kB: what the socket buffers hold without the
+            # publisher blocking (rospy without queue_size) or dropping (roscpp).
+            raise ConfigError(f"must be in [0, 10] s, got {self.camera_info_check_period!r}",
+                              key="camera_info_check_period")
         parse_id_list(self.ignore_fiducials, key="ignore_fiducials")
 
     def ignored_ids(self) -> frozenset:

@@ -9,6 +9,7 @@ moves. Named ``*_rostest.py`` so pytest does not collect it (it needs rostest's 
 from __future__ import annotations
 
 import threading
+import time
 import unittest
 
 import numpy as np
@@ -19,7 +20,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from fiducial_msgs.msg import FiducialArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.srv import GetMap
-from rosgraph_msgs.msg import Clock
+from rosgraph_msgs.msg import Clock, Log
 
 from aruco_ring_localization import geometry as geo
 from aruco_ring_localization.marker_map import MarkerMap
@@ -85,8 +86,9 @@ class LocalizerSimTest(unittest.TestCase):
         with self.lock:
             return [d for t, d in self.diags if a <= t < b and len(d) == n]
 
-    def _play(self, t0: float, t1: float, path_t0: float = 0.0, cameras=None, rate_hz: float = 10.0):
-        """Publish clock + detections from sim time t0 to t1 (robot at _path(t - t0 + path_t0))."""
+    def _play(self, t0: float, t1: float, path_t0: float = 0.0, cameras=None, rate_hz: float = 10.0, infos=None):
+        """Publish clock + detections from sim time t0 to t1 (robot at _path(t - t0 + path_t0));
+        ``infos``: camera_info messages to send instead of the ring file's, by camera."""
         cameras = cameras or self.ring.names
         n = int(round((t1 - t0) * rate_hz))
         for k in range(n):
@@ -98,7 +100,7 @@ class LocalizerSimTest(unittest.TestCase):
             frame = self.sim.observe(self.scene.T_world_base(pose), t)
             for name in cameras:
                 fv, ci = self.pubs[name]
-                info = model_to_camera_info(self.ring[name].model, self.ring[name].frame_id)
+                info = (infos or {}).get(name) or model_to_camera_info(self.ring[name].model, self.ring[name].frame_id)
                 info.header.stamp = stamp
                 ci.publish(info)
                 msg = FiducialArray()
@@ -205,6 +207,37 @@ class LocalizerSimTest(unittest.TestCase):
             self.assertEqual(data[int((y - oy) // res), int((x - ox) // res)], 100, f"marker {e.marker_id}'s cell")
         # the markers are a small part of the room
         self.assertLess(np.count_nonzero(data == 100), 0.2 * data.size)
+
+    def test_7_a_changed_camera_info_is_applied_within_the_check_period(self):
+        """The camera_info connections pause input/camera_info_check_period after a repeat of the
+        camera_info in force (each camera sent the same one with every frame so far); a changed one
+        is still applied within that period, through a real master and rospy's sockets."""
+        period = rospy.get_param("/localizer/input/camera_info_check_period")
+        self.assertGreater(period, 0.0, "the check period is off: nothing to test")
+        logged = []   # (wall time received, text) of the localizer's lines about cam0's intrinsics
+
+        def on_log(msg):
+            if msg.name == "/localizer" and "cam0 intrinsics from camera_info" in msg.msg:
+                logged.append((time.monotonic(), msg.msg))
+
+        sub = rospy.Subscriber("/rosout", Log, on_log, queue_size=100)   # every node's log lines, the localizer's too
+        for _ in range(100):
+            if sub.get_num_connections() > 1:   # ours (rospy's own /rosout publisher) and at least the localizer
+                break
+            rospy.rostime.wallsleep(0.1)
+        self._play(40.0, 41.0)      # the same camera_info again: every connection pauses
+        info = model_to_camera_info(self.ring["cam0"].model, self.ring["cam0"].frame_id)
+        K = list(info.K)
+        K[0] *= 1.01
+        info.K = K
+        start = time.monotonic()
+        self._play(41.0, 41.0 + period + 2.0, path_t0=1.0, infos={"cam0": info})
+        sub.unregister()
+        new = [(t - start, text) for t, text in logged if f"fx {K[0]:.3f}" in text]
+        self.assertTrue(new, f"cam0's changed camera_info (fx {K[0]:.3f}) not applied within {period + 2.0:.1f} s "
+                             f"of 10 Hz camera_info (check period {period} s); logged: {logged}")
+        rospy.loginfo("localizer_rostest: the changed camera_info was applied %.2f s after it was first sent "
+                      "(check period %.1f s)", new[0][0], period)
 
 
 if __name__ == "__main__":

@@ -343,6 +343,93 @@ def test_repeated_camera_info_is_not_deserialised_and_a_change_is_applied(node, 
     assert not node.log.warnings(), node.log.calls
 
 
+def test_camera_info_connection_pauses_after_a_repeat_only(node, world):
+    """The subscription's callback: after a repeat of the camera_info in force, the connection's
+    thread waits input/camera_info_check_period (rospy reads nothing from it meanwhile); after a
+    new, a changed, an unusable or a mistyped camera_info it does not; shutdown ends a wait."""
+    _, ring, _ = world
+    ri = node.ring_input
+    assert ri.info_check_period == LocalizerConfig().input.camera_info_check_period == 2.0
+    waits = []
+
+    class Stopping:
+        def wait(self, timeout):
+            waits.append(timeout)
+            return False
+
+    real_stopping, ri._stopping = ri._stopping, Stopping()
+    info = _info(ring, "cam0")
+    ri._on_camera_info_sub(_raw(info), "cam0")        # the first: applied, read on at once
+    assert waits == [] and node.pipeline.input.camera_model("cam0") is not None
+    info.header.seq = 2
+    ri._on_camera_info_sub(_raw(info), "cam0")        # a repeat: pause
+    assert waits == [2.0]
+    K = list(info.K)
+    K[0] *= 1.01
+    info.K = K
+    ri._on_camera_info_sub(_raw(info), "cam0")        # changed: applied, no pause
+    assert waits == [2.0]
+    assert node.pipeline.input.camera_model("cam0").K[0, 0] == pytest.approx(K[0])
+    infos = [m for lvl, _, m in node.log.calls if lvl == "info" and "cam0 intrinsics from camera_info" in m]
+    assert len(infos) == 1 and f"cam0 intrinsics from camera_info: fx {info.K[0] / 1.01:.3f}" in infos[0], infos
+    ri._on_camera_info_sub(_raw(info), "cam0")        # its repeat: pause
+    assert waits == [2.0, 2.0]
+    ri._on_camera_info_sub(_raw(_info(ring, "cam0", K=[0.0] * 9)), "cam0")   # unusable: no pause
+    ri._on_camera_info_sub(_raw(_info(ring, "cam0", width=7), md5sum=Fiducial._md5sum, type_name=Fiducial._type),
+                           "cam0")                    # another type: no pause
+    assert any(Fiducial._type in w for w in node.log.warnings(throttled=True)), node.log.calls
+    assert waits == [2.0, 2.0]
+    ri.info_check_period = 0.0                        # 0: never paused
+    ri._on_camera_info_sub(_raw(info), "cam0")
+    assert waits == [2.0, 2.0]
+    ri._stopping = real_stopping
+    assert not ri._stopping.is_set()
+    ri.shutdown()
+    assert ri._stopping.is_set() and ri._stopping.wait(10.0)   # a wait in progress returns at once
+
+
+def test_tf_listener_drops_our_own_tf_as_bytes_and_stores_and_checks_the_others(node):
+    """Our /tf messages coming back are dropped before deserialising (what we send is put in the
+    buffer as it goes out); another node's are stored under its name and go to the authority
+    check; another type or unreadable bytes are warned about; a jump back in time clears the buffer."""
+    from tf2_msgs.msg import TFMessage
+
+    listener, buf = node.tf_listener, node.tf_buffer
+    own = listener.own_name
+    T = np.eye(4)
+    T[:3, 3] = [1.0, 2.0, 0.0]
+    stamp = rospy.Time.now()
+
+    def tf_raw(sender, child="base_link", buff=None):
+        raw = _raw(TFMessage(transforms=[make_transform_stamped(T, "map", child, stamp)]))
+        raw._connection_header["callerid"] = sender
+        if buff is not None:
+            raw._buff = buff
+        return raw
+
+    listener._on_tf(tf_raw(own, buff=b"\x01garbage"))   # ours: not even read
+    assert not buf.can_transform("map", "base_link", rospy.Time(0)) and not node.log.warnings(), node.log.calls
+    node.publish_tf(T, stamp)                             # what we send is in the buffer at once
+    assert buf.can_transform("map", "base_link", rospy.Time(0))
+    assert node._tf_child == "base_link"
+    listener._on_tf(tf_raw("/other_localizer", child="base_link"))   # another node on our child frame
+    assert any("/other_localizer also publishes tf map -> base_link" in w for w in node.log.warnings(True)), \
+        node.log.calls
+    listener._on_tf(tf_raw("/odometry", child="odom_only"))          # another frame: stored, no warning
+    assert buf.can_transform("map", "odom_only", rospy.Time(0))
+    assert sum("also publishes tf" in w for w in node.log.warnings(True)) == 1, node.log.calls
+    wrong = tf_raw("/confused")
+    wrong._connection_header["md5sum"] = Fiducial._md5sum
+    listener._on_tf(wrong)
+    listener._on_tf(tf_raw("/broken", buff=b"\x05\x00\x00\x00ab"))
+    assert any("/tf from /confused" in w and "ignored" in w for w in node.log.warnings(True)), node.log.calls
+    assert any("unreadable /tf message from /broken" in w for w in node.log.warnings(True)), node.log.calls
+    listener._last_update = rospy.Time.now() + rospy.Duration(60.0)   # ROS time went back (a bag loop)
+    node.publish_tf(T, stamp)
+    assert not buf.can_transform("map", "odom_only", rospy.Time(0)), "the buffer was not cleared"
+    assert any("jumped back" in w for w in node.log.warnings(False)), node.log.calls
+
+
 def test_camera_info_of_another_type_or_unreadable_is_warned_and_ignored(node, world):
     _, ring, _ = world
     info = _info(ring, "cam0")

@@ -9,7 +9,8 @@ Subscribes: ``<ns>/fiducial_vertices`` + ``<ns>/camera_info`` per camera (throug
 :class:`ros.ring_input.RingSubscriber`), ``cmd_vel`` (geometry_msgs/Twist), ``odom``
 (nav_msgs/Odometry, optional; with ``motion/odometry`` its pose predicts the filter and each message
 gives a pose out), ``imu`` (sensor_msgs/Imu, with ``motion/imu`` only: its yaw rate), ``initialpose`` (geometry_msgs/PoseWithCovarianceStamped, rviz
-"2D Pose Estimate").
+"2D Pose Estimate"), ``/tf`` and ``/tf_static`` (:class:`ros.tf_output.TfListener`: our own /tf
+messages coming back are dropped unread).
 Publishes: ``~pose`` (PoseWithCovarianceStamped, REP-103 covariance order, robot_localization
 ready), ``~odometry`` (nav_msgs/Odometry with the filter's twist), ``~camera_estimates``
 (PoseArray, one per camera), ``~markers`` (MarkerArray, markers in view highlighted),
@@ -60,7 +61,7 @@ from .conversions import msg_to_transform, pose_msg_to_transform, pose_to_msg, s
 from .params import read_config
 from .ring_input import BUFF_SIZE, NOW, RingSubscriber
 from .ring_tf import default_ring_file
-from .tf_output import MapTransform
+from .tf_output import MapTransform, TfListener
 
 WARN_PERIOD = 5.0
 
@@ -77,7 +78,9 @@ class LocalizerNode:
         self.base_frame = out.base_frame or ring.base_frame
         self._mounts: Dict[str, np.ndarray] = {}   # odom child frames: T_base_child, looked up once
         self.tf_buffer = tf2_ros.Buffer()
-        self.tf_listener = tf2_ros.TransformListener(self.tf_buffer)
+        # tf2_ros's listener, but our own tf coming back through /tf is dropped as bytes (put in the
+        # buffer as it goes out); the others' messages also go to the tf authority check.
+        self.tf_listener = TfListener(self.tf_buffer, "localizer", on_other=self.check_tf_authority)
         self.tf_broadcaster = tf2_ros.TransformBroadcaster()
         self.map_tf = MapTransform(self.tf_buffer, self.map_frame, self.base_frame, out.odom_frame, out.tf_mode,
                                    "localizer")
@@ -106,9 +109,7 @@ class LocalizerNode:
         # thread wakes at every /clock message).
         self.ring_input.every(out.diagnostics_period, self.publish_diagnostics)
         self.ring_input.every(out.markers_period, self.publish_markers)
-        self._tf_child: Optional[str] = None   # the child frame we last put on tf
-        # The tf listener's own /tf subscription: rospy deserializes each message once for both.
-        rospy.Subscriber("/tf", TFMessage, self.check_tf_authority, queue_size=100)
+        self._tf_child: Optional[str] = None   # the child frame we last put on tf (check_tf_authority)
         rospy.loginfo("localizer: %d mapped markers in %s, fusion %s, output %s -> %s, tf %s (%s)",
                       len(marker_map), self.map_frame, config.estimator.fusion, self.map_frame, self.base_frame,
                       out.tf_mode, "on" if out.publish_tf else "off")
@@ -252,6 +253,7 @@ class LocalizerNode:
         ts = self.map_tf.compute(T_map_base, stamp)
         if ts is not None:
             self.tf_broadcaster.sendTransform(ts)
+            self.tf_listener.own(ts)
             self._tf_child = ts.child_frame_id.lstrip("/")
 
     def check_tf_authority(self, msg: TFMessage) -> None:
@@ -259,7 +261,8 @@ class LocalizerNode:
 
         Two localizers on the same frames (or ours beside gmapping without beside_gmapping:=true)
         both publish ``map -> odom``: every tf user then sees the robot jump between two poses and
-        tf2 logs TF_REPEATED_DATA. The sender of each /tf message is in its connection header.
+        tf2 logs TF_REPEATED_DATA. The sender of each /tf message is in its connection header
+        (:class:`TfListener` hands over only other nodes' messages).
         """
         child = self._tf_child
         if child is None:

@@ -6,11 +6,17 @@
 so the node's namespace applies), converts the messages and calls the pipeline's events
 (:mod:`aruco_ring_localization.pipeline`) with ``now`` = ROS time:
 
-* camera_info -> ``on_camera_info`` once per change (an unusable one: throttled warning). The
-  subscription takes the raw bytes (``rospy.AnyMsg``): a message whose bytes after the header's
-  seq and stamp are those of the last one applied is dropped without being deserialised (each
-  camera sends the same one with every image: 8 per ring frame); another is checked to be a
-  sensor_msgs/CameraInfo (the publisher's md5sum) and deserialised;
+* camera_info -> ``on_camera_info`` once per change (logged, at most every 5 s per camera; an
+  unusable one: throttled warning). The subscription takes the raw bytes (``rospy.AnyMsg``): a
+  message whose bytes after the header's seq and stamp are those of the last one applied is
+  dropped without being deserialised (each camera sends the same one with every image: 8 per ring
+  frame); another is checked to be a sensor_msgs/CameraInfo (the publisher's md5sum) and
+  deserialised. After such a repeat, the connection's thread (rospy reads each connection on its
+  own thread and calls the callback there) waits ``input/camera_info_check_period`` (wall time)
+  before it reads again: what came meanwhile waits in the socket, and rospy's next read takes it
+  all and hands over only the newest (``queue_size`` 1). So a changed camera_info is applied
+  within that delay, and the 8 camera_info connections cost one thread wake-up each per period
+  instead of one per ring frame;
 * with ``use_tf``, ``T_base_cam`` looked up in tf once per (camera, header.frame_id) ->
   ``on_extrinsics``; until tf has it the pipeline skips that camera and says so;
 * fiducial_vertices -> ``on_detections``, also taken as bytes (``rospy.AnyMsg``, type-checked by
@@ -39,6 +45,7 @@ from __future__ import annotations
 
 import collections
 import threading
+import time
 from typing import Any, Callable, Dict, List, Optional, Set
 
 import numpy as np
@@ -118,6 +125,10 @@ class RingSubscriber:
         self._inbox: "collections.deque[_Call]" = collections.deque()  # calls in arrival order
         self._info_keys: Dict[str, tuple] = {}
         self._info_bytes: Dict[str, bytes] = {}  # camera -> camera_info bytes after seq and stamp, last applied
+        self._info_logged: Dict[str, float] = {}  # camera -> wall time its intrinsics were last logged
+        #: wall seconds a camera_info connection is not read after a repeat of the one in force (0: never paused)
+        self.info_check_period = float(getattr(pipeline.input.params, "camera_info_check_period", 0.0))
+        self._stopping = threading.Event()        # set at shutdown: ends the camera_info pauses
         self._periodic: List[list] = []           # [period, function, last run (ROS time)] (every())
         self._runs = 0                            # pipeline calls run so far (under the lock)
         self._polled: Optional[tuple] = None      # (now, _runs) of the last poll that ran (_poll)
@@ -137,8 +148,9 @@ class RingSubscriber:
             prefix = f"{ns}/" if ns else ""
             self._subs.append(rospy.Subscriber(f"{prefix}fiducial_vertices", rospy.AnyMsg, self._on_fiducials_raw,
                                                callback_args=camera, queue_size=queue_size, buff_size=buff_size))
-            self._subs.append(rospy.Subscriber(f"{prefix}camera_info", rospy.AnyMsg, self._on_camera_info_raw,
+            self._subs.append(rospy.Subscriber(f"{prefix}camera_info", rospy.AnyMsg, self._on_camera_info_sub,
                                                callback_args=camera, queue_size=1, buff_size=buff_size))
+        rospy.on_shutdown(self._stopping.set)
         # reset=True: a bag loop moves ROS time backwards, which would otherwise kill the timer thread.
         self._timer = rospy.Timer(rospy.Duration(poll_period), self._on_timer, reset=True)
         p = pipeline.input.params
@@ -215,28 +227,38 @@ class RingSubscriber:
 
     def shutdown(self) -> None:
         """Stop the subscriptions and the timer."""
+        self._stopping.set()
         self._timer.shutdown()
         for s in self._subs:
             s.unregister()
 
     # --- callbacks --------------------------------------------------------------------------
 
-    def _on_camera_info_raw(self, msg: rospy.AnyMsg, camera: str) -> None:
+    def _on_camera_info_sub(self, msg: rospy.AnyMsg, camera: str) -> None:
+        """The camera_info subscription's callback, on the connection's own thread: the message is
+        handled (:meth:`_on_camera_info_raw`); after a repeat of the camera_info in force the
+        thread waits ``info_check_period`` s before rospy reads that connection again (module
+        docstring), or until shutdown."""
+        if self._on_camera_info_raw(msg, camera) and self.info_check_period > 0.0:
+            self._stopping.wait(self.info_check_period)
+
+    def _on_camera_info_raw(self, msg: rospy.AnyMsg, camera: str) -> bool:
         """camera_info as bytes: dropped at once when all but the header's seq and stamp (its first
         12 bytes) are those of the last message applied; else type-checked, deserialised and
-        handed to :meth:`_on_camera_info`."""
+        handed to :meth:`_on_camera_info`. True for such a repeat (nothing new), else False."""
         body = camera_info_body(msg._buff)
         if self._info_bytes.get(camera) == body:
-            return
+            return True
         if not self._of_type(msg, CameraInfo, camera, "camera_info"):
-            return
+            return False
         try:
             info = camera_info_from_bytes(msg._buff)
         except MeasurementError as exc:
             rospy.logwarn_throttle(WARN_PERIOD, f"{self._name}: {camera}: {exc}")
-            return
+            return False
         if self._on_camera_info(info, camera):
             self._info_bytes[camera] = body
+        return False
 
     def _on_camera_info(self, msg: CameraInfo, camera: str) -> bool:
         """Hand a changed camera_info to the pipeline; True when the camera's intrinsics in force
@@ -251,6 +273,12 @@ class RingSubscriber:
             return False
         self.call(self.pipeline.on_camera_info, camera, model)
         self._info_keys[camera] = key
+        wall = time.monotonic()
+        if wall - self._info_logged.get(camera, -np.inf) >= WARN_PERIOD:  # a flip-flopping publisher: not every one
+            self._info_logged[camera] = wall
+            rospy.loginfo("%s: %s intrinsics from camera_info: fx %.3f fy %.3f cx %.3f cy %.3f, %dx%d, %s",
+                          self._name, camera, msg.K[0], msg.K[4], msg.K[2], msg.K[5], msg.width, msg.height,
+                          msg.distortion_model or "no distortion model")
         return True
 
     def _look_up_extrinsics(self, camera: str, frame_id: str) -> None:
