@@ -225,6 +225,10 @@ def _inv3(M: np.ndarray) -> np.ndarray:
     return adj / det[:, None, None]
 
 
+#: the ridge of the 6x6 pose solves
+_EYE6 = 1e-12 * np.eye(6)
+
+
 def _farther(a: np.ndarray, b: np.ndarray, distance: float) -> bool:
     """|a - b| > distance for 3-vectors (np.linalg.norm's set-up costs more than the arithmetic:
     twice per (marker, camera) pair and frame)."""
@@ -443,9 +447,14 @@ class MarkerCheck:
         blk_view = [vi for vi, v in enumerate(views) for _ in v.ids]
         blk_k = [k for v in views for k in range(len(v.ids))]
         blk_mid = [i for v in views for i in v.ids]
-        mids, blk_m = np.unique(np.asarray(blk_mid), return_inverse=True)
-        M = len(mids)
-        used = np.array([int(m) not in drop for m in mids])
+        # The markers in view, sorted, and each block's (np.unique's, without its set-up).
+        mids_l = sorted(set(blk_mid))
+        order = {m: j for j, m in enumerate(mids_l)}
+        blk_m_l = [order[i] for i in blk_mid]
+        mids, blk_m = np.array(mids_l), np.array(blk_m_l)
+        M = len(mids_l)
+        used_l = [m not in drop for m in mids_l]
+        used = np.array(used_l)
         S = np.zeros((M, len(w)))                                    # marker <- block sums
         S[blk_m, np.arange(len(w))] = 1.0
         Jpm = np.concatenate([Jp, Jm], axis=2)                       # (B, 8, 9)
@@ -471,7 +480,7 @@ class MarkerCheck:
         gm = S @ g_b
         H_all = Hm[used].sum(axis=0)
         g_all = gm[used].sum(axis=0)
-        n_used = int(used.sum())
+        n_used = sum(used_l)
         self.frames_checked += 1
         if self.frames_checked % 100 == 0:
             self._forget(stamp)
@@ -481,7 +490,7 @@ class MarkerCheck:
         # The pose from the others: one Gauss-Newton step without the marker's rows.
         H_loo = H_all[None] - Hm * used[:, None, None]
         g_loo = g_all[None] - gm * used[:, None]
-        eye6 = 1e-12 * np.eye(6)
+        eye6 = _EYE6
         try:
             delta = np.linalg.solve(H_loo + eye6, g_loo[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:
@@ -498,32 +507,34 @@ class MarkerCheck:
         # marker coming into view, changes the set: the pair's residual jumps although nothing
         # moved (on the harsh lab, 6 mrad when cam4 started to see one more marker); it is judged
         # against the baseline of the new set once that is learnt.
-        pairs = [(views[vi].index, int(mids[m])) for m, vi in zip(blk_m, blk_view)]
-        everyone = frozenset(pr for pr, m in zip(pairs, blk_m) if used[m])
+        index = [v.index for v in views]
+        pairs = [(index[vi], mid) for mid, vi in zip(blk_mid, blk_view)]
+        everyone = frozenset(pr for pr, m in zip(pairs, blk_m_l) if used_l[m])
         own: Dict[int, set] = {}
-        for pr, m in zip(pairs, blk_m):
-            own.setdefault(int(m), set()).add(pr)
+        for pr, m in zip(pairs, blk_m_l):
+            own.setdefault(m, set()).add(pr)
         masks = [hash(everyone - own[m]) for m in range(M)]
         # Camera positions in the map, -R^T t, batched (8 small matmuls on strided views cost ~20 us).
         positions = list(-np.einsum("kji,kj->ki", R_views, t_views))
-        have = np.zeros(len(w), dtype=bool)
-        e = np.zeros_like(res)
-        base_of = np.zeros_like(res)     # each judged block's baseline (e = res - base_of there)
-        eligible_l, mids_l, res_rows = eligible.tolist(), mids.tolist(), list(res)
-        for b_, m in enumerate(blk_m.tolist()):
+        judged_blocks, bases = [], []   # the blocks with a baseline, and it (e = res - base there)
+        eligible_l, res_rows, delta_rows = eligible.tolist(), list(res), list(delta)
+        for b_, m in enumerate(blk_m_l):
             if not eligible_l[m]:
                 continue
             mid = mids_l[m]
             vi = blk_view[b_]
             v = views[vi]
-            self._record(mid, stamp, v, blk_k[b_], T_map_base, delta[m])
+            self._record(mid, stamp, v, blk_k[b_], T_map_base, delta_rows[m])
             base = self._baseline_of(mid, v.camera, masks[m], stamp, res_rows[b_], positions[vi])
             if base is not None:   # else a pair not seen long enough to know its own offset yet
-                have[b_] = True
-                base_of[b_] = base
-        e[have] = res[have] - base_of[have]
-        if not have.any():
+                judged_blocks.append(b_)
+                bases.append(base)
+        if not judged_blocks:
             return self._judge(stamp, now)
+        have = np.zeros(len(w), dtype=bool)
+        have[judged_blocks] = True
+        e = np.zeros_like(res)
+        e[judged_blocks] = res[judged_blocks] - np.array(bases)
         # The pose from the others is uncertain too (few markers, one camera): the residual's
         # covariance is W^-1 + Jp H^-1 Jp^T. Its inverse (Woodbury) W - W Jp H_joint^-1 Jp^T W
         # turns the sums into the displacement's information with the pose marginalised (the
@@ -538,16 +549,20 @@ class MarkerCheck:
         cross = N_m[:, 6:, :6]
         proj = M9[:, 81:87]
         H_joint = H_loo + N_m[:, :6, :6]
-        judged = np.flatnonzero(Sh.any(axis=1))
+        judged = np.flatnonzero(Sh.any(axis=1))   # the markers with a judged block
         try:
             K = np.linalg.solve(H_joint[judged] + eye6, np.transpose(cross[judged], (0, 2, 1)))   # (k, 6, 3)
         except np.linalg.LinAlgError:
             return self._judge(stamp, now)
         A = A[judged] - cross[judged] @ K
+        A = 0.5 * (A + np.transpose(A, (0, 2, 1)))
         b = b[judged] - (np.transpose(K, (0, 2, 1)) @ proj[judged][:, :, None])[:, :, 0]
-        for j, m in enumerate(judged):
-            Aj = A[j]
-            self._evidence.setdefault(int(mids[m]), _Evidence()).add(stamp, 0.5 * (Aj + Aj.T), b[j], p.window)
+        evidence = self._evidence
+        for j, m in enumerate(judged.tolist()):
+            ev = evidence.get(mids_l[m])
+            if ev is None:
+                ev = evidence[mids_l[m]] = _Evidence()
+            ev.add(stamp, A[j], b[j], p.window)
         return self._judge(stamp, now)
 
     def _forget(self, stamp: float) -> None:
