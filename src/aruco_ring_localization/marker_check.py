@@ -229,20 +229,24 @@ def _inv3(M: np.ndarray) -> np.ndarray:
 _EYE6 = 1e-12 * np.eye(6)
 
 
-def _farther(a: np.ndarray, b: np.ndarray, distance: float) -> bool:
-    """|a - b| > distance for 3-vectors (np.linalg.norm's set-up costs more than the arithmetic:
-    twice per (marker, camera) pair and frame)."""
-    x, y, z = (a - b).tolist()
+def _farther(a: Sequence[float], b: Sequence[float], distance: float) -> bool:
+    """|a - b| > distance for 3-vectors as lists (np.linalg.norm's set-up costs more than the
+    arithmetic: twice per (marker, camera) pair and frame)."""
+    x, y, z = a[0] - b[0], a[1] - b[1], a[2] - b[2]
     return x * x + y * y + z * z > distance * distance
 
 
 @dataclass
 class _Baseline:
-    value: Optional[np.ndarray] = None       # (8,) residual of the 4 corners, normalised coordinates
-    position: Optional[np.ndarray] = None    # (3,) camera position (map) it was learnt at
+    """A (marker, camera, basis) pair's offset. Python floats, not arrays: the exponential average of
+    8 and 3 numbers costs less than numpy's set-up of its 6 operations (the same IEEE arithmetic,
+    element by element: the same numbers)."""
+
+    value: Optional[List[float]] = None      # 8 residuals of the 4 corners, normalised coordinates
+    position: Optional[List[float]] = None   # 3: camera position (map) it was learnt at
     count: int = 0
     stamp: Optional[float] = None
-    pending: Deque[Tuple[float, np.ndarray, np.ndarray]] = field(default_factory=deque)
+    pending: Deque[Tuple[float, List[float], List[float]]] = field(default_factory=deque)
 
 
 @dataclass
@@ -515,16 +519,23 @@ class MarkerCheck:
             own.setdefault(m, set()).add(pr)
         masks = [hash(everyone - own[m]) for m in range(M)]
         # Camera positions in the map, -R^T t, batched (8 small matmuls on strided views cost ~20 us).
-        positions = list(-np.einsum("kji,kj->ki", R_views, t_views))
+        positions = (-np.einsum("kji,kj->ki", R_views, t_views)).tolist()
         judged_blocks, bases = [], []   # the blocks with a baseline, and it (e = res - base there)
-        eligible_l, res_rows, delta_rows = eligible.tolist(), list(res), list(delta)
+        eligible_l, res_rows, delta_rows = eligible.tolist(), res.tolist(), list(delta)
+        records, oldest_record = self._records, stamp - p.remap_window
         for b_, m in enumerate(blk_m_l):
             if not eligible_l[m]:
                 continue
             mid = mids_l[m]
             vi = blk_view[b_]
             v = views[vi]
-            self._record(mid, stamp, v, blk_k[b_], T_map_base, delta_rows[m])
+            # The view for re-mapping (:meth:`observations`), the last ``remap_window`` s of it.
+            q = records.get(mid)
+            if q is None:
+                q = records[mid] = deque()
+            q.append((stamp, v.camera, v.px[blk_k[b_]], v.model, T_map_base, delta_rows[m], v.T_cam_base))
+            while q[0][0] < oldest_record:
+                q.popleft()
             base = self._baseline_of(mid, v.camera, masks[m], stamp, res_rows[b_], positions[vi])
             if base is not None:   # else a pair not seen long enough to know its own offset yet
                 judged_blocks.append(b_)
@@ -573,8 +584,8 @@ class MarkerCheck:
                     if (bl.stamp is None or bl.stamp < horizon) and (not bl.pending or bl.pending[-1][0] < horizon)]:
             del self._baselines[key]
 
-    def _baseline_of(self, mid: int, camera: str, basis: int, stamp: float, res: np.ndarray,
-                     position: np.ndarray) -> Optional[np.ndarray]:
+    def _baseline_of(self, mid: int, camera: str, basis: int, stamp: float, res: List[float],
+                     position: List[float]) -> Optional[List[float]]:
         """The pair's offset learnt from its residuals older than the window (None: none yet); queue ``res``.
 
         A residual joins the baseline once it is ``window`` s old (a plain mean at first, then an
@@ -590,33 +601,28 @@ class MarkerCheck:
         bl = self._baselines.get(key)
         if bl is None:
             bl = self._baselines[key] = _Baseline()
-        bl.pending.append((stamp, res, position))
-        frozen = mid in self.moved or mid in self.excluded
-        while bl.pending and bl.pending[0][0] < stamp - p.window:
-            t, r, pos = bl.pending.popleft()
-            if frozen:
-                continue
-            if bl.value is None or t - bl.stamp > p.baseline_time or _farther(pos, bl.position, p.baseline_distance):
-                bl.value, bl.position, bl.count, bl.stamp = r.copy(), pos.copy(), 1, t
-                continue
-            bl.count += 1
-            alpha = max(1.0 / bl.count, min(1.0, (t - bl.stamp) / p.baseline_time))
-            bl.value = bl.value + alpha * (r - bl.value)
-            bl.position = bl.position + alpha * (pos - bl.position)
-            bl.stamp = t
+        pending = bl.pending
+        pending.append((stamp, res, position))
+        oldest = stamp - p.window
+        if pending[0][0] < oldest:
+            frozen = mid in self.moved or mid in self.excluded
+            while pending and pending[0][0] < oldest:
+                t, r, pos = pending.popleft()
+                if frozen:
+                    continue
+                if bl.value is None or t - bl.stamp > p.baseline_time or \
+                        _farther(pos, bl.position, p.baseline_distance):
+                    bl.value, bl.position, bl.count, bl.stamp = list(r), list(pos), 1, t
+                    continue
+                bl.count += 1
+                alpha = max(1.0 / bl.count, min(1.0, (t - bl.stamp) / p.baseline_time))
+                bl.value = [v + alpha * (x - v) for v, x in zip(bl.value, r)]
+                bl.position = [v + alpha * (x - v) for v, x in zip(bl.position, pos)]
+                bl.stamp = t
         if bl.value is None or stamp - bl.stamp > p.window + p.baseline_time or \
                 _farther(position, bl.position, p.baseline_distance):
             return None
         return bl.value
-
-    def _record(self, mid: int, stamp: float, v: _View, k: int, T_map_base: np.ndarray, delta: np.ndarray) -> None:
-        q = self._records.get(mid)
-        if q is None:
-            q = self._records[mid] = deque()
-        q.append((stamp, v.camera, v.px[k], v.model, T_map_base, delta, v.T_cam_base))
-        oldest = stamp - self.params.remap_window
-        while q and q[0][0] < oldest:
-            q.popleft()
 
     def _judge(self, stamp: float, now: float) -> List[MovedMarker]:
         p = self.params
