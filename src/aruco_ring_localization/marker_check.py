@@ -196,7 +196,7 @@ def _statistics(A: np.ndarray, b: np.ndarray, sys_std: float) -> Tuple[np.ndarra
     the CPU of pinv's SVD, the same numbers to rounding. With ``A + 1e-12 I = V diag(lam) V^T`` and
     ``k = 1 / lam`` (0 where cut), ``A^+ + s^2 I = V diag(k + s^2) V^T``, so
     ``T = sum_i (V^T b)_i^2 k_i^2 / (k_i + s^2)``: no second solve."""
-    lam, V = np.linalg.eigh(A + 1e-12 * np.eye(3))
+    lam, V = np.linalg.eigh(A + _EYE3)
     mag = np.abs(lam)
     keep = mag > 1e-15 * mag.max(axis=1, keepdims=True)
     k = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
@@ -225,8 +225,9 @@ def _inv3(M: np.ndarray) -> np.ndarray:
     return adj / det[:, None, None]
 
 
-#: the ridge of the 6x6 pose solves
+#: the ridges of the 6x6 pose solves and of the 3x3 displacement information
 _EYE6 = 1e-12 * np.eye(6)
+_EYE3 = 1e-12 * np.eye(3)
 
 
 def _farther(a: Sequence[float], b: Sequence[float], distance: float) -> bool:
@@ -258,7 +259,7 @@ class _View:
     t_cam_map: np.ndarray
     T_cam_base: np.ndarray       # moved by the robot's motion to the camera's stamp (free-running)
     ids: List[int]
-    px: List[np.ndarray]
+    px: Sequence[np.ndarray]     # per marker its (4, 2) raw corners (a list, or a (k, 4, 2) array)
     xy: np.ndarray               # (4k, 2) normalised, undistorted observed corners
     X: np.ndarray                # (4k, 3) map corners
 
@@ -409,7 +410,7 @@ class MarkerCheck:
             if same is not None and same.ids == ids and same.model is model:
                 # The estimator's view of these very detections (its corners, normalised and in the
                 # map, are the same numbers): not computed again.
-                px = list(same.px.reshape(-1, 4, 2))
+                px = same.px.reshape(-1, 4, 2)
                 xy, X = same.xy, same.X
             else:
                 px = [np.asarray(o.corners, dtype=np.float64).reshape(4, 2) for o in obs]
