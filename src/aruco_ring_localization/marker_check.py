@@ -47,6 +47,7 @@ No ROS here; the pipeline calls :meth:`strip` before the estimator and :meth:`up
 from __future__ import annotations
 
 import logging
+import math
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Deque, Dict, Iterable, List, Optional, Sequence, Tuple
@@ -195,7 +196,7 @@ def _statistics(A: np.ndarray, b: np.ndarray, sys_std: float) -> Tuple[np.ndarra
     the CPU of pinv's SVD, the same numbers to rounding. With ``A + 1e-12 I = V diag(lam) V^T`` and
     ``k = 1 / lam`` (0 where cut), ``A^+ + s^2 I = V diag(k + s^2) V^T``, so
     ``T = sum_i (V^T b)_i^2 k_i^2 / (k_i + s^2)``: no second solve."""
-    lam, V = np.linalg.eigh(A + 1e-12 * np.eye(3))
+    lam, V = np.linalg.eigh(A + _EYE3)
     mag = np.abs(lam)
     keep = mag > 1e-15 * mag.max(axis=1, keepdims=True)
     k = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
@@ -224,20 +225,29 @@ def _inv3(M: np.ndarray) -> np.ndarray:
     return adj / det[:, None, None]
 
 
-def _farther(a: np.ndarray, b: np.ndarray, distance: float) -> bool:
-    """|a - b| > distance for 3-vectors (np.linalg.norm's set-up costs more than the arithmetic:
-    twice per (marker, camera) pair and frame)."""
-    x, y, z = (a - b).tolist()
+#: the ridges of the 6x6 pose solves and of the 3x3 displacement information
+_EYE6 = 1e-12 * np.eye(6)
+_EYE3 = 1e-12 * np.eye(3)
+
+
+def _farther(a: Sequence[float], b: Sequence[float], distance: float) -> bool:
+    """|a - b| > distance for 3-vectors as lists (np.linalg.norm's set-up costs more than the
+    arithmetic: twice per (marker, camera) pair and frame)."""
+    x, y, z = a[0] - b[0], a[1] - b[1], a[2] - b[2]
     return x * x + y * y + z * z > distance * distance
 
 
 @dataclass
 class _Baseline:
-    value: Optional[np.ndarray] = None       # (8,) residual of the 4 corners, normalised coordinates
-    position: Optional[np.ndarray] = None    # (3,) camera position (map) it was learnt at
+    """A (marker, camera, basis) pair's offset. Python floats, not arrays: the exponential average of
+    8 and 3 numbers costs less than numpy's set-up of its 6 operations (the same IEEE arithmetic,
+    element by element: the same numbers)."""
+
+    value: Optional[List[float]] = None      # 8 residuals of the 4 corners, normalised coordinates
+    position: Optional[List[float]] = None   # 3: camera position (map) it was learnt at
     count: int = 0
     stamp: Optional[float] = None
-    pending: Deque[Tuple[float, np.ndarray, np.ndarray]] = field(default_factory=deque)
+    pending: Deque[Tuple[float, List[float], List[float]]] = field(default_factory=deque)
 
 
 @dataclass
@@ -249,7 +259,7 @@ class _View:
     t_cam_map: np.ndarray
     T_cam_base: np.ndarray       # moved by the robot's motion to the camera's stamp (free-running)
     ids: List[int]
-    px: List[np.ndarray]
+    px: Sequence[np.ndarray]     # per marker its (4, 2) raw corners (a list, or a (k, 4, 2) array)
     xy: np.ndarray               # (4k, 2) normalised, undistorted observed corners
     X: np.ndarray                # (4k, 3) map corners
 
@@ -258,12 +268,17 @@ def _rows(views: Sequence[_View], T_base_map: np.ndarray, pixel_noise: float):
     """Every camera's rows in one pass, per (camera, marker) block of 4 corners (8 rows): residual
     r (B, 8) in normalised coordinates, J_pose (B, 8, 6) w.r.t. a base-frame perturbation (w, v) of
     ``T_base_map`` (geo.se3_perturb's order), J_marker (B, 8, 3) w.r.t. the marker's position in the
-    map, and the weight 1/s^2 (B,) of the block's camera."""
+    map, the weight 1/s^2 (B,) of the block's camera, J_rot (B, 8, 3), and the cameras' stacked
+    ``R_cam_map`` (V, 3, 3) and ``t_cam_map`` (V, 3)."""
     counts = [len(v.X) for v in views]
     X = np.concatenate([v.X for v in views])
-    R_cm = np.repeat(np.stack([v.R_cam_map for v in views]), counts, axis=0)          # (n, 3, 3)
-    t_cm = np.repeat(np.stack([v.t_cam_map for v in views]), counts, axis=0)
-    R_cb = np.repeat(np.stack([v.T_cam_base[:3, :3] for v in views]), counts, axis=0)
+    # Per corner, its camera's matrices: one gather from the stacks (np.repeat of each stack cost 3x).
+    corner_view = np.repeat(np.arange(len(views)), counts)
+    R_views = np.stack([v.R_cam_map for v in views])
+    t_views = np.stack([v.t_cam_map for v in views])
+    R_cm = R_views[corner_view]                                                          # (n, 3, 3)
+    t_cm = t_views[corner_view]
+    R_cb = np.stack([v.T_cam_base[:3, :3] for v in views])[corner_view]
     P = np.matmul(R_cm, X[:, :, None])[:, :, 0] + t_cm
     z = P[:, 2:3]
     pred = P[:, :2] / z
@@ -293,9 +308,10 @@ def _rows(views: Sequence[_View], T_base_map: np.ndarray, pixel_noise: float):
     J_rot[:, :, 2] = Dm[..., 0] * Pc[..., 1] - Dm[..., 1] * Pc[..., 0]
     xy = np.concatenate([v.xy for v in views])
     B = len(X) // 4
-    w = np.repeat([float(np.sqrt(v.model.fx * v.model.fy)) ** 2 / pixel_noise ** 2 for v in views],
-                  [len(v.ids) for v in views])
-    return (xy - pred).reshape(B, 8), J_pose.reshape(B, 8, 6), J_mark.reshape(B, 8, 3), w, J_rot.reshape(B, 8, 3)
+    # (math.sqrt: np.sqrt's number, correctly rounded, without a ufunc call per camera)
+    w = np.array([math.sqrt(v.model.fx * v.model.fy) ** 2 / pixel_noise ** 2 for v in views])[corner_view[::4]]
+    return ((xy - pred).reshape(B, 8), J_pose.reshape(B, 8, 6), J_mark.reshape(B, 8, 3), w, J_rot.reshape(B, 8, 3),
+            R_views, t_views)
 
 
 class MarkerCheck:
@@ -359,13 +375,12 @@ class MarkerCheck:
 
     # --- the check -------------------------------------------------------------------------------
 
-    def _views(self, frame: RingFrame, ring: CameraRing, T_map_base: np.ndarray, motion=None,
+    def _views(self, frame: RingFrame, ring: CameraRing, T_base_map: np.ndarray, motion=None,
                known_views: Optional[Dict[str, object]] = None) -> List[_View]:
-        """The frame's views of mapped markers; ``known_views``: the estimator's views of this frame
-        (:attr:`RingLocalizer.last_views`, name -> CameraView), whose corners are reused where a
-        camera's markers are the same."""
+        """The frame's views of mapped markers (``T_base_map``: the inverse of the accepted pose);
+        ``known_views``: the estimator's views of this frame (:attr:`RingLocalizer.last_views`,
+        name -> CameraView), whose corners are reused where a camera's markers are the same."""
         mm = self.marker_map
-        T_base_map = geo.inverse(T_map_base)
         t_ref = float(frame.stamp)
         if self._ring_cameras is None or self._ring_cameras[0] is not ring:
             # Per camera of this ring: (index, T_base_cam, T_cam_base), built once per ring (the
@@ -395,7 +410,7 @@ class MarkerCheck:
             if same is not None and same.ids == ids and same.model is model:
                 # The estimator's view of these very detections (its corners, normalised and in the
                 # map, are the same numbers): not computed again.
-                px = list(same.px.reshape(-1, 4, 2))
+                px = same.px.reshape(-1, 4, 2)
                 xy, X = same.xy, same.X
             else:
                 px = [np.asarray(o.corners, dtype=np.float64).reshape(4, 2) for o in obs]
@@ -427,19 +442,24 @@ class MarkerCheck:
             self.frames_skipped += 1
             return []
         self._last_checked = stamp
-        views = self._views(frame, ring, T_map_base, motion, known_views)
+        T_base_map = geo.inverse(T_map_base)
+        views = self._views(frame, ring, T_base_map, motion, known_views)
         if not views:
             return []
         drop = self.dropped
-        T_base_map = geo.inverse(T_map_base)
         # Blocks: one (camera, marker) pair, its 8 rows.
-        r, Jp, Jm, w, Jr = _rows(views, T_base_map, p.pixel_noise)
+        r, Jp, Jm, w, Jr, R_views, t_views = _rows(views, T_base_map, p.pixel_noise)
         blk_view = [vi for vi, v in enumerate(views) for _ in v.ids]
         blk_k = [k for v in views for k in range(len(v.ids))]
         blk_mid = [i for v in views for i in v.ids]
-        mids, blk_m = np.unique(np.asarray(blk_mid), return_inverse=True)
-        M = len(mids)
-        used = np.array([int(m) not in drop for m in mids])
+        # The markers in view, sorted, and each block's (np.unique's, without its set-up).
+        mids_l = sorted(set(blk_mid))
+        order = {m: j for j, m in enumerate(mids_l)}
+        blk_m_l = [order[i] for i in blk_mid]
+        mids, blk_m = np.array(mids_l), np.array(blk_m_l)
+        M = len(mids_l)
+        used_l = [m not in drop for m in mids_l]
+        used = np.array(used_l)
         S = np.zeros((M, len(w)))                                    # marker <- block sums
         S[blk_m, np.arange(len(w))] = 1.0
         Jpm = np.concatenate([Jp, Jm], axis=2)                       # (B, 8, 9)
@@ -465,7 +485,7 @@ class MarkerCheck:
         gm = S @ g_b
         H_all = Hm[used].sum(axis=0)
         g_all = gm[used].sum(axis=0)
-        n_used = int(used.sum())
+        n_used = sum(used_l)
         self.frames_checked += 1
         if self.frames_checked % 100 == 0:
             self._forget(stamp)
@@ -475,7 +495,7 @@ class MarkerCheck:
         # The pose from the others: one Gauss-Newton step without the marker's rows.
         H_loo = H_all[None] - Hm * used[:, None, None]
         g_loo = g_all[None] - gm * used[:, None]
-        eye6 = 1e-12 * np.eye(6)
+        eye6 = _EYE6
         try:
             delta = np.linalg.solve(H_loo + eye6, g_loo[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:
@@ -492,33 +512,41 @@ class MarkerCheck:
         # marker coming into view, changes the set: the pair's residual jumps although nothing
         # moved (on the harsh lab, 6 mrad when cam4 started to see one more marker); it is judged
         # against the baseline of the new set once that is learnt.
-        pairs = [(views[vi].index, int(mids[m])) for m, vi in zip(blk_m, blk_view)]
-        everyone = frozenset(pr for pr, m in zip(pairs, blk_m) if used[m])
+        index = [v.index for v in views]
+        pairs = [(index[vi], mid) for mid, vi in zip(blk_mid, blk_view)]
+        everyone = frozenset(pr for pr, m in zip(pairs, blk_m_l) if used_l[m])
         own: Dict[int, set] = {}
-        for pr, m in zip(pairs, blk_m):
-            own.setdefault(int(m), set()).add(pr)
+        for pr, m in zip(pairs, blk_m_l):
+            own.setdefault(m, set()).add(pr)
         masks = [hash(everyone - own[m]) for m in range(M)]
         # Camera positions in the map, -R^T t, batched (8 small matmuls on strided views cost ~20 us).
-        positions = list(-np.einsum("kji,kj->ki", np.stack([v.R_cam_map for v in views]),
-                                    np.stack([v.t_cam_map for v in views])))
-        have = np.zeros(len(w), dtype=bool)
-        e = np.zeros_like(res)
-        base_of = np.zeros_like(res)     # each judged block's baseline (e = res - base_of there)
-        eligible_l, mids_l, res_rows = eligible.tolist(), mids.tolist(), list(res)
-        for b_, m in enumerate(blk_m.tolist()):
+        positions = (-np.einsum("kji,kj->ki", R_views, t_views)).tolist()
+        judged_blocks, bases = [], []   # the blocks with a baseline, and it (e = res - base there)
+        eligible_l, res_rows, delta_rows = eligible.tolist(), res.tolist(), list(delta)
+        records, oldest_record = self._records, stamp - p.remap_window
+        for b_, m in enumerate(blk_m_l):
             if not eligible_l[m]:
                 continue
             mid = mids_l[m]
             vi = blk_view[b_]
             v = views[vi]
-            self._record(mid, stamp, v, blk_k[b_], T_map_base, delta[m])
+            # The view for re-mapping (:meth:`observations`), the last ``remap_window`` s of it.
+            q = records.get(mid)
+            if q is None:
+                q = records[mid] = deque()
+            q.append((stamp, v.camera, v.px[blk_k[b_]], v.model, T_map_base, delta_rows[m], v.T_cam_base))
+            while q[0][0] < oldest_record:
+                q.popleft()
             base = self._baseline_of(mid, v.camera, masks[m], stamp, res_rows[b_], positions[vi])
             if base is not None:   # else a pair not seen long enough to know its own offset yet
-                have[b_] = True
-                base_of[b_] = base
-        e[have] = res[have] - base_of[have]
-        if not have.any():
+                judged_blocks.append(b_)
+                bases.append(base)
+        if not judged_blocks:
             return self._judge(stamp, now)
+        have = np.zeros(len(w), dtype=bool)
+        have[judged_blocks] = True
+        e = np.zeros_like(res)
+        e[judged_blocks] = res[judged_blocks] - np.array(bases)
         # The pose from the others is uncertain too (few markers, one camera): the residual's
         # covariance is W^-1 + Jp H^-1 Jp^T. Its inverse (Woodbury) W - W Jp H_joint^-1 Jp^T W
         # turns the sums into the displacement's information with the pose marginalised (the
@@ -533,16 +561,20 @@ class MarkerCheck:
         cross = N_m[:, 6:, :6]
         proj = M9[:, 81:87]
         H_joint = H_loo + N_m[:, :6, :6]
-        judged = np.flatnonzero(Sh.any(axis=1))
+        judged = np.flatnonzero(Sh.any(axis=1))   # the markers with a judged block
         try:
             K = np.linalg.solve(H_joint[judged] + eye6, np.transpose(cross[judged], (0, 2, 1)))   # (k, 6, 3)
         except np.linalg.LinAlgError:
             return self._judge(stamp, now)
         A = A[judged] - cross[judged] @ K
+        A = 0.5 * (A + np.transpose(A, (0, 2, 1)))
         b = b[judged] - (np.transpose(K, (0, 2, 1)) @ proj[judged][:, :, None])[:, :, 0]
-        for j, m in enumerate(judged):
-            Aj = A[j]
-            self._evidence.setdefault(int(mids[m]), _Evidence()).add(stamp, 0.5 * (Aj + Aj.T), b[j], p.window)
+        evidence = self._evidence
+        for j, m in enumerate(judged.tolist()):
+            ev = evidence.get(mids_l[m])
+            if ev is None:
+                ev = evidence[mids_l[m]] = _Evidence()
+            ev.add(stamp, A[j], b[j], p.window)
         return self._judge(stamp, now)
 
     def _forget(self, stamp: float) -> None:
@@ -553,8 +585,8 @@ class MarkerCheck:
                     if (bl.stamp is None or bl.stamp < horizon) and (not bl.pending or bl.pending[-1][0] < horizon)]:
             del self._baselines[key]
 
-    def _baseline_of(self, mid: int, camera: str, basis: int, stamp: float, res: np.ndarray,
-                     position: np.ndarray) -> Optional[np.ndarray]:
+    def _baseline_of(self, mid: int, camera: str, basis: int, stamp: float, res: List[float],
+                     position: List[float]) -> Optional[List[float]]:
         """The pair's offset learnt from its residuals older than the window (None: none yet); queue ``res``.
 
         A residual joins the baseline once it is ``window`` s old (a plain mean at first, then an
@@ -570,33 +602,28 @@ class MarkerCheck:
         bl = self._baselines.get(key)
         if bl is None:
             bl = self._baselines[key] = _Baseline()
-        bl.pending.append((stamp, res, position))
-        frozen = mid in self.moved or mid in self.excluded
-        while bl.pending and bl.pending[0][0] < stamp - p.window:
-            t, r, pos = bl.pending.popleft()
-            if frozen:
-                continue
-            if bl.value is None or t - bl.stamp > p.baseline_time or _farther(pos, bl.position, p.baseline_distance):
-                bl.value, bl.position, bl.count, bl.stamp = r.copy(), pos.copy(), 1, t
-                continue
-            bl.count += 1
-            alpha = max(1.0 / bl.count, min(1.0, (t - bl.stamp) / p.baseline_time))
-            bl.value = bl.value + alpha * (r - bl.value)
-            bl.position = bl.position + alpha * (pos - bl.position)
-            bl.stamp = t
+        pending = bl.pending
+        pending.append((stamp, res, position))
+        oldest = stamp - p.window
+        if pending[0][0] < oldest:
+            frozen = mid in self.moved or mid in self.excluded
+            while pending and pending[0][0] < oldest:
+                t, r, pos = pending.popleft()
+                if frozen:
+                    continue
+                if bl.value is None or t - bl.stamp > p.baseline_time or \
+                        _farther(pos, bl.position, p.baseline_distance):
+                    bl.value, bl.position, bl.count, bl.stamp = list(r), list(pos), 1, t
+                    continue
+                bl.count += 1
+                alpha = max(1.0 / bl.count, min(1.0, (t - bl.stamp) / p.baseline_time))
+                bl.value = [v + alpha * (x - v) for v, x in zip(bl.value, r)]
+                bl.position = [v + alpha * (x - v) for v, x in zip(bl.position, pos)]
+                bl.stamp = t
         if bl.value is None or stamp - bl.stamp > p.window + p.baseline_time or \
                 _farther(position, bl.position, p.baseline_distance):
             return None
         return bl.value
-
-    def _record(self, mid: int, stamp: float, v: _View, k: int, T_map_base: np.ndarray, delta: np.ndarray) -> None:
-        q = self._records.get(mid)
-        if q is None:
-            q = self._records[mid] = deque()
-        q.append((stamp, v.camera, v.px[k], v.model, T_map_base, delta, v.T_cam_base))
-        oldest = stamp - self.params.remap_window
-        while q and q[0][0] < oldest:
-            q.popleft()
 
     def _judge(self, stamp: float, now: float) -> List[MovedMarker]:
         p = self.params
