@@ -1599,7 +1599,7 @@ class CalibrationPersistence:
             B[k, :m] = c.b[lo:hi]
             ok[k, :m, :m] = c.disjoint[lo:hi, lo:hi]
             A[k] = c.G[lo:hi].sum(axis=0)
-        ok = np.triu(ok, 1)
+        ok &= ~np.tri(n, dtype=bool)   # the pairs i < j (np.triu(ok, 1), without its copies)
         pairs = int(ok.sum())
         if not pairs:
             return float("nan"), 0
