@@ -1477,6 +1477,56 @@ def camera_blocks(problem: JointProblem, fit: JointFit) -> Tuple[np.ndarray, np.
     return G, b
 
 
+class _PersistenceCamera:
+    """One camera's frames in :class:`CalibrationPersistence`'s window: rows ``lo:hi`` of the
+    buffers, the oldest first."""
+
+    def __init__(self, capacity: int):
+        self.serial: List[int] = []
+        self.ids: List[List[int]] = []   # each frame's marker ids
+        self.seen: Dict[int, List[int]] = {}   # marker id -> the serials of the frames that saw it
+        self.G = np.empty((capacity, 6, 6))
+        self.b = np.empty((capacity, 6))
+        self.disjoint = np.zeros((capacity, capacity), dtype=bool)
+        self.lo = self.hi = 0
+
+    def append(self, serial: int, ids: Sequence[int], G: np.ndarray, b: np.ndarray) -> None:
+        ids = [int(i) for i in ids]
+        shared = set()   # the window's frames that saw one of these markers
+        for i in ids:
+            frames = self.seen.setdefault(i, [])
+            shared.update(frames)
+            frames.append(serial)
+        if self.hi == len(self.b):   # full: the window's rows to the start
+            lo, hi = self.lo, self.hi
+            n = hi - lo
+            self.G[:n], self.b[:n] = self.G[lo:hi], self.b[lo:hi]
+            self.disjoint[:n, :n] = self.disjoint[lo:hi, lo:hi]
+            self.lo, self.hi = 0, n
+        lo, k = self.lo, self.hi
+        row = np.array([s not in shared for s in self.serial] + [False], dtype=bool)
+        self.disjoint[k, lo:k + 1] = row
+        self.disjoint[lo:k + 1, k] = row
+        self.G[k] = G
+        self.b[k] = b
+        self.hi = k + 1
+        self.serial.append(serial)
+        self.ids.append(ids)
+
+    def drop_until(self, oldest: int) -> None:
+        """Forget the frames of serials up to ``oldest``: the oldest first, as in each marker's list
+        of serials."""
+        while self.serial and self.serial[0] <= oldest:
+            serial = self.serial.pop(0)
+            for i in set(self.ids.pop(0)):
+                frames = self.seen[i]
+                while frames and frames[0] == serial:   # twice: the frame listed the marker twice
+                    del frames[0]
+                if not frames:
+                    del self.seen[i]
+            self.lo += 1
+
+
 class CalibrationPersistence:
     """Whether the cameras' disagreement through the extrinsics is a calibration error: over the
     last ``window`` multi-camera frames, does it follow the cameras from one marker to another?
@@ -1502,9 +1552,13 @@ class CalibrationPersistence:
     def __init__(self, window: int):
         self.window = int(window)
         self._serial = 0   # frames added
-        # Per camera, its frames in the window (the oldest first): serials, marker ids, G_c, b_c and
-        # which pairs of them saw no common marker (symmetric, updated a row per frame).
-        self._cams: Dict[str, Dict[str, object]] = {}
+        # Per camera, its frames in the window (the oldest first): serials, marker ids (a marker ->
+        # the serials that saw it) and, in rows lo:hi of buffers of 2 (window + 1) rows, G_c, b_c
+        # and which pairs of its frames saw no common marker (symmetric, a row and column per
+        # frame). A frame leaving the window moves lo; the rows are moved to the buffers' start only
+        # when hi reaches their end, so each frame is copied about once (issue 16: re-concatenating
+        # the window every frame cost ~0.3 ms).
+        self._cams: Dict[str, _PersistenceCamera] = {}
 
     def __len__(self) -> int:
         return min(self._serial, self.window)
@@ -1523,54 +1577,29 @@ class CalibrationPersistence:
         for name, m, Gc, bc in zip(names, ids, G, b):
             cam = self._cams.get(name)
             if cam is None:
-                cam = self._cams[name] = {"serial": [], "seen": {}, "G": np.zeros((0, 6, 6)), "b": np.zeros((0, 6)),
-                                          "disjoint": np.zeros((0, 0), bool)}
-            # The frames of the window that saw one of these markers (a marker -> serials index).
-            seen = cam["seen"]
-            shared = set()
-            for i in m:
-                shared.update(seen.setdefault(int(i), []))
-                seen[int(i)].append(self._serial)
-            row = np.array([k not in shared for k in cam["serial"]] + [False], dtype=bool)
-            n = row.size
-            D = np.zeros((n, n), dtype=bool)
-            D[:n - 1, :n - 1] = cam["disjoint"]
-            D[-1], D[:, -1] = row, row
-            cam["disjoint"] = D
-            cam["serial"].append(self._serial)
-            cam["G"] = np.concatenate([cam["G"], np.asarray(Gc, dtype=np.float64)[None]])
-            cam["b"] = np.concatenate([cam["b"], np.asarray(bc, dtype=np.float64)[None]])
+                cam = self._cams[name] = _PersistenceCamera(2 * (self.window + 1))
+            cam.append(self._serial, m, Gc, bc)
         for name in list(self._cams):
             cam = self._cams[name]
-            drop = sum(1 for k in cam["serial"] if k <= oldest)
-            if drop:
-                del cam["serial"][:drop]
-                cam["G"], cam["b"] = cam["G"][drop:], cam["b"][drop:]
-                cam["disjoint"] = cam["disjoint"][drop:, drop:]
-                for i in list(cam["seen"]):
-                    kept = [k for k in cam["seen"][i] if k > oldest]
-                    if kept:
-                        cam["seen"][i] = kept
-                    else:
-                        del cam["seen"][i]
-            if not cam["serial"]:
+            cam.drop_until(oldest)
+            if not cam.serial:
                 del self._cams[name]
 
     def correlation(self) -> Tuple[float, int]:
-        cams = [c for c in self._cams.values() if len(c["serial"]) > 1]
+        cams = [c for c in self._cams.values() if len(c.serial) > 1]
         if not cams:
             return float("nan"), 0
         # The cameras side by side (padded to the longest): one batched decomposition and product.
-        n = max(len(c["serial"]) for c in cams)
+        n = max(len(c.serial) for c in cams)
         B = np.zeros((len(cams), n, 6))
         ok = np.zeros((len(cams), n, n), dtype=bool)
         A = np.empty((len(cams), 6, 6))
         for k, c in enumerate(cams):
-            m = len(c["serial"])
-            B[k, :m] = c["b"]
-            ok[k, :m, :m] = c["disjoint"]
-            A[k] = c["G"].sum(axis=0)
-        ok = np.triu(ok, 1)
+            m, lo, hi = len(c.serial), c.lo, c.hi
+            B[k, :m] = c.b[lo:hi]
+            ok[k, :m, :m] = c.disjoint[lo:hi, lo:hi]
+            A[k] = c.G[lo:hi].sum(axis=0)
+        ok &= ~np.tri(n, dtype=bool)   # the pairs i < j (np.triu(ok, 1), without its copies)
         pairs = int(ok.sum())
         if not pairs:
             return float("nan"), 0

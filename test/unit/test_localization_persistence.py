@@ -50,13 +50,16 @@ def _direct(frames: List[List[Tuple[str, set, np.ndarray, np.ndarray]]]) -> Tupl
     return (num / den if den > 0 else float("nan")), pairs
 
 
-def test_persistence_statistic_is_the_pairwise_formula_over_the_window():
+# (window, frames, how often a camera is in a frame): the long runs move each camera's frames to
+# its buffers' start several times (2 (window + 1) rows), and the rare camera leaves the window
+# altogether and comes back: a stale row, column or sum there changes rho or the pairs.
+@pytest.mark.parametrize("window, n_frames, p_in", [(7, 12, 0.8), (3, 60, 0.8), (5, 80, 0.3)])
+def test_persistence_statistic_is_the_pairwise_formula_over_the_window(window, n_frames, p_in):
     rng = np.random.default_rng(3)
-    window = 7
     cp = CalibrationPersistence(window)
     frames = []
-    for k in range(12):
-        cams = [c for c in ("a", "b", "c") if rng.random() < 0.8] or ["a"]
+    for k in range(n_frames):
+        cams = [c for c in ("a", "b", "c") if rng.random() < p_in] or ["a"]
         frame = []
         for c in cams:
             M = rng.normal(size=(6, 10))
@@ -72,6 +75,17 @@ def test_persistence_statistic_is_the_pairwise_formula_over_the_window():
             assert rho == pytest.approx(rho_d, rel=1e-9, abs=1e-12)
         else:
             assert np.isnan(rho)
+        # Each marker's list of frames holds the window's frames that saw it, and only them (a
+        # left-over one changes nothing now but grows with every frame).
+        window_frames = frames[-window:]
+        for name, cam in cp._cams.items():
+            seen = {}
+            for f in window_frames:
+                for n, ids, _, _ in f:
+                    if n == name:
+                        for i in ids:
+                            seen[i] = seen.get(i, 0) + 1
+            assert {i: len(v) for i, v in cam.seen.items()} == seen
     assert len(cp) == window
 
 
