@@ -151,3 +151,41 @@ def test_frames_sampling_changes_nothing_for_an_odometry_at_the_frames():
     assert np.allclose(a.sigma, b.sigma, rtol=1e-9) and np.allclose(a.T_ij, b.T_ij, atol=1e-12)
     with pytest.raises(ConfigError, match="message_sampling"):
         MappingOdometryOptions(message_sampling="odometry")
+
+
+def test_the_builder_judges_its_odometry_at_every_frame_it_was_given(ring, scene):
+    """MapBuilder with ``message_sampling: frames``: the messages are the odometry at every ring frame
+    added (also those that made no station), so its links are those of the track sampled there; the
+    default judges the 30 Hz messages themselves (tighter)."""
+    from aruco_ring_localization.mapping import MapBuilder, MappingOptions
+    from aruco_ring_localization.markers import MarkerSizes
+    from aruco_ring_localization.simulation.ring_sim import RingSimulator
+    from aruco_ring_localization.simulation.scene import Scene
+
+    sim = RingSimulator(scene, ring, pixel_noise=0.0, seed=0)
+    x0, y0, yaw0 = scene.mapping_pose
+
+    def pose(t: float):
+        return (x0 + 0.25 * t, y0, yaw0 + 0.1 * t)
+
+    t_odo = np.round(np.arange(0.0, 3.0 + 1e-9, 1.0 / 30.0), 9)
+    odo = np.stack([Scene.T_world_base(pose(t)) for t in t_odo])
+    t_frames = np.round(np.arange(0.0, 2.81, 0.2), 9)
+    out = {}
+    for sampling in ("messages", "frames"):
+        opts = MappingOptions(min_station_motion_px=40.0, keep_linking_frames=False,
+                              odometry=MappingOdometryOptions(topic="odom", robust_scale=0.0,
+                                                              message_sampling=sampling))
+        b = MapBuilder(ring, MarkerSizes(0.2), options=opts)
+        b.set_odometry(t_odo, odo)
+        kept = [b.add_frame(sim.observe(Scene.T_world_base(pose(t)), stamp=float(t))) for t in t_frames]
+        stations = list(range(b.station_count))
+        assert len(stations) >= 2 and kept.count(-1) > 0       # some frames made no station
+        out[sampling] = (b._odometry_factors(stations, {s: s for s in stations}), b)
+    frames_f, b = out["frames"]
+    assert np.allclose(b._frame_stamps, t_frames)
+    expect = b.odometry.links({s: b._station_stamps[s] for s in range(b.station_count)}, b.options.odometry,
+                              frame_stamps=t_frames)
+    assert np.allclose(frames_f.sigma, expect.sigma, rtol=1e-9)
+    # Sampled at 5 Hz the floor is 5 x 0.2^2 per frame step; the 30 Hz messages sum six of 5 x (1/30)^2.
+    assert np.all(frames_f.sigma[:, 3] > 5.0 * out["messages"][0].sigma[:, 3])
