@@ -8,7 +8,8 @@ against the minimum of TagSLAM's stated problem (``results/bench/real/<test>/obj
 Nothing is saved: the sanity checks' verdict is printed.
 
 A variant is ``name:key=value,...`` with ``MappingOptions`` keys, ``ba.<key>`` for the adjustment's
-(``BAOptions``); ``ODOM=tagslam`` in the environment reads tagslam.yaml's odometry noise
+(``BAOptions``); ``ODOM=tagslam`` in the environment reads tagslam.yaml's odometry noise, judged at the
+frames (``message_sampling: frames``, TagSLAM's synchronizer)
 (bench_real ``--odom-noise tagslam``); ``odo.<key>`` sets a key of the odometry links'
 (``MappingOdometryOptions``, recordings with odometry only).
 

@@ -390,6 +390,7 @@ class MapBuilder:
         self._station_keys: Dict[Hashable, int] = {}
         self._station_frames: List[int] = []
         self._station_stamps: List[float] = []                               # stamp of each station's first frame
+        self._frame_stamps: List[float] = []       # every ring frame (part) added: odometry message_sampling frames
         self.odometry = OdometryTrack()                                       # mapping.odometry's poses
         self._camera_frames: Dict[Tuple[int, str], int] = defaultdict(int)   # (station, camera) -> frames kept
         self._anchor_corners: Dict[Tuple[str, int], np.ndarray] = {}
@@ -433,6 +434,7 @@ class MapBuilder:
         if station is None and self.options.still_only:
             if not self._at_rest(ring_frame):
                 self.skipped_moving += 1
+                self._frame_stamps.append(float(ring_frame.stamp))
                 return -1
             return self._add_part(ring_frame)
         if station is None and self.options.max_stamp_spread >= 0 and len(ring_frame.cameras) > 1:
@@ -471,6 +473,7 @@ class MapBuilder:
 
     def _add_part(self, ring_frame: RingFrame, station: Optional[Hashable] = None) -> int:
         opts = self.options
+        self._frame_stamps.append(float(ring_frame.stamp))
         detections = []   # (camera, obs, model)
         for name, cam_frame in ring_frame.cameras.items():
             try:
@@ -562,7 +565,7 @@ class MapBuilder:
         if len(self.odometry) < 2:
             return None
         links = self.odometry.links({s: self._station_stamps[s] for s in stations if s < len(self._station_stamps)},
-                                    self.options.odometry)
+                                    self.options.odometry, frame_stamps=self._frame_stamps)
         if links is None:
             return None
         return RelativePoseFactors([index[s] for s in links.station_i], [index[s] for s in links.station_j],

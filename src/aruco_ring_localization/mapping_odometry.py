@@ -64,6 +64,8 @@ logger = logging.getLogger(__name__)
 
 #: ``MappingOdometryOptions.noise_model`` values.
 NOISE_MODELS = ("random_walk", "per_message")
+#: ``MappingOdometryOptions.message_sampling`` values.
+MESSAGE_SAMPLINGS = ("messages", "frames")
 
 
 @dataclass(frozen=True)
@@ -118,6 +120,13 @@ class MappingOdometryOptions:
                                                   "odom_translation_noise; 0: not used)", unit="m")
     message_rotation_noise: float = param(0.0, "per_message: a fixed rotation sigma per message (TagSLAM's "
                                                "odom_rotation_noise; used only when both are > 0)", unit="rad")
+    message_sampling: str = param("messages", "per_message: which poses are the messages: messages = every "
+                                              "odometry message as it came; frames = the odometry at each ring "
+                                              "frame's stamp (interpolated), one message per frame, as TagSLAM's "
+                                              "synchronizer pairs one odometry message with each frame (an "
+                                              "odometry faster than the frames is not taken as more precise: "
+                                              "the acceleration floor x dt^2 summed over n messages shrinks as "
+                                              "1/n^3)")
 
     def __post_init__(self) -> None:
         if len(self.base_to_odom) != 6 or not all(np.isfinite(float(v)) for v in self.base_to_odom):
@@ -126,6 +135,9 @@ class MappingOdometryOptions:
         if self.noise_model not in NOISE_MODELS:
             raise ConfigError(f"expected one of {', '.join(NOISE_MODELS)}, got {self.noise_model!r}",
                               key="noise_model")
+        if self.message_sampling not in MESSAGE_SAMPLINGS:
+            raise ConfigError(f"expected one of {', '.join(MESSAGE_SAMPLINGS)}, got {self.message_sampling!r}",
+                              key="message_sampling")
         for key in ("translation_noise", "rotation_noise", "rotation_per_metre", "translation_per_second",
                     "rotation_per_second", "max_acceleration",
                     "max_angular_acceleration", "max_gap", "robust_scale", "message_acceleration_max",
@@ -265,21 +277,56 @@ class OdometryTrack:
         R = Slerp([0.0, 1.0], Rotation.from_matrix(P[k - 1:k + 1, :3, :3]))([s]).as_matrix()[0]
         return geo.make_transform(R, (1 - s) * P[k - 1][:3, 3] + s * P[k][:3, 3])
 
-    def links(self, station_stamps: Dict[int, float], opts: MappingOdometryOptions
-              ) -> Optional[RelativePoseFactors]:
+    def sampled(self, stamps: Sequence[float], max_gap: float) -> "OdometryTrack":
+        """The track at ``stamps`` (interpolated, :meth:`pose_at`; those outside the track or in a gap
+        left out): the messages ``message_sampling: frames`` judges."""
+        t_all, P, _ = self._sorted()
+        t = np.unique(np.asarray(stamps, dtype=float))
+        if len(t_all) < 2 or not len(t):
+            return OdometryTrack()
+        t = t[(t >= t_all[0] - 1e-9) & (t <= t_all[-1] + 1e-9)]
+        k = np.clip(np.searchsorted(t_all, t), 1, len(t_all) - 1)      # t in (t_all[k-1], t_all[k]]
+        t0, t1 = t_all[k - 1], t_all[k]
+        on = (np.abs(t - t0) <= 1e-9) | (np.abs(t - t1) <= 1e-9)         # on a message: exact
+        keep = on | ((t - t0 <= max_gap) & (t1 - t <= max_gap))
+        t, k, t0, t1 = t[keep], k[keep], t0[keep], t1[keep]
+        s = np.clip((t - t0) / np.maximum(t1 - t0, 1e-12), 0.0, 1.0)
+        R0 = Rotation.from_matrix(P[k - 1, :3, :3])
+        rel = (R0.inv() * Rotation.from_matrix(P[k, :3, :3])).as_rotvec()
+        out = np.tile(np.eye(4), (len(t), 1, 1))
+        out[:, :3, :3] = (R0 * Rotation.from_rotvec(rel * s[:, None])).as_matrix()
+        out[:, :3, 3] = (1 - s)[:, None] * P[k - 1, :3, 3] + s[:, None] * P[k, :3, 3]
+        return OdometryTrack(t, out)
+
+    def links(self, station_stamps: Dict[int, float], opts: MappingOdometryOptions,
+              frame_stamps: Optional[Sequence[float]] = None) -> Optional[RelativePoseFactors]:
         """Factors between consecutive stations (by stamp) of ``station_stamps`` (station -> stamp),
         in the ring's base frame, with the noise model of the module docstring; None when no pair
-        of stations is covered by the odometry."""
+        of stations is covered by the odometry. ``frame_stamps``: the stamps of every ring frame,
+        the messages of ``message_sampling: frames`` (the stations' own stamps without them)."""
         if len(self) < 2 or len(station_stamps) < 2:
             return None
+        if opts.noise_model == "per_message" and opts.message_sampling == "frames":
+            stamps = list(station_stamps.values()) + ([] if frame_stamps is None else list(frame_stamps))
+            messages = self.sampled(stamps, opts.max_gap)
+            if len(messages) < 2:
+                return None
+            return messages._links(station_stamps, opts, interp_from=self)
+        return self._links(station_stamps, opts, interp_from=self)
+
+    def _links(self, station_stamps: Dict[int, float], opts: MappingOdometryOptions,
+               interp_from: "OdometryTrack") -> Optional[RelativePoseFactors]:
+        """:meth:`links` on this track's messages; the interpolation terms from ``interp_from`` (the
+        odometry as it came: resampled at the frames, the stations sit on messages, but their
+        poses were interpolated between the original ones)."""
         X = opts.T_base_odom
         Xi = geo.inverse(X)
         t_all, _, _ = self._sorted()
         jumps = self.jumps(opts.max_acceleration, opts.max_angular_acceleration)
         order = sorted(station_stamps, key=lambda s: (station_stamps[s], s))
         poses = {s: self.pose_at(station_stamps[s], opts.max_gap) for s in order}
-        interp = {s: self.interpolation_error(station_stamps[s], opts.max_acceleration, opts.max_angular_acceleration)
-                  for s in order}
+        interp = {s: interp_from.interpolation_error(station_stamps[s], opts.max_acceleration,
+                                                     opts.max_angular_acceleration) for s in order}
         per_message = opts.noise_model == "per_message"
         if per_message:
             var = self.message_variances(X, opts)
