@@ -10,7 +10,8 @@ For every recording the package can handle (the others are listed with the reaso
    (:class:`ros.bag_source.BagSource`, what build-map and localize read bags with:
    :func:`tagslam_reference.ring_frames`).
 3. **Map**: :class:`mapping.MapBuilder` with its defaults (``refined``; the planar prior and its
-   data test decide the station model; frame ``marker``), saved through the sanity checks. Against
+   data test decide the station model; frame ``marker``) but every moving frame a station
+   (``min_station_motion_px`` 0, :data:`STATION_MOTION_PX`), saved through the sanity checks. Against
    TagSLAM's tags: SE(3) fit over the 4 corners of every common tag (:func:`evaluation.map_error`
    ``best_fit``): position RMS and max (mm), rotation median and max (deg), tags missing (and how
    many of those the bag never detects: TagSLAM has them only from tagslam.yaml). The surveyed tags
@@ -19,8 +20,8 @@ For every recording the package can handle (the others are listed with the reaso
    they are from TagSLAM's), left out of the RMS, which is over the tags mapped from detections. As TagSLAM does,
    the tags tagslam.yaml fixes are anchors, and where its rig body has an ``odom_topic`` (test_11,
    test_12) that odometry, read from the detections' bag, links consecutive stations
-   (``mapping.odometry``, ``base_to_odom`` = its ``T_body_odom``; the package's noise model;
-   ``--odom-noise tagslam``: tagslam.yaml's own, mapping_odometry's ``per_message``). Its
+   (``mapping.odometry``, ``base_to_odom`` = its ``T_body_odom``; tagslam.yaml's own noise,
+   mapping_odometry's ``per_message`` judged at the frames; ``--odom-noise package``: the package's). Its
    static ``board`` / ``staggered_board`` bodies are given as boards (:func:`importers.tagslam_boards`,
    test_13, test_24, each tag with tagslam.yaml's ``tag_position_noise`` / ``tag_rotation_noise`` as its play
    on the board, as TagSLAM holds them; ``--no-boards``: each tag alone; ``bench/real_board_model.py``
@@ -329,10 +330,16 @@ ODOM_LATENCY = 0.05
 #: to this far apart (the detections' bags hold them at 3-4 Hz on test_22; the default 0.25 s is a
 #: wheel odometry's at 50 Hz).
 ODOM_MAX_GAP = 1.0
-#: The odometry links' noise in mapping: "package" (mapping_odometry's random_walk defaults),
-#: "tagslam" (tagslam.yaml's own values, the per_message model) or "per_message" (that model with
+#: The odometry links' noise in mapping: "tagslam" (the noise the recording states: tagslam.yaml's
+#: own values, the per_message model, judged at the frames; the default since 2026-12-03, branch
+#: realmap6), "package" (the package's defaults) or "per_message" / "random_walk" (that model with
 #: its defaults); ``--odom-noise``.
-ODOM_NOISE = "package"
+ODOM_NOISE = "tagslam"
+#: px: ``min_station_motion_px`` of the mapping: 0, every moving frame a station, as TagSLAM puts a
+#: rig pose on every frame (the package's default, 10 px, thins a moving ring's frames to save
+#: CPU); with the recording's own odometry noise it takes no recording's map further from TagSLAM's
+#: (docs/benchmarks.md, realmap6); ``--station-motion-px``.
+STATION_MOTION_PX = 0.0
 
 
 def _localize_odom(ring, marker_map, frames, T_ref_map: np.ndarray, odo, T_base_odom: np.ndarray,
@@ -485,7 +492,9 @@ def run_one(test: str, max_frames: int = 0, model: str = "auto", anchors: bool =
     # TagSLAM's odometry (tagslam.yaml's odom_topic, T_body_odom) as links between stations, as TagSLAM uses it.
     odo_opts, odo = _odometry(test, src, ref.rig_body, frames) if odometry else (None, ())
     res["odometry"] = odo_opts.topic if odo_opts is not None else ""
-    options = MappingOptions(frame="marker") if odo_opts is None else MappingOptions(frame="marker", odometry=odo_opts)
+    options = MappingOptions(frame="marker", min_station_motion_px=STATION_MOTION_PX)
+    if odo_opts is not None:
+        options = dataclasses.replace(options, odometry=odo_opts)
     if (survey is not None or meas is not None) and tags.pixel_noise:
         # TagSLAM's problem: its known poses' and measurements' noise against its corner noise
         # (tagslam.yaml), so that the survey and the images weigh as they do in the reference.
@@ -1232,8 +1241,11 @@ if __name__ == "__main__":
                    help="mapping's odometry links: the package's default noise model, tagslam.yaml's "
                         "(odom_acceleration, odom_translation_noise ...: mapping_odometry's per_message model), or "
                         "the per_message or random_walk model with its defaults")
+    p.add_argument("--station-motion-px", type=float, default=STATION_MOTION_PX,
+                   help="mapping's min_station_motion_px (0: every moving frame a station; the package's default 10)")
     a = p.parse_args()
     ODOM_NOISE = a.odom_noise
+    STATION_MOTION_PX = a.station_motion_px
     if a.render:
         out = render_saved()
         print(out["markdown"])

@@ -8,9 +8,10 @@ against the minimum of TagSLAM's stated problem (``results/bench/real/<test>/obj
 Nothing is saved: the sanity checks' verdict is printed.
 
 A variant is ``name:key=value,...`` with ``MappingOptions`` keys, ``ba.<key>`` for the adjustment's
-(``BAOptions``); ``ODOM=tagslam`` in the environment reads tagslam.yaml's odometry noise, judged at the
-frames (``message_sampling: frames``, TagSLAM's synchronizer)
-(bench_real ``--odom-noise tagslam``); ``odo.<key>`` sets a key of the odometry links'
+(``BAOptions``); the base options are bench_real's (every moving frame a station, tagslam.yaml's
+odometry noise judged at the frames: ``message_sampling: frames``, TagSLAM's synchronizer);
+``ODOM=package`` in the environment takes the package's odometry noise instead (bench_real
+``--odom-noise package``); ``odo.<key>`` sets a key of the odometry links'
 (``MappingOdometryOptions``, recordings with odometry only).
 
 Usage: ``python bench/real_map_variants.py test_10 default: "linear:ba.loss='linear'"
@@ -71,8 +72,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             else:
                 (ba if key.startswith("ba.") else kw)[key[3:] if key.startswith("ba.") else key] = _value(val)
         t0 = time.process_time()
-        options = MappingOptions(frame="marker") if odo_opts is None else \
-            MappingOptions(frame="marker", odometry=dataclasses.replace(odo_opts, **odo_kw))
+        options = MappingOptions(frame="marker", min_station_motion_px=bench_real.STATION_MOTION_PX)
+        if odo_opts is not None:
+            options = dataclasses.replace(options, odometry=dataclasses.replace(odo_opts, **odo_kw))
         if (survey is not None or meas is not None) and tags.pixel_noise:
             ba.setdefault("pixel_noise", tags.pixel_noise)
         options = dataclasses.replace(options, ba=dataclasses.replace(options.ba, **ba), extrinsics_prior="ring", **kw)

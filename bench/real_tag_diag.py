@@ -9,8 +9,8 @@ from the adjusted tag along and across the line of sight, mm), the station's off
 rig pose at that stamp (mm, in TagSLAM's frame after the map's fit), and the whitened residuals of
 the odometry links that touch the station. Nothing is saved.
 
-Usage: ``python bench/real_tag_diag.py test_12 97 default: "frames:min_station_motion_px=0"``
-(``ODOM=tagslam`` as for real_map_variants.py; ``DIAG_ALL=1`` prints every observation, else a
+Usage: ``python bench/real_tag_diag.py test_12 97 default: "thinned:min_station_motion_px=10"``
+(the base options bench_real's; ``ODOM=package`` as for real_map_variants.py; ``DIAG_ALL=1`` prints every observation, else a
 sample of 40 spread over the stamps).
 """
 from __future__ import annotations
@@ -100,8 +100,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             else:
                 kw[key] = _value(val)
         t0 = time.process_time()
-        options = MappingOptions(frame="marker") if odo_opts is None else \
-            MappingOptions(frame="marker", odometry=dataclasses.replace(odo_opts, **odo_kw))
+        options = MappingOptions(frame="marker", min_station_motion_px=bench_real.STATION_MOTION_PX)
+        if odo_opts is not None:
+            options = dataclasses.replace(options, odometry=dataclasses.replace(odo_opts, **odo_kw))
         if (survey is not None or meas is not None) and tags.pixel_noise:
             ba.setdefault("pixel_noise", tags.pixel_noise)
         options = dataclasses.replace(options, ba=dataclasses.replace(options.ba, **ba), extrinsics_prior="ring", **kw)
