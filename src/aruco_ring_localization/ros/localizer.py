@@ -78,6 +78,9 @@ class LocalizerNode:
         self.base_frame = out.base_frame or ring.base_frame
         self._mounts: Dict[str, np.ndarray] = {}   # odom child frames: T_base_child, looked up once
         self.tf_buffer = tf2_ros.Buffer()
+        # Set before the listener exists: its /tf callback (check_tf_authority) may run at once, on
+        # another node's message, while this constructor is still going (rostest hostile_stamps).
+        self._tf_child: Optional[str] = None   # the child frame we last put on tf (check_tf_authority)
         # tf2_ros's listener, but our own tf coming back through /tf is dropped as bytes (put in the
         # buffer as it goes out); the others' messages also go to the tf authority check.
         self.tf_listener = TfListener(self.tf_buffer, "localizer", on_other=self.check_tf_authority)
@@ -109,7 +112,6 @@ class LocalizerNode:
         # thread wakes at every /clock message).
         self.ring_input.every(out.diagnostics_period, self.publish_diagnostics)
         self.ring_input.every(out.markers_period, self.publish_markers)
-        self._tf_child: Optional[str] = None   # the child frame we last put on tf (check_tf_authority)
         rospy.loginfo("localizer: %d mapped markers in %s, fusion %s, output %s -> %s, tf %s (%s)",
                       len(marker_map), self.map_frame, config.estimator.fusion, self.map_frame, self.base_frame,
                       out.tf_mode, "on" if out.publish_tf else "off")
