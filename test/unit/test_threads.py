@@ -79,14 +79,17 @@ def test_tune_malloc_reuses_the_receive_buffer():
     # Without the tuning each 16 MB recv buffer is a fresh mmap: the kernel faults in (zeroes) every
     # page the message is written to, 256 for 1 MB. Tuned, the heap's pages are reused. The untuned
     # count depends on the machine's memory state: once it was 11 (twice in a row, at the end of a
-    # full unit-test run, 2026-12-03), 256 or more otherwise; so the untuned child runs up to 3 times.
+    # full unit-test run, 2026-12-03), once 187 (a fresh-clone CI run, 2026-12-03 19:00), 256 or more
+    # otherwise; so the untuned child runs up to 3 times. The untuned count is the kernel's, not this
+    # package's: it only has to be large enough (half the pages of a message) for the tuned count to
+    # be judged against it; what is asserted of the tuning is unchanged (under a quarter of it).
     plain = 0.0
     for _ in range(3):
         plain = max(plain, _faults_per_message("plain"))
-        if plain > 200:
+        if plain > 128:
             break
     tuned = _faults_per_message("tuned")
-    assert plain > 200, plain
+    assert plain > 128, plain
     assert tuned < 0.25 * plain, (tuned, plain)
 
 
