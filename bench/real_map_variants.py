@@ -24,7 +24,7 @@ import dataclasses
 import os
 import sys
 import time
-from typing import Any, Dict, Optional, Sequence
+from typing import Any, Dict, Optional, Sequence, Tuple
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(os.path.dirname(HERE), "src"))
@@ -45,11 +45,29 @@ def _value(text: str) -> Any:
         return text
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
-    args = list(sys.argv[1:] if argv is None else argv)
-    if len(args) < 2:
-        raise SystemExit(__doc__)
-    test = args[0]
+@dataclasses.dataclass
+class Case:
+    """One recording loaded as bench_real maps it: its inputs and TagSLAM's answer."""
+
+    test: str
+    out_dir: str
+    src: str
+    tags: Any
+    ref: Any
+    ring: Any
+    sizes: Any
+    frames: list
+    truth: MarkerMap
+    survey: Any
+    meas: Any
+    odo_opts: Any
+    odo: Any
+    layout: Any
+
+
+def load_case(test: str) -> Case:
+    """``test`` loaded with bench_real's options (``ODOM=package`` in the environment: the package's
+    odometry noise)."""
     bench_real.ODOM_NOISE = os.environ.get("ODOM", bench_real.ODOM_NOISE)
     out_dir, src, tags, ref, ring, sizes, ignore, frames, truth = bench_real._load_case(test)
     yaml_path = os.path.join(src, "tagslam.yaml")
@@ -59,35 +77,52 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         meas.planes = []
     odo_opts, odo = bench_real._odometry(test, src, ref.rig_body, frames)
     layout = tagslam_boards(yaml_path, rig_bodies=(ref.rig_body,))
-    minimum = os.path.join(out_dir, "objective_min.yaml")
+    return Case(test, out_dir, src, tags, ref, ring, sizes, frames, truth, survey, meas, odo_opts, odo, layout)
+
+
+def build_variant(case: Case, spec: str) -> Tuple[MapBuilder, MarkerMap, MarkerMap, Dict[str, Any]]:
+    """Map ``case`` with the options of a variant's ``spec`` (``key=value,...``: see the module's
+    doc): (the builder, the map, its detected markers, their error against TagSLAM's tags)."""
+    kw: Dict[str, Any] = {}
+    ba: Dict[str, Any] = {}
+    odo_kw: Dict[str, Any] = {}
+    for item in filter(None, spec.split(",")):
+        key, _, val = item.partition("=")
+        if key.startswith("odo."):
+            odo_kw[key[4:]] = _value(val)
+        elif key.startswith("ba."):
+            ba[key[3:]] = _value(val)
+        else:
+            kw[key] = _value(val)
+    options = MappingOptions(frame="marker", min_station_motion_px=bench_real.STATION_MOTION_PX)
+    if case.odo_opts is not None:
+        options = dataclasses.replace(options, odometry=dataclasses.replace(case.odo_opts, **odo_kw))
+    if (case.survey is not None or case.meas is not None) and case.tags.pixel_noise:
+        ba.setdefault("pixel_noise", case.tags.pixel_noise)
+    options = dataclasses.replace(options, ba=dataclasses.replace(options.ba, **ba), extrinsics_prior="ring", **kw)
+    layout = case.layout if case.layout is not None and len(case.layout) else None
+    b = MapBuilder(bench_real.mapping_ring(case.ring, case.src, options), case.sizes, options=options,
+                   anchors=case.survey, boards=layout, measurements=case.meas)
+    if case.odo:
+        b.set_odometry(*case.odo)
+    for f in case.frames:
+        b.add_frame(f)
+    m = b.build()
+    det = MarkerMap([e for e in m if not e.surveyed_only], frame_id=m.frame_id)
+    return b, m, det, map_error(det, case.truth, best_fit=True)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    args = list(sys.argv[1:] if argv is None else argv)
+    if len(args) < 2:
+        raise SystemExit(__doc__)
+    case = load_case(args[0])
+    minimum = os.path.join(case.out_dir, "objective_min.yaml")
     for variant in args[1:]:
         name, _, spec = variant.partition(":")
-        kw: Dict[str, Any] = {}
-        ba: Dict[str, Any] = {}
-        odo_kw: Dict[str, Any] = {}
-        for item in filter(None, spec.split(",")):
-            key, _, val = item.partition("=")
-            if key.startswith("odo."):
-                odo_kw[key[4:]] = _value(val)
-            else:
-                (ba if key.startswith("ba.") else kw)[key[3:] if key.startswith("ba.") else key] = _value(val)
         t0 = time.process_time()
-        options = MappingOptions(frame="marker", min_station_motion_px=bench_real.STATION_MOTION_PX)
-        if odo_opts is not None:
-            options = dataclasses.replace(options, odometry=dataclasses.replace(odo_opts, **odo_kw))
-        if (survey is not None or meas is not None) and tags.pixel_noise:
-            ba.setdefault("pixel_noise", tags.pixel_noise)
-        options = dataclasses.replace(options, ba=dataclasses.replace(options.ba, **ba), extrinsics_prior="ring", **kw)
-        b = MapBuilder(bench_real.mapping_ring(ring, src, options), sizes, options=options, anchors=survey,
-                       boards=layout if layout is not None and len(layout) else None, measurements=meas)
-        if odo:
-            b.set_odometry(*odo)
-        for f in frames:
-            b.add_frame(f)
-        m = b.build()
-        det = MarkerMap([e for e in m if not e.surveyed_only], frame_id=m.frame_id)
-        err = map_error(det, truth, best_fit=True)
-        line = (f"{test} {name}: map RMS {err['position_rms_mm']:.2f} / max {err['position_max_mm']:.2f} mm vs "
+        b, m, det, err = build_variant(case, spec)
+        line = (f"{case.test} {name}: map RMS {err['position_rms_mm']:.2f} / max {err['position_max_mm']:.2f} mm vs "
                 f"TagSLAM's, stations {b.summary()['stations']}")
         if os.path.exists(minimum):
             line += f", {map_error(det, MarkerMap.load(minimum), best_fit=True)['position_rms_mm']:.2f} mm vs the minimum"
@@ -95,7 +130,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         verdict = f"save refused ({'; '.join(sorted({p.split(':')[0] for p in problems}))})" if problems else "saves"
         print(f"{line}; {verdict}; {time.process_time() - t0:.0f} s CPU", flush=True)
     return 0
-
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -29,7 +29,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(HERE), "src"))
 sys.path.insert(0, HERE)
 
 import bench_real  # noqa: E402
-from real_map_variants import _value  # noqa: E402
+from real_map_variants import build_variant, load_case  # noqa: E402
 from aruco_ring_localization import geometry as geo  # noqa: E402
 from aruco_ring_localization import mapping as mapping_mod  # noqa: E402
 from aruco_ring_localization.evaluation.maps import map_error  # noqa: E402
@@ -59,15 +59,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if len(args) < 3:
         raise SystemExit(__doc__)
     test, tag = args[0], int(args[1])
-    bench_real.ODOM_NOISE = os.environ.get("ODOM", bench_real.ODOM_NOISE)
-    out_dir, src, tags, ref, ring, sizes, ignore, frames, truth = bench_real._load_case(test)
-    yaml_path = os.path.join(src, "tagslam.yaml")
-    survey = tagslam_anchors(tags, ignore, yaml_path)
-    meas = tagslam_measurements(yaml_path, ignore)
-    if meas is not None and survey is None:
-        meas.planes = []
-    odo_opts, odo = bench_real._odometry(test, src, ref.rig_body, frames)
-    layout = tagslam_boards(yaml_path, rig_bodies=(ref.rig_body,))
+    case = load_case(test)
+    ref, ring, sizes = case.ref, case.ring, case.sizes
     captured: Dict[str, Any] = {}
     orig_problem = MapBuilder._problem
 
@@ -88,33 +81,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ref_t = np.asarray(ref.stamps, dtype=float)
     for variant in args[2:]:
         name, _, spec = variant.partition(":")
-        kw: Dict[str, Any] = {}
-        ba: Dict[str, Any] = {}
-        odo_kw: Dict[str, Any] = {}
-        for item in filter(None, spec.split(",")):
-            key, _, val = item.partition("=")
-            if key.startswith("odo."):
-                odo_kw[key[4:]] = _value(val)
-            elif key.startswith("ba."):
-                ba[key[3:]] = _value(val)
-            else:
-                kw[key] = _value(val)
         t0 = time.process_time()
-        options = MappingOptions(frame="marker", min_station_motion_px=bench_real.STATION_MOTION_PX)
-        if odo_opts is not None:
-            options = dataclasses.replace(options, odometry=dataclasses.replace(odo_opts, **odo_kw))
-        if (survey is not None or meas is not None) and tags.pixel_noise:
-            ba.setdefault("pixel_noise", tags.pixel_noise)
-        options = dataclasses.replace(options, ba=dataclasses.replace(options.ba, **ba), extrinsics_prior="ring", **kw)
-        b = MapBuilder(bench_real.mapping_ring(ring, src, options), sizes, options=options, anchors=survey,
-                       boards=layout if layout is not None and len(layout) else None, measurements=meas)
-        if odo:
-            b.set_odometry(*odo)
-        for f in frames:
-            b.add_frame(f)
-        m = b.build()
-        det = MarkerMap([e for e in m if not e.surveyed_only], frame_id=m.frame_id)
-        err = map_error(det, truth, best_fit=True)
+        b, m, det, err = build_variant(case, spec)
         T_truth_est = err["T_truth_est"]
         init, mids, prob, res = captured["init"], captured["mids"], captured["prob"], captured["res"]
         sts = sorted(init.T_W_stations)
