@@ -6,7 +6,9 @@ Each ``bench/bench_<area>.py`` defines ``run(quick: bool) -> dict`` returning
 ones named with ``--only``), merges the numbers into ``results/bench/results.json`` (a flat JSON
 object of named numbers) and writes ``docs/benchmarks.md`` with the machine, the date and the
 versions of what was measured. A benchmark that fails is reported in both files and makes the
-exit code 1; the others still run.
+exit code 1; the others still run. Notes written into a section by hand (a branch's measurement,
+why a figure moved) go between ``<!-- kept -->`` and ``<!-- /kept -->``: a rerun of the section
+carries them over (before its "ran in" line); everything else in it is replaced.
 
 Usage: ``python bench/run.py [--quick] [--only detector,mapping]``
 """
@@ -88,9 +90,42 @@ def _split_sections(text: str) -> List[str]:
     return parts
 
 
+KEPT_OPEN = "<!-- kept -->"
+KEPT_CLOSE = "<!-- /kept -->"
+
+
+def kept_blocks(section: str) -> List[str]:
+    """The hand-written parts of a section: each ``<!-- kept -->`` ... ``<!-- /kept -->`` block
+    (markers included), in order. A block left open runs to the section's end."""
+    blocks: List[str] = []
+    start = section.find(KEPT_OPEN)
+    while start >= 0:
+        end = section.find(KEPT_CLOSE, start)
+        end = len(section) if end < 0 else end + len(KEPT_CLOSE)
+        blocks.append(section[start:end].strip())
+        start = section.find(KEPT_OPEN, end)
+    return blocks
+
+
+def with_kept(new: str, old: str) -> str:
+    """``new`` (a section just rendered) with the kept blocks of ``old`` (the same section in the
+    doc) that it does not hold, put before its ``_(ran in ...)_`` line (or at its end)."""
+    blocks = [b for b in kept_blocks(old) if b not in new]
+    if not blocks:
+        return new
+    body = new.rstrip()
+    tail = ""
+    last = body.rfind("\n_(ran in ")
+    if last >= 0:
+        body, tail = body[:last].rstrip(), body[last:]
+    return body + "\n\n" + "\n\n".join(blocks) + ("\n" + tail if tail else "") + "\n"
+
+
 def merge_doc(path: str, sections: List[str], run_lines: List[str], names: List[str]) -> str:
     """With --only: the existing doc with the sections just run replaced (same '## ' title) or
-    appended, and a header line saying which sections were rerun when, on what."""
+    appended, and a header line saying which sections were rerun when, on what. What the old
+    section held between ``<!-- kept -->`` and ``<!-- /kept -->`` (notes written by hand: why a
+    figure moved, measurements of a branch) is carried over into the new one."""
     with open(path, encoding="utf-8") as handle:
         parts = _split_sections(handle.read())
     head, old = parts[0], parts[1:]
@@ -99,7 +134,8 @@ def merge_doc(path: str, sections: List[str], run_lines: List[str], names: List[
         title = sec.splitlines()[0] if sec else ""
         body = sec.rstrip() + "\n\n"
         if title in titles:
-            old[titles.index(title)] = body
+            k = titles.index(title)
+            old[k] = with_kept(body, old[k]).rstrip() + "\n\n"
         else:
             old.append(body)
             titles.append(title)
@@ -150,15 +186,22 @@ def main(argv=None) -> int:
         json.dump(results, handle, indent=2, sort_keys=True)
     header = ["# Benchmarks", "",
               "Written by `make bench` (bench/run.py); the same figures are in `results/bench/results.json`.",
-              "Each section states the target it is measured against.", ""]
+              "Each section states the target it is measured against.",
+              "Notes written by hand inside a section sit between `<!-- kept -->` and `<!-- /kept -->`: "
+              "a rerun keeps them.", ""]
+    intro = len(header)
     header += machine_description()
     if args.quick:
         header.append("- Mode: --quick (fewer repetitions; not the reference figures)")
     if failed:
         header.append(f"- FAILED: {', '.join(failed)}")
+    if os.path.exists(args.doc):   # the hand-written notes of the sections run stay (kept blocks)
+        with open(args.doc, encoding="utf-8") as handle:
+            previous = {p.splitlines()[0]: p for p in _split_sections(handle.read())[1:]}
+        sections = [with_kept(sec, previous.get(sec.splitlines()[0], "")) if sec else sec for sec in sections]
     text = "\n".join(header) + "\n\n" + "\n".join(sections)
     if args.only and os.path.exists(args.doc):
-        text = merge_doc(args.doc, sections, header[5:], wanted)  # header[5:]: date, machine, mode lines
+        text = merge_doc(args.doc, sections, header[intro:], wanted)  # date, machine, mode lines
     os.makedirs(os.path.dirname(args.doc), exist_ok=True)
     with open(args.doc, "w", encoding="utf-8") as handle:
         handle.write(text)
