@@ -601,6 +601,19 @@ class JointFit:
     #: With a calibration model: :class:`_Spectrum` of the blocks ``G_cam`` against the problem's
     #: extrinsics factors (what whitening at any pixel noise needs; None: not computed).
     spectrum: Optional["_Spectrum"] = None
+    #: :meth:`weighted_squares` once computed (not an init field: a fit made from this one, e.g.
+    #: by ``dataclasses.replace`` or :meth:`JointProblem.linear_step`, starts without it).
+    _wsq: Optional[np.ndarray] = field(init=False, default=None, repr=False, compare=False)
+
+    def weighted_squares(self) -> np.ndarray:
+        """(N,) per corner ``w_i |r_i|^2`` (a non-finite residual counts 0): what the pixel-noise
+        search, the refit at the measured noise and the consistency test each summed from ``r``
+        (issue 16: the same numbers once per fit). ``r`` and ``w`` are not changed after a fit is
+        made (every step makes a new one), so it is computed on first use and kept."""
+        if self._wsq is None:
+            rr = np.where(np.isfinite(self.r), self.r, 0.0)
+            self._wsq = self.w * np.sum(rr * rr, axis=1)
+        return self._wsq
 
 
 @dataclass
@@ -886,14 +899,22 @@ class JointProblem:
         r, Ja = self._rows(T_base_map)
         J = Ja[:, :, :6]
         e2 = r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1]
-        if e2.size and float(e2.max()) <= scale * scale:
-            # Every corner within the Huber scale (the usual frame; NaN-safe): unit weights, no
-            # weighting pass ([J r]^T [J r] directly).
+        top = float(e2.max()) if e2.size else 0.0   # NaN or inf when any corner is not finite
+        if top <= scale * scale:
+            # Every corner within the Huber scale (NaN-safe): unit weights, no weighting pass
+            # ([J r]^T [J r] directly).
             huber, w, Jw = 0.5 * float(e2.sum()), np.ones(self.n), Ja
         else:
-            huber, w = self._huber(r, scale, e2)
-            if not np.isfinite(huber):   # finite cost: every r finite; else the non-finite rows out
-                Ja[:, :, 6] = np.where(np.isfinite(r), r, 0.0)
+            if self.extrinsics_cov is not None and math.isfinite(top):
+                # With a calibration model the cost is the whitened chi2 (_whitened): of the Huber
+                # loss only the weights are needed, and that it is finite (here: every r is). The
+                # usual frame of the lab has a corner beyond the scale (issue 16: _huber's cost
+                # pass was a tenth of a fit). _huber's weights, the same numbers.
+                huber, w = 0.0, np.minimum(scale / np.maximum(np.sqrt(e2), 1e-12), 1.0)
+            else:
+                huber, w = self._huber(r, scale, e2)
+                if not math.isfinite(huber):   # finite cost: every r finite; else the non-finite rows out
+                    Ja[:, :, 6] = np.where(np.isfinite(r), r, 0.0)
             Jw = Ja * w[:, None, None]
         s2 = self.sigma ** 2
         if self.extrinsics_cov is None:
@@ -918,8 +939,7 @@ class JointProblem:
         with the fit's :class:`_Spectrum`, without a decomposition)."""
         if fit.G_cam is None or self.extrinsics_factor is None:
             raise ValueError("refit needs a calibration model")
-        rr = np.where(np.isfinite(fit.r), fit.r, 0.0)
-        q = np.add.reduceat(fit.w * np.sum(rr * rr, axis=1), self.offsets[:-1])
+        q = np.add.reduceat(fit.weighted_squares(), self.offsets[:-1])
         huber = 0.0 if np.isfinite(fit.r).all() else np.inf
         return self._whitened(fit.r, fit.J, fit.w, fit.G_cam, fit.b_cam, q, huber, fit.spectrum)
 
@@ -967,12 +987,12 @@ class JointProblem:
                 raise np.linalg.LinAlgError("whitening: the 6x6 normal matrix is not positive definite")
             Z = np.linalg.solve(K, Q)
             Y = (Gb - np.matmul(np.transpose(Z[:, :, :6], (0, 2, 1)), Z)) / s2
-            H_cam, g = Y[:, :, :6], Y[:, :, 6]
             z = Z[:, :, 6]
             chi2 = float(np.asarray(q).sum() - (z * z).sum()) / s2
-            if not np.isfinite(huber):
+            if not math.isfinite(huber):
                 chi2 = np.inf
-            return JointFit(r, J, w, H_cam.sum(axis=0), g.sum(axis=0), chi2, chi2, H_cam, G, b, None)
+            Hg = Y.sum(axis=0)   # [H | g]: the cameras' sums in one reduction (the same numbers)
+            return JointFit(r, J, w, Hg[:, :6], Hg[:, 6], chi2, chi2, Y[:, :, :6], G, b, None)
         sp = spectrum
         m = s2 + sp.lam
         if not m.min() > _EPS * m.max():
@@ -983,11 +1003,11 @@ class JointProblem:
         Q = np.matmul(sp.LUT, Gb)
         Qd = Q * d[:, :, None]
         Y = (Gb - np.matmul(np.transpose(Q[:, :, :6], (0, 2, 1)), Qd)) / s2
-        H_cam, g = Y[:, :, :6], Y[:, :, 6]
         chi2 = float(np.asarray(q).sum() - (Qd[:, :, 6] * Q[:, :, 6]).sum()) / s2
-        if not np.isfinite(huber):
+        if not math.isfinite(huber):
             chi2 = np.inf
-        return JointFit(r, J, w, H_cam.sum(axis=0), g.sum(axis=0), chi2, chi2, H_cam, G, b, sp)
+        Hg = Y.sum(axis=0)
+        return JointFit(r, J, w, Hg[:, :6], Hg[:, 6], chi2, chi2, Y[:, :, :6], G, b, sp)
 
     def pixel_noise_estimate(self, fit: JointFit, lo: float, hi: float, start: Optional[float] = None) -> float:
         """The pixel noise (px) that makes the whitened residuals of ``fit`` (a fit of this problem,
@@ -1002,8 +1022,7 @@ class JointProblem:
         evaluations fewer; the root is the same to the iteration's 1e-10)."""
         if fit.G_cam is None or self.extrinsics_factor is None:
             raise ValueError("pixel_noise_estimate needs a calibration model")
-        rr = np.where(np.isfinite(fit.r), fit.r, 0.0)
-        q = float(np.sum(fit.w * np.sum(rr * rr, axis=1)))
+        q = float(np.sum(fit.weighted_squares()))
         sp = fit.spectrum = self._spectrum(fit.G_cam, fit.spectrum)   # kept: the refit at sigma reuses it
         b2 = (sp.beta(fit.b_cam) ** 2).ravel()   # (U^T L^T b)^2 per camera
         lam = sp.lam.ravel()
@@ -1412,12 +1431,12 @@ def extrinsics_consistency(problem: JointProblem, fit: JointFit) -> Optional[Tup
     d1, d2 = 6 * (C - 1), 2 * problem.n - 6 * C
     if C < 2 or d2 < 1:
         return None
-    rr = np.where(np.isfinite(fit.r), fit.r, 0.0)
     if fit.G_cam is not None and fit.b_cam is not None:
         # The per-camera blocks are in the fit already (JointProblem.exact_step): only q is summed.
         G, b = fit.G_cam, fit.b_cam
-        q = np.add.reduceat(fit.w * np.sum(rr * rr, axis=1), problem.offsets[:-1])
+        q = np.add.reduceat(fit.weighted_squares(), problem.offsets[:-1])
     else:
+        rr = np.where(np.isfinite(fit.r), fit.r, 0.0)
         Ja = np.concatenate([fit.J, rr[:, :, None]], axis=2)
         A7 = np.add.reduceat(np.einsum("nia,nib->nab", Ja * fit.w[:, None, None], Ja), problem.offsets[:-1],
                              axis=0)
@@ -2277,10 +2296,12 @@ class RingLocalizer:
             # Drop whole markers that do not fit (a moved or mis-mapped marker) and solve again.
             r = fit.r
             e2 = r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1]
-            finite = math.isfinite(float(e2.sum()))   # finite only when every residual is
+            e2_sum = float(e2.sum())
+            finite = math.isfinite(e2_sum)   # finite only when every residual is
             if not finite:
                 e2 = np.sum(np.where(np.isfinite(r), r, 1e6) ** 2, axis=1)
-            bad = np.sqrt(e2.reshape(-1, 4).mean(axis=1)) > p.joint_outlier_threshold
+            # (the per-marker mean of 4 as sum * 0.25: the same numbers without mean's set-up)
+            bad = np.sqrt(e2.reshape(-1, 4).sum(axis=1) * 0.25) > p.joint_outlier_threshold
             outliers = int(bad.sum())
             if outliers:
                 if outliers * 2 > bad.size or bad.size - outliers < p.min_markers_joint:
@@ -2301,10 +2322,11 @@ class RingLocalizer:
         if outliers:
             r = fit.r
             e2 = r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1]
-            finite = math.isfinite(float(e2.sum()))
+            e2_sum = float(e2.sum())
+            finite = math.isfinite(e2_sum)
         if not finite:   # a residual not finite (or, as before, an RMS that would be infinite)
             return None
-        rms = float(np.sqrt(e2.mean()))
+        rms = math.sqrt(e2_sum / e2.size)   # np.sqrt(e2.mean()): the same sum, divided
         if rms > p.joint_outlier_threshold:
             return None
         sigma = float("nan")
@@ -2533,8 +2555,7 @@ class RingLocalizer:
             d2 = 2 * exact.n - 6 * len(exact.views)
             if d2 < 1:
                 return float("nan")
-            rr = np.where(np.isfinite(fit.r), fit.r, 0.0)
-            return (float(np.sum(fit.w * np.sum(rr * rr, axis=1))) - _sum_pinv_quadratic(G, b)) / d2
+            return (float(np.sum(fit.weighted_squares())) - _sum_pinv_quadratic(G, b)) / d2
 
         self.vibration.add([v.name for v in exact.views], [v.ids for v in exact.views], G, b, noise,
                            [self._vib_declared[v.name] for v in exact.views])
