@@ -250,6 +250,10 @@ class _Baseline:
     pending: Deque[Tuple[float, List[float], List[float]]] = field(default_factory=deque)
 
 
+#: a placeholder for a :class:`_View`'s pose until :meth:`MarkerCheck._views` writes it
+_NO_POSE = np.zeros(0)
+
+
 @dataclass
 class _View:
     camera: str
@@ -274,11 +278,12 @@ def _rows(views: Sequence[_View], T_base_map: np.ndarray, pixel_noise: float):
     X = np.concatenate([v.X for v in views])
     # Per corner, its camera's matrices: one gather from the stacks (np.repeat of each stack cost 3x).
     corner_view = np.repeat(np.arange(len(views)), counts)
-    R_views = np.stack([v.R_cam_map for v in views])
-    t_views = np.stack([v.t_cam_map for v in views])
+    # (np.array of the list: np.stack's numbers without its per-array set-up)
+    R_views = np.array([v.R_cam_map for v in views])
+    t_views = np.array([v.t_cam_map for v in views])
     R_cm = R_views[corner_view]                                                          # (n, 3, 3)
     t_cm = t_views[corner_view]
-    R_cb = np.stack([v.T_cam_base[:3, :3] for v in views])[corner_view]
+    R_cb = np.array([v.T_cam_base[:3, :3] for v in views])[corner_view]
     P = np.matmul(R_cm, X[:, :, None])[:, :, 0] + t_cm
     z = P[:, 2:3]
     pred = P[:, :2] / z
@@ -389,6 +394,7 @@ class MarkerCheck:
                                          for k, c in enumerate(ring.cameras)})
         cameras = self._ring_cameras[1]
         out = []
+        T_cam_bases = []
         for name, cf in frame.cameras.items():
             known = cameras.get(name)
             if known is None:
@@ -404,7 +410,6 @@ class MarkerCheck:
                 # (as the estimator takes it: RingLocalizer._moved_extrinsics).
                 T_base_cam = displacement_to_transform(moved[0]) @ T_base_cam
                 T_cam_base = geo.inverse(T_base_cam)
-            T_cam_map = T_cam_base @ T_base_map
             ids = [int(o.marker_id) for o in obs]
             same = None if known_views is None else known_views.get(name)
             if same is not None and same.ids == ids and same.model is model:
@@ -415,7 +420,14 @@ class MarkerCheck:
             else:
                 px = [np.asarray(o.corners, dtype=np.float64).reshape(4, 2) for o in obs]
                 xy, X = model.normalize(np.concatenate(px)), np.concatenate([mm.corners(i) for i in ids])
-            out.append(_View(name, index, model, T_cam_map[:3, :3], T_cam_map[:3, 3], T_cam_base, ids, px, xy, X))
+            out.append(_View(name, index, model, _NO_POSE, _NO_POSE, T_cam_base, ids, px, xy, X))
+            T_cam_bases.append(T_cam_base)
+        if out:
+            # Every view's T_cam_map in one batched product (the same numbers as one product per
+            # view; issue 16): the views' R_cam_map and t_cam_map are slices of it.
+            T_cam_maps = np.matmul(np.array(T_cam_bases), T_base_map)
+            for v, T in zip(out, T_cam_maps):
+                v.R_cam_map, v.t_cam_map = T[:3, :3], T[:3, 3]
         return out
 
     def update(self, frame: RingFrame, T_map_base: np.ndarray, ring: CameraRing, now: float,
@@ -449,9 +461,12 @@ class MarkerCheck:
         drop = self.dropped
         # Blocks: one (camera, marker) pair, its 8 rows.
         r, Jp, Jm, w, Jr, R_views, t_views = _rows(views, T_base_map, p.pixel_noise)
-        blk_view = [vi for vi, v in enumerate(views) for _ in v.ids]
-        blk_k = [k for v in views for k in range(len(v.ids))]
-        blk_mid = [i for v in views for i in v.ids]
+        blk_view, blk_k, blk_mid = [], [], []
+        for vi, v in enumerate(views):
+            for k, i in enumerate(v.ids):
+                blk_view.append(vi)
+                blk_k.append(k)
+                blk_mid.append(i)
         # The markers in view, sorted, and each block's (np.unique's, without its set-up).
         mids_l = sorted(set(blk_mid))
         order = {m: j for j, m in enumerate(mids_l)}
