@@ -658,7 +658,7 @@ class MarkerCheck:
             return []
         # The window sums and the latest frame alone (``fresh``) in one batch.
         last = [self._evidence[ids[j]].items[-1] for j in fresh]
-        d_both, T_both = _statistics(np.stack(As + [a for _, a, _ in last]), np.stack(bs + [v for _, _, v in last]),
+        d_both, T_both = _statistics(np.array(As + [a for _, a, _ in last]), np.array(bs + [v for _, _, v in last]),
                                      p.systematic_std)
         k = len(ids)
         d_all, T_all = d_both[:k], T_both[:k].tolist()
