@@ -638,7 +638,7 @@ class _Spectrum:
         if LT is None:
             LT = np.transpose(L, (0, 2, 1))
         lam, U = np.linalg.eigh(LT @ G @ L)
-        return _Spectrum(L, np.clip(lam, 0.0, None), np.matmul(np.transpose(U, (0, 2, 1)), LT))
+        return _Spectrum(L, np.clip(lam, 0.0, None), np.matmul(U.transpose(0, 2, 1), LT))
 
     def beta(self, b: np.ndarray) -> np.ndarray:
         """(C, 6) ``U^T L^T b`` per camera."""
@@ -989,7 +989,7 @@ class JointProblem:
             if not piv.min() > _EPS * diag.max():
                 raise np.linalg.LinAlgError("whitening: the 6x6 normal matrix is not positive definite")
             Z = np.linalg.solve(K, Q)
-            Y = (Gb - np.matmul(np.transpose(Z[:, :, :6], (0, 2, 1)), Z)) / s2
+            Y = (Gb - np.matmul(Z[:, :, :6].transpose(0, 2, 1), Z)) / s2
             z = Z[:, :, 6]
             chi2 = float(np.asarray(q).sum() - (z * z).sum()) / s2
             if not math.isfinite(huber):
@@ -1005,7 +1005,7 @@ class JointProblem:
         # [H_c | g_c] s2 = [G | b] - P d [P^T | beta] in one product.
         Q = np.matmul(sp.LUT, Gb)
         Qd = Q * d[:, :, None]
-        Y = (Gb - np.matmul(np.transpose(Q[:, :, :6], (0, 2, 1)), Qd)) / s2
+        Y = (Gb - np.matmul(Q[:, :, :6].transpose(0, 2, 1), Qd)) / s2
         chi2 = float(np.asarray(q).sum() - (Qd[:, :, 6] * Q[:, :, 6]).sum()) / s2
         if not math.isfinite(huber):
             chi2 = np.inf

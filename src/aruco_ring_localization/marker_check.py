@@ -482,7 +482,7 @@ class MarkerCheck:
             # Each block's weight W: the inverse of s^2 I + jitter^2 Jr Jr^T (8x8; s^2 = 1 / w), by
             # Woodbury on 3x3: W = w (I - Jr (s^2 / jitter^2 I + Jr^T Jr)^-1 Jr^T) (a batched 8x8
             # inverse cost twice as much).
-            JrT = np.transpose(Jr, (0, 2, 1))
+            JrT = Jr.transpose(0, 2, 1)
             K = JrT @ Jr
             k = 1.0 / (w * self.extrinsic_jitter ** 2)
             K[:, 0, 0] += k
@@ -491,7 +491,7 @@ class MarkerCheck:
             wJpm = (Jpm - Jr @ (_inv3(K) @ (JrT @ Jpm))) * w[:, None, None]
         else:
             wJpm = w[:, None, None] * Jpm
-        wJpmT = np.transpose(wJpm, (0, 2, 1))
+        wJpmT = wJpm.transpose(0, 2, 1)
         # Per block, [Jp Jm]^T W [Jp Jm]: [[H_b, cross^T], [cross, A]] (pose, marker) in one product.
         N = wJpmT @ Jpm                                               # (B, 9, 9)
         H_b = N[:, :6, :6]
@@ -560,7 +560,7 @@ class MarkerCheck:
             return self._judge(stamp, now)
         have = np.zeros(len(w), dtype=bool)
         have[judged_blocks] = True
-        e = np.zeros_like(res)
+        e = np.zeros(res.shape)
         e[judged_blocks] = res[judged_blocks] - np.array(bases)
         # The pose from the others is uncertain too (few markers, one camera): the residual's
         # covariance is W^-1 + Jp H^-1 Jp^T. Its inverse (Woodbury) W - W Jp H_joint^-1 Jp^T W
@@ -576,14 +576,14 @@ class MarkerCheck:
         cross = N_m[:, 6:, :6]
         proj = M9[:, 81:87]
         H_joint = H_loo + N_m[:, :6, :6]
-        judged = np.flatnonzero(Sh.any(axis=1))   # the markers with a judged block
+        judged = Sh.any(axis=1).nonzero()[0]   # the markers with a judged block
         try:
-            K = np.linalg.solve(H_joint[judged] + eye6, np.transpose(cross[judged], (0, 2, 1)))   # (k, 6, 3)
+            K = np.linalg.solve(H_joint[judged] + eye6, cross[judged].transpose(0, 2, 1))   # (k, 6, 3)
         except np.linalg.LinAlgError:
             return self._judge(stamp, now)
         A = A[judged] - cross[judged] @ K
-        A = 0.5 * (A + np.transpose(A, (0, 2, 1)))
-        b = b[judged] - (np.transpose(K, (0, 2, 1)) @ proj[judged][:, :, None])[:, :, 0]
+        A = 0.5 * (A + A.transpose(0, 2, 1))
+        b = b[judged] - (K.transpose(0, 2, 1) @ proj[judged][:, :, None])[:, :, 0]
         evidence = self._evidence
         for j, m in enumerate(judged.tolist()):
             ev = evidence.get(mids_l[m])
