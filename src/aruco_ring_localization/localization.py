@@ -867,9 +867,9 @@ class JointProblem:
         B[:, 0, 1] = p_b[:, 2]
         B[:, 1, 2] = p_b[:, 0]
         B[:, 2, 0] = p_b[:, 1]
-        B[:, 1, 0] = -p_b[:, 2]
-        B[:, 2, 1] = -p_b[:, 0]
-        B[:, 0, 2] = -p_b[:, 1]
+        np.negative(p_b[:, 2], out=B[:, 1, 0])   # (written in place: no temporary per entry)
+        np.negative(p_b[:, 0], out=B[:, 2, 1])
+        np.negative(p_b[:, 1], out=B[:, 0, 2])
         Ja = np.matmul(AJR, B)   # (N, 2, 7), last column zero: the residual's slot
         Ja[:, :, 6] = r
         if any_bad:

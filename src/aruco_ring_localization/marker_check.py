@@ -297,9 +297,10 @@ def _rows(views: Sequence[_View], T_base_map: np.ndarray, pixel_noise: float):
     J_pose = np.empty((len(X), 2, 6))
     # d P_base / d(w, v) = [-[P_base]x | I]; a row e^T [-[q]x] is (q x e)^T.
     q = Pb[:, None, :]
-    J_pose[:, :, 0] = q[..., 1] * E[..., 2] - q[..., 2] * E[..., 1]
-    J_pose[:, :, 1] = q[..., 2] * E[..., 0] - q[..., 0] * E[..., 2]
-    J_pose[:, :, 2] = q[..., 0] * E[..., 1] - q[..., 1] * E[..., 0]
+    # (each difference written in place: np.subtract(..., out=) spares a temporary and a copy)
+    np.subtract(q[..., 1] * E[..., 2], q[..., 2] * E[..., 1], out=J_pose[:, :, 0])
+    np.subtract(q[..., 2] * E[..., 0], q[..., 0] * E[..., 2], out=J_pose[:, :, 1])
+    np.subtract(q[..., 0] * E[..., 1], q[..., 1] * E[..., 0], out=J_pose[:, :, 2])
     J_pose[:, :, 3:] = E
     Pc = P[:, None, :]
     Dm = np.zeros((len(X), 2, 3))
@@ -308,9 +309,9 @@ def _rows(views: Sequence[_View], T_base_map: np.ndarray, pixel_noise: float):
     # d xy / d (camera rotation), up to its sign: Dm x Pc per row (component-wise: np.cross costs
     # ~15 us of set-up on arrays this small).
     J_rot = np.empty((len(X), 2, 3))
-    J_rot[:, :, 0] = Dm[..., 1] * Pc[..., 2] - Dm[..., 2] * Pc[..., 1]
-    J_rot[:, :, 1] = Dm[..., 2] * Pc[..., 0] - Dm[..., 0] * Pc[..., 2]
-    J_rot[:, :, 2] = Dm[..., 0] * Pc[..., 1] - Dm[..., 1] * Pc[..., 0]
+    np.subtract(Dm[..., 1] * Pc[..., 2], Dm[..., 2] * Pc[..., 1], out=J_rot[:, :, 0])
+    np.subtract(Dm[..., 2] * Pc[..., 0], Dm[..., 0] * Pc[..., 2], out=J_rot[:, :, 1])
+    np.subtract(Dm[..., 0] * Pc[..., 1], Dm[..., 1] * Pc[..., 0], out=J_rot[:, :, 2])
     xy = np.concatenate([v.xy for v in views])
     B = len(X) // 4
     # (math.sqrt: np.sqrt's number, correctly rounded, without a ufunc call per camera)
