@@ -247,7 +247,8 @@ def test_weighted_squares_belong_to_their_fit(lab):
     assert np.array_equal(moved.weighted_squares(), 4.0 * first)
     bad_r = fit.r.copy()
     bad_r[3] = np.nan
-    assert np.array_equal(dataclasses.replace(fit, r=bad_r).weighted_squares(), np.where(np.arange(prob.n) == 3, 0.0, first))
+    expected = np.where(np.arange(prob.n) == 3, 0.0, first)
+    assert np.array_equal(dataclasses.replace(fit, r=bad_r).weighted_squares(), expected)
     # The refit at another noise: q per camera from the same numbers as summed from r directly.
     ref = prob.with_sigma(2 * SIGMA).refit(fit)
     q = np.add.reduceat(direct(fit), prob.offsets[:-1])
