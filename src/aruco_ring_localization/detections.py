@@ -255,12 +255,15 @@ class RingFrameAssembler:
         """The cameras' frame period and stamp jitter (s, 1 sigma) measured from their stamps (auto), or
         None before a period is known: the median of every camera's last stamp differences, and
         their spread (1.4826 MAD / sqrt 2)."""
-        pooled = sorted(x for d in self._diffs.values() for x in d)
+        pooled: List[float] = []
+        for d in self._diffs.values():
+            pooled += d   # (lists joined and sorted in place: a generator per number cost more)
         if not pooled:
             return None
+        pooled.sort()
         n = len(pooled)
         period = 0.5 * (pooled[(n - 1) // 2] + pooled[n // 2])
-        dev = sorted(abs(x - period) for x in pooled)
+        dev = sorted([abs(x - period) for x in pooled])
         return period, 1.4826 * 0.5 * (dev[(n - 1) // 2] + dev[n // 2]) / math.sqrt(2.0)
 
     def _phases(self, stamp: float, period: float) -> List[float]:
@@ -464,7 +467,7 @@ def sanitize_observations(observations: Sequence[MarkerObservation], ignore: Col
         candidates.append(obs)
     if not candidates:
         return [], reasons
-    if len(candidates) <= SCALAR_SANITIZE and all(_is_float_quad(o.corners) for o in candidates):
+    if len(candidates) <= SCALAR_SANITIZE and all([_is_float_quad(o.corners) for o in candidates]):
         # What the nodes' conversion gives: each quad's Python floats straight from its array.
         kept = _sanitize_scalar(candidates, [o.corners.tolist() for o in candidates], None, width, height,
                                 min_area_px, drop)

@@ -85,10 +85,14 @@ def inverse(T) -> np.ndarray:
     if T.shape != (4, 4):
         raise GeometryError(f"inverse: expected a 4x4 transform, got shape {T.shape}")
     R_t = T[:3, :3].T
-    out = np.eye(4)
+    out = _EYE4.copy()   # (a copy of a constant: np.eye's set-up costs more than the rest here)
     out[:3, :3] = R_t
     out[:3, 3] = -R_t @ T[:3, 3]
     return out
+
+
+_EYE4 = np.eye(4)
+_EYE4.flags.writeable = False
 
 
 def compose(*transforms) -> np.ndarray:
@@ -245,6 +249,9 @@ def rotation_angle(R) -> float:
 
 def wrap_angle(angle):
     """Wrap an angle (or array of angles) in rad to [-pi, pi)."""
+    if type(angle) is float:   # the usual call (np.ndim costs more than the arithmetic)
+        out = (angle + np.pi) % (2.0 * np.pi) - np.pi
+        return -np.pi if out >= np.pi else out
     if np.ndim(angle):
         out = (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
         # For angles just below -pi the modulo rounds up to exactly 2 pi, giving +pi.
@@ -255,6 +262,8 @@ def wrap_angle(angle):
 
 def angle_diff(a, b):
     """Smallest signed difference ``a - b`` of two angles, in [-pi, pi)."""
+    if type(a) is float and type(b) is float:
+        return wrap_angle(a - b)
     return wrap_angle(np.asarray(a) - np.asarray(b)) if np.ndim(a) or np.ndim(b) else wrap_angle(a - b)
 
 
@@ -270,7 +279,7 @@ def se2_from_transform(T) -> np.ndarray:
 
 def transform_from_se2(x: float, y: float, yaw: float, z: float = 0.0) -> np.ndarray:
     """(x, y, yaw) -> 4x4 transform at height ``z`` with a rotation about z only."""
-    T = np.eye(4)
+    T = _EYE4.copy()
     T[:3, :3] = rot_z(yaw)
     T[:3, 3] = (x, y, z)
     return T

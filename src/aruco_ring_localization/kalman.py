@@ -90,15 +90,23 @@ class FilterParams:
                          "initial_std_velocity", "initial_std_acceleration", "max_dt")
 
 
+def _diag3(a: float, b: float, c: float) -> np.ndarray:
+    """``np.diag([a, b, c])`` (its set-up costs more than the matrix, twice per ring frame)."""
+    return np.array([[a, 0.0, 0.0], [0.0, b, 0.0], [0.0, 0.0, c]])
+
+
 def transition_matrix(dt: float) -> np.ndarray:
     """F (9, 9) of the constant-acceleration model over ``dt`` seconds."""
-    F = np.eye(9)
+    F = _EYE9.copy()
     for p, v, a in _AXES:
         F[p, v] = dt
         F[p, a] = 0.5 * dt * dt
         F[v, a] = dt
     return F
 
+
+_EYE9 = np.eye(9)
+_EYE9.flags.writeable = False
 
 #: Derivative order of each state (x, y, x', y', x'', y'', phi, phi', phi''): how its row of Q scales with dt.
 _ORDER = np.array([0, 0, 1, 1, 2, 2, 0, 1, 2])
@@ -128,7 +136,7 @@ def process_noise(dt: float, q_xy: float, q_yaw: float) -> np.ndarray:
     frame: the prediction and the gate's predicted covariance).
     """
     s = float(dt) ** (2.5 - _ORDER)
-    return _unit_process_noise(float(q_xy), float(q_yaw)) * np.outer(s, s)
+    return _unit_process_noise(float(q_xy), float(q_yaw)) * (s[:, None] * s[None, :])   # np.outer(s, s)
 
 
 class PoseFilter:
@@ -250,11 +258,11 @@ class PoseFilter:
     def _measurement_covariance(self, covariance: Optional[np.ndarray]) -> np.ndarray:
         p = self.params
         if covariance is None:
-            R = np.diag([p.measurement_std_xy ** 2, p.measurement_std_xy ** 2, p.measurement_std_yaw ** 2])
+            R = _diag3(p.measurement_std_xy ** 2, p.measurement_std_xy ** 2, p.measurement_std_yaw ** 2)
         else:
             R = 0.5 * (np.asarray(covariance, dtype=np.float64) + np.asarray(covariance, dtype=np.float64).T)
         # Floors: the estimator's covariance only knows the pixel noise.
-        floor = np.diag([p.min_measurement_std_xy ** 2, p.min_measurement_std_xy ** 2, p.min_measurement_std_yaw ** 2])
+        floor = _diag3(p.min_measurement_std_xy ** 2, p.min_measurement_std_xy ** 2, p.min_measurement_std_yaw ** 2)
         return R + floor
 
     def _wrapped(self, z) -> np.ndarray:
@@ -297,7 +305,7 @@ class PoseFilter:
         # x = x + Ky
         kf.x = kf.x + K @ y
         # P = (I-KH)P(I-KH)' + KRK'      (Joseph form)
-        I_KH = np.eye(9)
+        I_KH = _EYE9.copy()
         I_KH[:, _POSE_ROWS] -= K
         kf.P = (I_KH @ kf.P) @ I_KH.T + (K @ R) @ K.T
         kf.x[IPHI, 0] = geo.wrap_angle(float(kf.x[IPHI, 0]))

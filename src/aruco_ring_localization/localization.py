@@ -361,8 +361,11 @@ class LocalizationResult:
 
 def se2_covariance(cov6: np.ndarray) -> np.ndarray:
     """(x, y, yaw) block of a 6x6 (x, y, z, rx, ry, rz) covariance (rz ~ yaw for a level robot)."""
-    idx = [0, 1, 5]
-    return np.asarray(cov6)[np.ix_(idx, idx)].copy()
+    return np.asarray(cov6)[_SE2_BLOCK]   # (advanced indexing: a copy)
+
+
+#: the (x, y, yaw) rows and columns of a 6x6 (x, y, z, rx, ry, rz) covariance (np.ix_ once, not per call)
+_SE2_BLOCK = np.ix_([0, 1, 5], [0, 1, 5])
 
 
 # --- the paper's accuracy weights and fusion ------------------------------------------------
@@ -601,6 +604,19 @@ class JointFit:
     #: With a calibration model: :class:`_Spectrum` of the blocks ``G_cam`` against the problem's
     #: extrinsics factors (what whitening at any pixel noise needs; None: not computed).
     spectrum: Optional["_Spectrum"] = None
+    #: :meth:`weighted_squares` once computed (not an init field: a fit made from this one, e.g.
+    #: by ``dataclasses.replace`` or :meth:`JointProblem.linear_step`, starts without it).
+    _wsq: Optional[np.ndarray] = field(init=False, default=None, repr=False, compare=False)
+
+    def weighted_squares(self) -> np.ndarray:
+        """(N,) per corner ``w_i |r_i|^2`` (a non-finite residual counts 0): what the pixel-noise
+        search, the refit at the measured noise and the consistency test each summed from ``r``
+        (issue 16: the same numbers once per fit). ``r`` and ``w`` are not changed after a fit is
+        made (every step makes a new one), so it is computed on first use and kept."""
+        if self._wsq is None:
+            rr = np.where(np.isfinite(self.r), self.r, 0.0)
+            self._wsq = self.w * np.sum(rr * rr, axis=1)
+        return self._wsq
 
 
 @dataclass
@@ -622,7 +638,7 @@ class _Spectrum:
         if LT is None:
             LT = np.transpose(L, (0, 2, 1))
         lam, U = np.linalg.eigh(LT @ G @ L)
-        return _Spectrum(L, np.clip(lam, 0.0, None), np.matmul(np.transpose(U, (0, 2, 1)), LT))
+        return _Spectrum(L, np.clip(lam, 0.0, None), np.matmul(U.transpose(0, 2, 1), LT))
 
     def beta(self, b: np.ndarray) -> np.ndarray:
         """(C, 6) ``U^T L^T b`` per camera."""
@@ -851,9 +867,9 @@ class JointProblem:
         B[:, 0, 1] = p_b[:, 2]
         B[:, 1, 2] = p_b[:, 0]
         B[:, 2, 0] = p_b[:, 1]
-        B[:, 1, 0] = -p_b[:, 2]
-        B[:, 2, 1] = -p_b[:, 0]
-        B[:, 0, 2] = -p_b[:, 1]
+        np.negative(p_b[:, 2], out=B[:, 1, 0])   # (written in place: no temporary per entry)
+        np.negative(p_b[:, 0], out=B[:, 2, 1])
+        np.negative(p_b[:, 1], out=B[:, 0, 2])
         Ja = np.matmul(AJR, B)   # (N, 2, 7), last column zero: the residual's slot
         Ja[:, :, 6] = r
         if any_bad:
@@ -886,14 +902,22 @@ class JointProblem:
         r, Ja = self._rows(T_base_map)
         J = Ja[:, :, :6]
         e2 = r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1]
-        if e2.size and float(e2.max()) <= scale * scale:
-            # Every corner within the Huber scale (the usual frame; NaN-safe): unit weights, no
-            # weighting pass ([J r]^T [J r] directly).
+        top = float(e2.max()) if e2.size else 0.0   # NaN or inf when any corner is not finite
+        if top <= scale * scale:
+            # Every corner within the Huber scale (NaN-safe): unit weights, no weighting pass
+            # ([J r]^T [J r] directly).
             huber, w, Jw = 0.5 * float(e2.sum()), np.ones(self.n), Ja
         else:
-            huber, w = self._huber(r, scale, e2)
-            if not np.isfinite(huber):   # finite cost: every r finite; else the non-finite rows out
-                Ja[:, :, 6] = np.where(np.isfinite(r), r, 0.0)
+            if self.extrinsics_cov is not None and math.isfinite(top):
+                # With a calibration model the cost is the whitened chi2 (_whitened): of the Huber
+                # loss only the weights are needed, and that it is finite (here: every r is). The
+                # usual frame of the lab has a corner beyond the scale (issue 16: _huber's cost
+                # pass was a tenth of a fit). _huber's weights, the same numbers.
+                huber, w = 0.0, np.minimum(scale / np.maximum(np.sqrt(e2), 1e-12), 1.0)
+            else:
+                huber, w = self._huber(r, scale, e2)
+                if not math.isfinite(huber):   # finite cost: every r finite; else the non-finite rows out
+                    Ja[:, :, 6] = np.where(np.isfinite(r), r, 0.0)
             Jw = Ja * w[:, None, None]
         s2 = self.sigma ** 2
         if self.extrinsics_cov is None:
@@ -918,8 +942,7 @@ class JointProblem:
         with the fit's :class:`_Spectrum`, without a decomposition)."""
         if fit.G_cam is None or self.extrinsics_factor is None:
             raise ValueError("refit needs a calibration model")
-        rr = np.where(np.isfinite(fit.r), fit.r, 0.0)
-        q = np.add.reduceat(fit.w * np.sum(rr * rr, axis=1), self.offsets[:-1])
+        q = np.add.reduceat(fit.weighted_squares(), self.offsets[:-1])
         huber = 0.0 if np.isfinite(fit.r).all() else np.inf
         return self._whitened(fit.r, fit.J, fit.w, fit.G_cam, fit.b_cam, q, huber, fit.spectrum)
 
@@ -966,13 +989,13 @@ class JointProblem:
             if not piv.min() > _EPS * diag.max():
                 raise np.linalg.LinAlgError("whitening: the 6x6 normal matrix is not positive definite")
             Z = np.linalg.solve(K, Q)
-            Y = (Gb - np.matmul(np.transpose(Z[:, :, :6], (0, 2, 1)), Z)) / s2
-            H_cam, g = Y[:, :, :6], Y[:, :, 6]
+            Y = (Gb - np.matmul(Z[:, :, :6].transpose(0, 2, 1), Z)) / s2
             z = Z[:, :, 6]
             chi2 = float(np.asarray(q).sum() - (z * z).sum()) / s2
-            if not np.isfinite(huber):
+            if not math.isfinite(huber):
                 chi2 = np.inf
-            return JointFit(r, J, w, H_cam.sum(axis=0), g.sum(axis=0), chi2, chi2, H_cam, G, b, None)
+            Hg = Y.sum(axis=0)   # [H | g]: the cameras' sums in one reduction (the same numbers)
+            return JointFit(r, J, w, Hg[:, :6], Hg[:, 6], chi2, chi2, Y[:, :, :6], G, b, None)
         sp = spectrum
         m = s2 + sp.lam
         if not m.min() > _EPS * m.max():
@@ -982,12 +1005,12 @@ class JointProblem:
         # [H_c | g_c] s2 = [G | b] - P d [P^T | beta] in one product.
         Q = np.matmul(sp.LUT, Gb)
         Qd = Q * d[:, :, None]
-        Y = (Gb - np.matmul(np.transpose(Q[:, :, :6], (0, 2, 1)), Qd)) / s2
-        H_cam, g = Y[:, :, :6], Y[:, :, 6]
+        Y = (Gb - np.matmul(Q[:, :, :6].transpose(0, 2, 1), Qd)) / s2
         chi2 = float(np.asarray(q).sum() - (Qd[:, :, 6] * Q[:, :, 6]).sum()) / s2
-        if not np.isfinite(huber):
+        if not math.isfinite(huber):
             chi2 = np.inf
-        return JointFit(r, J, w, H_cam.sum(axis=0), g.sum(axis=0), chi2, chi2, H_cam, G, b, sp)
+        Hg = Y.sum(axis=0)
+        return JointFit(r, J, w, Hg[:, :6], Hg[:, 6], chi2, chi2, Y[:, :, :6], G, b, sp)
 
     def pixel_noise_estimate(self, fit: JointFit, lo: float, hi: float, start: Optional[float] = None) -> float:
         """The pixel noise (px) that makes the whitened residuals of ``fit`` (a fit of this problem,
@@ -1002,8 +1025,7 @@ class JointProblem:
         evaluations fewer; the root is the same to the iteration's 1e-10)."""
         if fit.G_cam is None or self.extrinsics_factor is None:
             raise ValueError("pixel_noise_estimate needs a calibration model")
-        rr = np.where(np.isfinite(fit.r), fit.r, 0.0)
-        q = float(np.sum(fit.w * np.sum(rr * rr, axis=1)))
+        q = float(np.sum(fit.weighted_squares()))
         sp = fit.spectrum = self._spectrum(fit.G_cam, fit.spectrum)   # kept: the refit at sigma reuses it
         b2 = (sp.beta(fit.b_cam) ** 2).ravel()   # (U^T L^T b)^2 per camera
         lam = sp.lam.ravel()
@@ -1016,16 +1038,18 @@ class JointProblem:
             c = (q - float(t.sum())) / s2
             return c, 2.0 * float((t / den).sum()) - 2.0 * c
 
-        a, b = float(np.log(lo)), float(np.log(hi))
-        if chi2(a)[0] <= dof:
-            return float(lo)
-        if chi2(b)[0] >= dof:
-            return float(hi)
+        a0, b0 = float(np.log(lo)), float(np.log(hi))
+        a, b = a0, b0
         # Newton on log sigma, kept inside the bracket [a, b] (chi2(a) > dof > chi2(b), monotone):
         # a step that would leave it bisects instead. Converges to 1e-10 in log sigma in a handful
         # of scalar evaluations (the grids this replaced took 5 rounds of 33 for 2e-7).
         # Start at sqrt(q / dof), where the unmarginalised chi2 crosses: an upper bound of the root
         # (the marginalisation only lowers chi2), near it when the extrinsics' part is small.
+        # The ends of the bracket are tested after the iteration, and only an end it never moved:
+        # with the root below lo (chi2(a0) <= dof) every trial has chi2 <= dof (chi2 falls with
+        # sigma), so a stays a0, and with it above hi b stays b0; the iteration itself is the same
+        # either way (it starts from the same bracket). Two evaluations of the usual five to eight
+        # fewer (issue 16).
         x = min(max(0.5 * math.log(max(q / dof, 1e-300)) if start is None or not start > 0.0 else math.log(start),
                     a), b)
         if not a < x < b:
@@ -1043,6 +1067,10 @@ class JointProblem:
                 x = x_new
                 break
             x = x_new
+        if a == a0 and chi2(a0)[0] <= dof:
+            return float(lo)
+        if b == b0 and chi2(b0)[0] >= dof:
+            return float(hi)
         return float(np.exp(x))
 
     def exact(self) -> "JointProblem":
@@ -1305,7 +1333,17 @@ def _spd_inverse(H: np.ndarray) -> np.ndarray:
     inv, info = _lapack.dpotri(c, lower=False)
     if info != 0:
         raise np.linalg.LinAlgError("matrix is singular")
-    return np.triu(inv) + np.triu(inv, 1).T
+    # The upper triangle mirrored: np.triu(inv) + np.triu(inv, 1).T (the same numbers, + 0.0 as
+    # there turning a -0.0 into 0.0) without its two masks built per call (~12 us of 16 for 6x6).
+    n = inv.shape[0]
+    upper = _UPPER.get(n)
+    if upper is None:
+        upper = _UPPER[n] = ~np.tri(n, k=-1, dtype=bool)
+    return np.where(upper, inv, inv.T) + 0.0
+
+
+#: n -> (n, n) bool, True on and above the diagonal (:func:`_spd_inverse`)
+_UPPER: Dict[int, np.ndarray] = {}
 
 
 def covariance_from_information(H: np.ndarray, sigma_px: float, T_map_base: np.ndarray) -> np.ndarray:
@@ -1412,12 +1450,12 @@ def extrinsics_consistency(problem: JointProblem, fit: JointFit) -> Optional[Tup
     d1, d2 = 6 * (C - 1), 2 * problem.n - 6 * C
     if C < 2 or d2 < 1:
         return None
-    rr = np.where(np.isfinite(fit.r), fit.r, 0.0)
     if fit.G_cam is not None and fit.b_cam is not None:
         # The per-camera blocks are in the fit already (JointProblem.exact_step): only q is summed.
         G, b = fit.G_cam, fit.b_cam
-        q = np.add.reduceat(fit.w * np.sum(rr * rr, axis=1), problem.offsets[:-1])
+        q = np.add.reduceat(fit.weighted_squares(), problem.offsets[:-1])
     else:
+        rr = np.where(np.isfinite(fit.r), fit.r, 0.0)
         Ja = np.concatenate([fit.J, rr[:, :, None]], axis=2)
         A7 = np.add.reduceat(np.einsum("nia,nib->nab", Ja * fit.w[:, None, None], Ja), problem.offsets[:-1],
                              axis=0)
@@ -2277,10 +2315,12 @@ class RingLocalizer:
             # Drop whole markers that do not fit (a moved or mis-mapped marker) and solve again.
             r = fit.r
             e2 = r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1]
-            finite = math.isfinite(float(e2.sum()))   # finite only when every residual is
+            e2_sum = float(e2.sum())
+            finite = math.isfinite(e2_sum)   # finite only when every residual is
             if not finite:
                 e2 = np.sum(np.where(np.isfinite(r), r, 1e6) ** 2, axis=1)
-            bad = np.sqrt(e2.reshape(-1, 4).mean(axis=1)) > p.joint_outlier_threshold
+            # (the per-marker mean of 4 as sum * 0.25: the same numbers without mean's set-up)
+            bad = np.sqrt(e2.reshape(-1, 4).sum(axis=1) * 0.25) > p.joint_outlier_threshold
             outliers = int(bad.sum())
             if outliers:
                 if outliers * 2 > bad.size or bad.size - outliers < p.min_markers_joint:
@@ -2301,10 +2341,11 @@ class RingLocalizer:
         if outliers:
             r = fit.r
             e2 = r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1]
-            finite = math.isfinite(float(e2.sum()))
+            e2_sum = float(e2.sum())
+            finite = math.isfinite(e2_sum)
         if not finite:   # a residual not finite (or, as before, an RMS that would be infinite)
             return None
-        rms = float(np.sqrt(e2.mean()))
+        rms = math.sqrt(e2_sum / e2.size)   # np.sqrt(e2.mean()): the same sum, divided
         if rms > p.joint_outlier_threshold:
             return None
         sigma = float("nan")
@@ -2533,8 +2574,7 @@ class RingLocalizer:
             d2 = 2 * exact.n - 6 * len(exact.views)
             if d2 < 1:
                 return float("nan")
-            rr = np.where(np.isfinite(fit.r), fit.r, 0.0)
-            return (float(np.sum(fit.w * np.sum(rr * rr, axis=1))) - _sum_pinv_quadratic(G, b)) / d2
+            return (float(np.sum(fit.weighted_squares())) - _sum_pinv_quadratic(G, b)) / d2
 
         self.vibration.add([v.name for v in exact.views], [v.ids for v in exact.views], G, b, noise,
                            [self._vib_declared[v.name] for v in exact.views])

@@ -250,6 +250,10 @@ class _Baseline:
     pending: Deque[Tuple[float, List[float], List[float]]] = field(default_factory=deque)
 
 
+#: a placeholder for a :class:`_View`'s pose until :meth:`MarkerCheck._views` writes it
+_NO_POSE = np.zeros(0)
+
+
 @dataclass
 class _View:
     camera: str
@@ -274,11 +278,12 @@ def _rows(views: Sequence[_View], T_base_map: np.ndarray, pixel_noise: float):
     X = np.concatenate([v.X for v in views])
     # Per corner, its camera's matrices: one gather from the stacks (np.repeat of each stack cost 3x).
     corner_view = np.repeat(np.arange(len(views)), counts)
-    R_views = np.stack([v.R_cam_map for v in views])
-    t_views = np.stack([v.t_cam_map for v in views])
+    # (np.array of the list: np.stack's numbers without its per-array set-up)
+    R_views = np.array([v.R_cam_map for v in views])
+    t_views = np.array([v.t_cam_map for v in views])
     R_cm = R_views[corner_view]                                                          # (n, 3, 3)
     t_cm = t_views[corner_view]
-    R_cb = np.stack([v.T_cam_base[:3, :3] for v in views])[corner_view]
+    R_cb = np.array([v.T_cam_base[:3, :3] for v in views])[corner_view]
     P = np.matmul(R_cm, X[:, :, None])[:, :, 0] + t_cm
     z = P[:, 2:3]
     pred = P[:, :2] / z
@@ -292,9 +297,10 @@ def _rows(views: Sequence[_View], T_base_map: np.ndarray, pixel_noise: float):
     J_pose = np.empty((len(X), 2, 6))
     # d P_base / d(w, v) = [-[P_base]x | I]; a row e^T [-[q]x] is (q x e)^T.
     q = Pb[:, None, :]
-    J_pose[:, :, 0] = q[..., 1] * E[..., 2] - q[..., 2] * E[..., 1]
-    J_pose[:, :, 1] = q[..., 2] * E[..., 0] - q[..., 0] * E[..., 2]
-    J_pose[:, :, 2] = q[..., 0] * E[..., 1] - q[..., 1] * E[..., 0]
+    # (each difference written in place: np.subtract(..., out=) spares a temporary and a copy)
+    np.subtract(q[..., 1] * E[..., 2], q[..., 2] * E[..., 1], out=J_pose[:, :, 0])
+    np.subtract(q[..., 2] * E[..., 0], q[..., 0] * E[..., 2], out=J_pose[:, :, 1])
+    np.subtract(q[..., 0] * E[..., 1], q[..., 1] * E[..., 0], out=J_pose[:, :, 2])
     J_pose[:, :, 3:] = E
     Pc = P[:, None, :]
     Dm = np.zeros((len(X), 2, 3))
@@ -303,9 +309,9 @@ def _rows(views: Sequence[_View], T_base_map: np.ndarray, pixel_noise: float):
     # d xy / d (camera rotation), up to its sign: Dm x Pc per row (component-wise: np.cross costs
     # ~15 us of set-up on arrays this small).
     J_rot = np.empty((len(X), 2, 3))
-    J_rot[:, :, 0] = Dm[..., 1] * Pc[..., 2] - Dm[..., 2] * Pc[..., 1]
-    J_rot[:, :, 1] = Dm[..., 2] * Pc[..., 0] - Dm[..., 0] * Pc[..., 2]
-    J_rot[:, :, 2] = Dm[..., 0] * Pc[..., 1] - Dm[..., 1] * Pc[..., 0]
+    np.subtract(Dm[..., 1] * Pc[..., 2], Dm[..., 2] * Pc[..., 1], out=J_rot[:, :, 0])
+    np.subtract(Dm[..., 2] * Pc[..., 0], Dm[..., 0] * Pc[..., 2], out=J_rot[:, :, 1])
+    np.subtract(Dm[..., 0] * Pc[..., 1], Dm[..., 1] * Pc[..., 0], out=J_rot[:, :, 2])
     xy = np.concatenate([v.xy for v in views])
     B = len(X) // 4
     # (math.sqrt: np.sqrt's number, correctly rounded, without a ufunc call per camera)
@@ -389,6 +395,7 @@ class MarkerCheck:
                                          for k, c in enumerate(ring.cameras)})
         cameras = self._ring_cameras[1]
         out = []
+        T_cam_bases = []
         for name, cf in frame.cameras.items():
             known = cameras.get(name)
             if known is None:
@@ -404,7 +411,6 @@ class MarkerCheck:
                 # (as the estimator takes it: RingLocalizer._moved_extrinsics).
                 T_base_cam = displacement_to_transform(moved[0]) @ T_base_cam
                 T_cam_base = geo.inverse(T_base_cam)
-            T_cam_map = T_cam_base @ T_base_map
             ids = [int(o.marker_id) for o in obs]
             same = None if known_views is None else known_views.get(name)
             if same is not None and same.ids == ids and same.model is model:
@@ -415,7 +421,14 @@ class MarkerCheck:
             else:
                 px = [np.asarray(o.corners, dtype=np.float64).reshape(4, 2) for o in obs]
                 xy, X = model.normalize(np.concatenate(px)), np.concatenate([mm.corners(i) for i in ids])
-            out.append(_View(name, index, model, T_cam_map[:3, :3], T_cam_map[:3, 3], T_cam_base, ids, px, xy, X))
+            out.append(_View(name, index, model, _NO_POSE, _NO_POSE, T_cam_base, ids, px, xy, X))
+            T_cam_bases.append(T_cam_base)
+        if out:
+            # Every view's T_cam_map in one batched product (the same numbers as one product per
+            # view; issue 16): the views' R_cam_map and t_cam_map are slices of it.
+            T_cam_maps = np.matmul(np.array(T_cam_bases), T_base_map)
+            for v, T in zip(out, T_cam_maps):
+                v.R_cam_map, v.t_cam_map = T[:3, :3], T[:3, 3]
         return out
 
     def update(self, frame: RingFrame, T_map_base: np.ndarray, ring: CameraRing, now: float,
@@ -449,9 +462,12 @@ class MarkerCheck:
         drop = self.dropped
         # Blocks: one (camera, marker) pair, its 8 rows.
         r, Jp, Jm, w, Jr, R_views, t_views = _rows(views, T_base_map, p.pixel_noise)
-        blk_view = [vi for vi, v in enumerate(views) for _ in v.ids]
-        blk_k = [k for v in views for k in range(len(v.ids))]
-        blk_mid = [i for v in views for i in v.ids]
+        blk_view, blk_k, blk_mid = [], [], []
+        for vi, v in enumerate(views):
+            for k, i in enumerate(v.ids):
+                blk_view.append(vi)
+                blk_k.append(k)
+                blk_mid.append(i)
         # The markers in view, sorted, and each block's (np.unique's, without its set-up).
         mids_l = sorted(set(blk_mid))
         order = {m: j for j, m in enumerate(mids_l)}
@@ -467,7 +483,7 @@ class MarkerCheck:
             # Each block's weight W: the inverse of s^2 I + jitter^2 Jr Jr^T (8x8; s^2 = 1 / w), by
             # Woodbury on 3x3: W = w (I - Jr (s^2 / jitter^2 I + Jr^T Jr)^-1 Jr^T) (a batched 8x8
             # inverse cost twice as much).
-            JrT = np.transpose(Jr, (0, 2, 1))
+            JrT = Jr.transpose(0, 2, 1)
             K = JrT @ Jr
             k = 1.0 / (w * self.extrinsic_jitter ** 2)
             K[:, 0, 0] += k
@@ -476,7 +492,7 @@ class MarkerCheck:
             wJpm = (Jpm - Jr @ (_inv3(K) @ (JrT @ Jpm))) * w[:, None, None]
         else:
             wJpm = w[:, None, None] * Jpm
-        wJpmT = np.transpose(wJpm, (0, 2, 1))
+        wJpmT = wJpm.transpose(0, 2, 1)
         # Per block, [Jp Jm]^T W [Jp Jm]: [[H_b, cross^T], [cross, A]] (pose, marker) in one product.
         N = wJpmT @ Jpm                                               # (B, 9, 9)
         H_b = N[:, :6, :6]
@@ -545,7 +561,7 @@ class MarkerCheck:
             return self._judge(stamp, now)
         have = np.zeros(len(w), dtype=bool)
         have[judged_blocks] = True
-        e = np.zeros_like(res)
+        e = np.zeros(res.shape)
         e[judged_blocks] = res[judged_blocks] - np.array(bases)
         # The pose from the others is uncertain too (few markers, one camera): the residual's
         # covariance is W^-1 + Jp H^-1 Jp^T. Its inverse (Woodbury) W - W Jp H_joint^-1 Jp^T W
@@ -561,14 +577,14 @@ class MarkerCheck:
         cross = N_m[:, 6:, :6]
         proj = M9[:, 81:87]
         H_joint = H_loo + N_m[:, :6, :6]
-        judged = np.flatnonzero(Sh.any(axis=1))   # the markers with a judged block
+        judged = Sh.any(axis=1).nonzero()[0]   # the markers with a judged block
         try:
-            K = np.linalg.solve(H_joint[judged] + eye6, np.transpose(cross[judged], (0, 2, 1)))   # (k, 6, 3)
+            K = np.linalg.solve(H_joint[judged] + eye6, cross[judged].transpose(0, 2, 1))   # (k, 6, 3)
         except np.linalg.LinAlgError:
             return self._judge(stamp, now)
         A = A[judged] - cross[judged] @ K
-        A = 0.5 * (A + np.transpose(A, (0, 2, 1)))
-        b = b[judged] - (np.transpose(K, (0, 2, 1)) @ proj[judged][:, :, None])[:, :, 0]
+        A = 0.5 * (A + A.transpose(0, 2, 1))
+        b = b[judged] - (K.transpose(0, 2, 1) @ proj[judged][:, :, None])[:, :, 0]
         evidence = self._evidence
         for j, m in enumerate(judged.tolist()):
             ev = evidence.get(mids_l[m])
@@ -643,7 +659,7 @@ class MarkerCheck:
             return []
         # The window sums and the latest frame alone (``fresh``) in one batch.
         last = [self._evidence[ids[j]].items[-1] for j in fresh]
-        d_both, T_both = _statistics(np.stack(As + [a for _, a, _ in last]), np.stack(bs + [v for _, _, v in last]),
+        d_both, T_both = _statistics(np.array(As + [a for _, a, _ in last]), np.array(bs + [v for _, _, v in last]),
                                      p.systematic_std)
         k = len(ids)
         d_all, T_all = d_both[:k], T_both[:k].tolist()

@@ -214,6 +214,65 @@ def test_pixel_noise_estimate_recovers_the_images_noise(lab, true_sigma):
         got = prob.pixel_noise_estimate(fit, 0.05, 50.0, start=start)
         assert abs(np.log(got / est[-1])) < 1e-9, (start, got, est[-1])
     assert prob.pixel_noise_estimate(fit, 2.0, 50.0, start=0.3) == 2.0
+    # The ceiling: the root above the bracket gives its upper end, from any start.
+    for start in (None, 0.001, 0.02, 0.04, 1.0):
+        assert prob.pixel_noise_estimate(fit, 0.01, 0.5 * est[-1], start=start) == 0.5 * est[-1], start
+
+
+def test_weighted_squares_belong_to_their_fit(lab):
+    """JointFit.weighted_squares (kept once computed) is its own fit's w |r|^2 per corner, a
+    non-finite residual 0: a fit made from it (a linear step, dataclasses.replace) does not carry
+    the old numbers; the refit and the pixel-noise search read it as they read r before."""
+    import dataclasses
+
+    scene, ring, truth = lab
+    T = scene.T_world_base(scene.test_positions[4])
+    loc = RingLocalizer(ring, truth, LocalizationParams(pixel_noise=SIGMA))
+    views = list(loc._gather(RingSimulator(scene, perturb_ring(ring, seed=2), SIGMA, seed=3).observe(T), {}).values())
+    prob = JointProblem(views, sigma=SIGMA)
+    T_bm = geo.se3_perturb(geo.inverse(T), [0.002, -0.001, 0.003, 0.01, -0.02, 0.005])
+    fit = prob.fit(T_bm, scale=2.0)
+
+    def direct(f):
+        rr = np.where(np.isfinite(f.r), f.r, 0.0)
+        return f.w * np.sum(rr * rr, axis=1)
+
+    first = fit.weighted_squares()
+    assert np.array_equal(first, direct(fit)) and fit.weighted_squares() is first
+    delta = -np.linalg.solve(fit.H, fit.g)
+    _, stepped = prob.linear_step(T_bm, fit, delta)
+    assert not np.array_equal(stepped.r, fit.r)
+    assert np.array_equal(stepped.weighted_squares(), direct(stepped))
+    moved = dataclasses.replace(fit, r=fit.r * 2.0)
+    assert np.array_equal(moved.weighted_squares(), 4.0 * first)
+    bad_r = fit.r.copy()
+    bad_r[3] = np.nan
+    expected = np.where(np.arange(prob.n) == 3, 0.0, first)
+    assert np.array_equal(dataclasses.replace(fit, r=bad_r).weighted_squares(), expected)
+    # The refit at another noise: q per camera from the same numbers as summed from r directly.
+    ref = prob.with_sigma(2 * SIGMA).refit(fit)
+    q = np.add.reduceat(direct(fit), prob.offsets[:-1])
+    again = prob.with_sigma(2 * SIGMA)._whitened(fit.r, fit.J, fit.w, fit.G_cam, fit.b_cam, q, 0.0, fit.spectrum)
+    assert ref.chi2 == again.chi2
+
+
+def test_spd_inverse_is_the_symmetric_inverse():
+    """_spd_inverse: potri's upper triangle mirrored, exactly as np.triu(inv) + np.triu(inv, 1).T
+    gives it (its cached masks per size), and the inverse."""
+    from scipy.linalg import lapack
+
+    from aruco_ring_localization.localization import _spd_inverse
+
+    rng = np.random.default_rng(7)
+    for n in (6, 3, 9, 6, 1):
+        A = rng.normal(size=(n, n))
+        H = A @ A.T + 0.1 * np.eye(n)
+        c, _ = lapack.dpotrf(H, lower=False)
+        inv, _ = lapack.dpotri(c, lower=False)
+        got = _spd_inverse(H)
+        assert np.array_equal(got, np.triu(inv) + np.triu(inv, 1).T), n
+        assert np.array_equal(got, got.T)
+        assert np.allclose(got @ H, np.eye(n), atol=1e-9)
 
 
 def test_map_covariance_matches_a_monte_carlo_of_perturbed_maps(lab):
