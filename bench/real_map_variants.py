@@ -10,7 +10,8 @@ Nothing is saved: the sanity checks' verdict is printed.
 A variant is ``name:key=value,...`` with ``MappingOptions`` keys, ``ba.<key>`` for the adjustment's
 (``BAOptions``); the base options are bench_real's (every moving frame a station, tagslam.yaml's
 odometry noise judged at the frames: ``message_sampling: frames``, TagSLAM's synchronizer; no robust
-loss on the corners, bench_real's ``BA_LOSS``: ``ba.loss='huber'`` for the package's default);
+loss on the corners, bench_real's ``BA_LOSS``: ``ba.loss='huber'`` for the package's default; every
+detection kept and every frame a station: ``max_reprojection_px=3,still_px=1.5`` for the package's);
 ``ODOM=package`` in the environment takes the package's odometry noise instead (bench_real
 ``--odom-noise package``); ``odo.<key>`` sets a key of the odometry links'
 (``MappingOdometryOptions``, recordings with odometry only).
@@ -96,7 +97,8 @@ def build_variant(case: Case, spec: str) -> Tuple[MapBuilder, MarkerMap, MarkerM
         else:
             kw[key] = _value(val)
     options = MappingOptions(frame="marker", min_station_motion_px=bench_real.STATION_MOTION_PX)
-    options = dataclasses.replace(options, ba=dataclasses.replace(options.ba, loss=bench_real.BA_LOSS))
+    options = dataclasses.replace(options, ba=dataclasses.replace(options.ba, loss=bench_real.BA_LOSS),
+                                  max_reprojection_px=bench_real.MAX_REPROJECTION_PX, still_px=bench_real.STILL_PX)
     if case.odo_opts is not None:
         options = dataclasses.replace(options, odometry=dataclasses.replace(case.odo_opts, **odo_kw))
     if (case.survey is not None or case.meas is not None) and case.tags.pixel_noise:
