@@ -24,7 +24,7 @@ from typing import Collection, Dict, List, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from .camera import CameraModel
-from .markers import quad_ok_scalar, quads_ok
+from .markers import finite_quad_ok, quads_ok
 
 logger = logging.getLogger(__name__)
 
@@ -430,10 +430,10 @@ class RingFrameAssembler:
 
 
 #: Up to this many detections in one image :func:`sanitize_observations` checks them on Python
-#: floats (one pass per detection, as :func:`markers.quad_ok_scalar` does), more with numpy: the
-#: same decisions, without the fixed cost of about twenty small numpy calls per message (the
-#: localizer sanitizes each camera's two or three detections on every message: 46 us per message
-#: with numpy, 8 us so).
+#: floats (one pass per detection, as :func:`markers.quad_ok_scalar` does, finiteness tested once),
+#: more with numpy: the same decisions, without the fixed cost of about twenty small numpy calls
+#: per message (the localizer sanitizes each camera's two or three detections on every message:
+#: 46 us per message with numpy, 8 us so).
 SCALAR_SANITIZE = 16
 
 
@@ -528,7 +528,7 @@ def _sanitize_scalar(candidates: List[MarkerObservation], quads: List[list], q: 
                     and abs(y0 - cy) <= ey and abs(y1 - cy) <= ey and abs(y2 - cy) <= ey and abs(y3 - cy) <= ey):
                 drop("outside image")
                 continue
-        if not quad_ok_scalar(quad, min_area_px):
+        if not finite_quad_ok(x0, y0, x1, y1, x2, y2, x3, y3, min_area_px):
             drop("degenerate")
             continue
         kept.append(candidates[k] if q is None else _as_float_observation(candidates[k], q[k]))
