@@ -274,16 +274,20 @@ class RingFrameAssembler:
         ``stamp`` (dead, lagging) has none.
         """
         phases = []
+        # (the loop's constants and functions bound once: it runs over every stamp of every camera,
+        # once per ring frame; the same expressions, the same numbers)
+        two_pi, span, cos, sin = 2.0 * math.pi, (self.HISTORY + 0.5) * period, math.cos, math.sin
         for stamps in self._stamps.values():
-            if abs(stamps[-1] - stamp) > 2.0 * period:
+            newest = stamps[-1]
+            if abs(newest - stamp) > 2.0 * period:
                 continue
             c = sn = 0.0
             for t in stamps:
-                if stamps[-1] - t <= (self.HISTORY + 0.5) * period:
-                    angle = 2.0 * math.pi * (t - stamp) / period
-                    c += math.cos(angle)
-                    sn += math.sin(angle)
-            phases.append((math.atan2(sn, c) / (2.0 * math.pi) * period) % period)
+                if newest - t <= span:
+                    angle = two_pi * (t - stamp) / period
+                    c += cos(angle)
+                    sn += sin(angle)
+            phases.append((math.atan2(sn, c) / two_pi * period) % period)
         return sorted(phases) or [0.0]
 
     def _window(self, stamp: float, period: float, jitter: float) -> Tuple[float, float, float]:
