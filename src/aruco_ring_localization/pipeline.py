@@ -199,7 +199,7 @@ class RingInput:
 
         A clock that jumps back (a bag loop) moves ``now`` with the stamps: nothing is dropped.
         """
-        if not np.isfinite(stamp):
+        if not math.isfinite(stamp):   # (math's: np.isfinite of a float costs ~0.6 us, every message)
             return SKIP_BAD_STAMP
         if stamp - now > self.params.max_stamp_ahead:
             return SKIP_FUTURE_STAMP
@@ -854,8 +854,8 @@ class LocalizationPipeline(_RingPipeline):
         """
         now = float(now)
         last = self._clock
-        if last is None or not np.isfinite(now):
-            self._clock = now if np.isfinite(now) else last
+        if last is None or not math.isfinite(now):
+            self._clock = now if math.isfinite(now) else last
             return
         if now < last - self.config.filter.time_jump_tolerance:
             self.time_jumps += 1
