@@ -974,7 +974,7 @@ class LocalizationPipeline(_RingPipeline):
         loc = self.localizer.process(ring_frame if check is None else check.strip(ring_frame), pred, motion)
         # (pose_distance's translation part, |t_pred - t_loc|, without its rotation angle and inverse)
         if check is not None and loc.ok and not loc.ambiguous and pred is not None and \
-                math.sqrt(float(np.sum((pred[:3, 3] - loc.T_map_base[:3, 3]) ** 2))) <= self.config.gate.base_distance:
+                math.sqrt(((pred[:3, 3] - loc.T_map_base[:3, 3]) ** 2).sum()) <= self.config.gate.base_distance:
             # Moved-marker check (marker_check.py) on a measurement near the prediction, before the
             # filter: a marker declared moved now is dropped from this very frame's pose.
             speed, yaw_rate = self._speeds(stamp if self._clock is None else self._clock)
