@@ -26,6 +26,9 @@ import yaml
 
 from .errors import ConfigError, MeasurementError
 
+#: :meth:`CameraModel.normalize`'s iteration: up to 50 rounds, to 1e-12.
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+
 logger = logging.getLogger(__name__)
 
 #: Distortion model name -> accepted numbers of coefficients.
@@ -237,21 +240,23 @@ class CameraModel:
         Iterative inversion of the distortion (OpenCV), accurate to well below 1e-6 for the
         field of view of the lens; the round trip ``normalize(project(p))`` is tested.
         """
-        px = np.array(pixels, dtype=np.float64).reshape(-1, 1, 2)
+        # (no copy of a contiguous float64 input, what the localizer hands in every frame: OpenCV
+        # only reads it; the skew's correction below writes to a copy)
+        px = np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 1, 2)
         if px.shape[0] == 0:
             return np.zeros((0, 2))
         K = self.K
         if K[0, 1] != 0.0:
             # OpenCV's undistortion ignores the skew K[0, 1] that project() applies: remove it
             # here (u' = u - s * y_d) and hand OpenCV a skew-free K.
+            px = px.copy()
             px[:, 0, 0] -= K[0, 1] * (px[:, 0, 1] - K[1, 2]) / K[1, 1]
             K = K.copy()
             K[0, 1] = 0.0
         if self.is_fisheye:
             out = cv2.fisheye.undistortPoints(px, K, self._D_full.reshape(4, 1))
         else:
-            crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
-            out = cv2.undistortPointsIter(px, K, self._D_full, None, None, crit)
+            out = cv2.undistortPointsIter(px, K, self._D_full, None, None, _UNDISTORT_CRITERIA)
         return out.reshape(-1, 2)
 
     def pixel_jacobian(self, xy, step: float = 1e-6) -> np.ndarray:

@@ -24,7 +24,7 @@ from typing import Collection, Dict, List, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from .camera import CameraModel
-from .markers import quad_ok_scalar, quads_ok
+from .markers import finite_quad_ok, quads_ok
 
 logger = logging.getLogger(__name__)
 
@@ -274,16 +274,20 @@ class RingFrameAssembler:
         ``stamp`` (dead, lagging) has none.
         """
         phases = []
+        # (the loop's constants and functions bound once: it runs over every stamp of every camera,
+        # once per ring frame; the same expressions, the same numbers)
+        two_pi, span, cos, sin = 2.0 * math.pi, (self.HISTORY + 0.5) * period, math.cos, math.sin
         for stamps in self._stamps.values():
-            if abs(stamps[-1] - stamp) > 2.0 * period:
+            newest = stamps[-1]
+            if abs(newest - stamp) > 2.0 * period:
                 continue
             c = sn = 0.0
             for t in stamps:
-                if stamps[-1] - t <= (self.HISTORY + 0.5) * period:
-                    angle = 2.0 * math.pi * (t - stamp) / period
-                    c += math.cos(angle)
-                    sn += math.sin(angle)
-            phases.append((math.atan2(sn, c) / (2.0 * math.pi) * period) % period)
+                if newest - t <= span:
+                    angle = two_pi * (t - stamp) / period
+                    c += cos(angle)
+                    sn += sin(angle)
+            phases.append((math.atan2(sn, c) / two_pi * period) % period)
         return sorted(phases) or [0.0]
 
     def _window(self, stamp: float, period: float, jitter: float) -> Tuple[float, float, float]:
@@ -430,10 +434,10 @@ class RingFrameAssembler:
 
 
 #: Up to this many detections in one image :func:`sanitize_observations` checks them on Python
-#: floats (one pass per detection, as :func:`markers.quad_ok_scalar` does), more with numpy: the
-#: same decisions, without the fixed cost of about twenty small numpy calls per message (the
-#: localizer sanitizes each camera's two or three detections on every message: 46 us per message
-#: with numpy, 8 us so).
+#: floats (one pass per detection, as :func:`markers.quad_ok_scalar` does, finiteness tested once),
+#: more with numpy: the same decisions, without the fixed cost of about twenty small numpy calls
+#: per message (the localizer sanitizes each camera's two or three detections on every message:
+#: 46 us per message with numpy, 8 us so).
 SCALAR_SANITIZE = 16
 
 
@@ -528,7 +532,7 @@ def _sanitize_scalar(candidates: List[MarkerObservation], quads: List[list], q: 
                     and abs(y0 - cy) <= ey and abs(y1 - cy) <= ey and abs(y2 - cy) <= ey and abs(y3 - cy) <= ey):
                 drop("outside image")
                 continue
-        if not quad_ok_scalar(quad, min_area_px):
+        if not finite_quad_ok(x0, y0, x1, y1, x2, y2, x3, y3, min_area_px):
             drop("degenerate")
             continue
         kept.append(candidates[k] if q is None else _as_float_observation(candidates[k], q[k]))

@@ -176,7 +176,7 @@ class MotionGate:
         if covariance is not None and self.params.sigma_factor > 0:
             C = np.asarray(covariance, dtype=np.float64).reshape(3, 3)
             allowed_d += self.params.sigma_factor * math.sqrt(max(_largest_eigenvalue_2x2(C), 0.0))
-            allowed_a += self.params.sigma_factor * float(np.sqrt(max(C[2, 2], 0.0)))
+            allowed_a += self.params.sigma_factor * math.sqrt(max(C[2, 2], 0.0))
         dist, ang, tilt, ok = self._fits(z, up, pred, allowed_d, allowed_a)
         if ambiguous:
             # Never into the filter: the localizer chose it by the prediction, so it cannot confirm

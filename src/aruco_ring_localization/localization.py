@@ -1187,7 +1187,7 @@ class JointProblem:
                 delta = -_solve_spd(fit.H, fit.g)
             except np.linalg.LinAlgError:
                 raise MeasurementError("joint estimator: singular normal equations (degenerate geometry)") from None
-            norm = float(np.sqrt(delta @ delta))
+            norm = math.sqrt(delta @ delta)   # (math's: the same correctly rounded root, no ufunc call)
             if norm < tol:
                 break  # converged: the step would change nothing measurable
             if norm < last_step and it > 1:
@@ -2369,7 +2369,7 @@ class RingLocalizer:
                 cov = cov + self._calibration_covariance(problem.views, H_cam)
         except (np.linalg.LinAlgError, MeasurementError):
             return None
-        if not np.isfinite(rms) or rms > p.joint_outlier_threshold:
+        if not math.isfinite(rms) or rms > p.joint_outlier_threshold:
             return None
         return _JointSolution(problem, T_bm, fit, iters, rms, cov, outliers, sigma, gain)
 
@@ -2428,7 +2428,7 @@ class RingLocalizer:
             T_bm, fit_s, it3 = at.solve(T_bm, p.robust_scale, p.max_iterations)
             iters += it3
             r = fit_s.r
-            rms = float(np.sqrt(np.mean(np.sum(r * r, axis=1)))) if np.isfinite(r).all() else float("inf")
+            rms = math.sqrt(np.mean(np.sum(r * r, axis=1))) if np.isfinite(r).all() else float("inf")
         else:
             fit_s = at.refit(fit)   # the same residuals and Huber weights (the scale is in px)
             try:
@@ -2524,7 +2524,7 @@ class RingLocalizer:
             self._window_update(exact, fit)
         if test is None or test[0] > _f_quantile(1.0 - p.consistency_alpha, test[1], test[2]):
             return sol
-        rms = float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
+        rms = math.sqrt(np.mean(np.sum(r * r, axis=1)))
         if not rms <= p.joint_outlier_threshold:
             return sol
         cov, gain = sol.covariance, None
@@ -2588,7 +2588,7 @@ class RingLocalizer:
 
     def _finish_joint(self, result: LocalizationResult, sol: _JointSolution, per_camera: bool) -> None:
         problem = sol.problem
-        if np.isfinite(sol.pixel_noise):
+        if math.isfinite(sol.pixel_noise):
             self.pixel_noise_guess = sol.pixel_noise   # the next frame is solved at it
         T_map_base = _inv(sol.T_base_map)
         result.covariance = map_frame_covariance(sol.covariance, T_map_base)

@@ -154,13 +154,19 @@ def quads_ok(corners_px: np.ndarray, min_area_px: float = 4.0) -> np.ndarray:
 
 def quad_ok_scalar(q: List[List[float]], min_area_px: float) -> bool:
     """:func:`quads_ok` of one quad given as 4 [x, y] Python floats (IEEE arithmetic as numpy's:
-    an overflow gives inf, a NaN fails every comparison); also
-    :func:`detections.sanitize_observations`' check of an image's few detections."""
+    an overflow gives inf, a NaN fails every comparison): finite, then :func:`finite_quad_ok`."""
     (x0, y0), (x1, y1), (x2, y2), (x3, y3) = q
     isfinite = math.isfinite
     if not (isfinite(x0) and isfinite(y0) and isfinite(x1) and isfinite(y1) and isfinite(x2) and isfinite(y2)
             and isfinite(x3) and isfinite(y3)):
         return False
+    return finite_quad_ok(x0, y0, x1, y1, x2, y2, x3, y3, min_area_px)
+
+
+def finite_quad_ok(x0: float, y0: float, x1: float, y1: float, x2: float, y2: float, x3: float, y3: float,
+                   min_area_px: float) -> bool:
+    """:func:`quad_ok_scalar` of a quad whose corners the caller found finite already
+    (:func:`detections.sanitize_observations` checks them first, to count them apart)."""
     # Unrolled (no comprehension or generator: this runs for every detection the localizer gets).
     ex0, ex1, ex2, ex3 = x1 - x0, x2 - x1, x3 - x2, x0 - x3
     ey0, ey1, ey2, ey3 = y1 - y0, y2 - y1, y3 - y2, y0 - y3

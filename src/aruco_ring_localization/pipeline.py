@@ -199,7 +199,7 @@ class RingInput:
 
         A clock that jumps back (a bag loop) moves ``now`` with the stamps: nothing is dropped.
         """
-        if not np.isfinite(stamp):
+        if not math.isfinite(stamp):   # (math's: np.isfinite of a float costs ~0.6 us, every message)
             return SKIP_BAD_STAMP
         if stamp - now > self.params.max_stamp_ahead:
             return SKIP_FUTURE_STAMP
@@ -854,8 +854,8 @@ class LocalizationPipeline(_RingPipeline):
         """
         now = float(now)
         last = self._clock
-        if last is None or not np.isfinite(now):
-            self._clock = now if np.isfinite(now) else last
+        if last is None or not math.isfinite(now):
+            self._clock = now if math.isfinite(now) else last
             return
         if now < last - self.config.filter.time_jump_tolerance:
             self.time_jumps += 1
@@ -974,7 +974,7 @@ class LocalizationPipeline(_RingPipeline):
         loc = self.localizer.process(ring_frame if check is None else check.strip(ring_frame), pred, motion)
         # (pose_distance's translation part, |t_pred - t_loc|, without its rotation angle and inverse)
         if check is not None and loc.ok and not loc.ambiguous and pred is not None and \
-                math.sqrt(float(np.sum((pred[:3, 3] - loc.T_map_base[:3, 3]) ** 2))) <= self.config.gate.base_distance:
+                math.sqrt(((pred[:3, 3] - loc.T_map_base[:3, 3]) ** 2).sum()) <= self.config.gate.base_distance:
             # Moved-marker check (marker_check.py) on a measurement near the prediction, before the
             # filter: a marker declared moved now is dropped from this very frame's pose.
             speed, yaw_rate = self._speeds(stamp if self._clock is None else self._clock)

@@ -103,6 +103,20 @@ def test_normalize_inverts_project_with_skew(name):
 
 
 @pytest.mark.parametrize("name", MODELS)
+@pytest.mark.parametrize("skew", [0.0, 2.5])
+def test_normalize_leaves_the_pixels_alone(name, skew):
+    # normalize() hands a contiguous float64 input to OpenCV without a copy; the skew's correction
+    # must go to a copy, not into the caller's pixels.
+    K = np.array([[800.0, skew, 640.0], [0.0, 810.0, 480.0], [0.0, 0.0, 1.0]])
+    model = CameraModel(K, default_model_for_tests(name).D, name, 1280, 960)
+    px = np.random.default_rng(24).uniform([100.0, 100.0], [1100.0, 800.0], size=(12, 2))
+    before = px.copy()
+    xy = model.normalize(px)
+    np.testing.assert_array_equal(px, before)
+    np.testing.assert_array_equal(model.normalize(px.tolist()), xy)   # a list: the same numbers
+
+
+@pytest.mark.parametrize("name", MODELS)
 def test_points_at_or_behind_the_camera_are_nan(name):
     model = default_model_for_tests(name)
     P = np.array([[0.1, 0.2, -1.0], [0.0, 0.0, 0.0], [1.0, 1.0, 1e-12], [0.1, -0.1, 2.0]])
