@@ -894,8 +894,13 @@ class JointProblem:
             return np.inf, w
         inside = e <= scale
         cost = float(np.where(inside, 0.5 * e * e, scale * (e - 0.5 * scale)).sum())
-        # scale / e >= 1 exactly where e <= scale: the same weights as where(inside, 1, scale / e).
-        return cost, np.minimum(scale / np.maximum(e, 1e-12), 1.0)
+        return cost, JointProblem._huber_weights(e, scale)
+
+    @staticmethod
+    def _huber_weights(e: np.ndarray, scale: float) -> np.ndarray:
+        """IRLS weights of finite per-corner residual norms ``e``: scale / e >= 1 exactly where
+        e <= scale, so the same weights as where(e <= scale, 1, scale / e)."""
+        return np.minimum(scale / np.maximum(e, 1e-12), 1.0)
 
     def fit(self, T_base_map: np.ndarray, scale: float) -> JointFit:
         """Residuals, Jacobian, weights and the (whitened) normal equations at ``T_base_map``."""
@@ -912,8 +917,8 @@ class JointProblem:
                 # With a calibration model the cost is the whitened chi2 (_whitened): of the Huber
                 # loss only the weights are needed, and that it is finite (here: every r is). The
                 # usual frame of the lab has a corner beyond the scale (issue 16: _huber's cost
-                # pass was a tenth of a fit). _huber's weights, the same numbers.
-                huber, w = 0.0, np.minimum(scale / np.maximum(np.sqrt(e2), 1e-12), 1.0)
+                # pass was a tenth of a fit).
+                huber, w = 0.0, self._huber_weights(np.sqrt(e2), scale)
             else:
                 huber, w = self._huber(r, scale, e2)
                 if not math.isfinite(huber):   # finite cost: every r finite; else the non-finite rows out
