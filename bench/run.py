@@ -195,7 +195,8 @@ def main(argv=None) -> int:
         header.append("- Mode: --quick (fewer repetitions; not the reference figures)")
     if failed:
         header.append(f"- FAILED: {', '.join(failed)}")
-    if os.path.exists(args.doc):   # the hand-written notes of the sections run stay (kept blocks)
+    if os.path.exists(args.doc) and not args.only:   # a full run keeps the sections' hand-written notes
+        # (with --only, merge_doc below does it)
         with open(args.doc, encoding="utf-8") as handle:
             previous = {p.splitlines()[0]: p for p in _split_sections(handle.read())[1:]}
         sections = [with_kept(sec, previous.get(sec.splitlines()[0], "")) if sec else sec for sec in sections]
