@@ -26,7 +26,7 @@ Typical use (what ``aruco_ring evaluate`` does)::
     ref, est = associate(ref, est, max_dt=0.05)
     alignment = fit_alignment(ref, est, "none")          # or "se2", "se3": diagnostics
     errors = ape(ref, alignment.apply(est))
-    print(errors.statistics())
+    stats = errors.statistics()                          # median, p95, max, RMS, mean
 """
 from __future__ import annotations
 
