@@ -37,7 +37,7 @@ import functools
 import logging
 import math
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Tuple
 
 import numpy as np
 from filterpy.common import Q_continuous_white_noise
@@ -150,6 +150,11 @@ class PoseFilter:
         self.kf.H = H
         self.stamp: Optional[float] = None
         self.resets = 0
+        # (dt, jerk noises, F, Q) of the last prediction interval: a ring frame predicts over the
+        # same dt up to three times (the pose prediction, the gate's covariance, the update).
+        self._model_cache: Optional[Tuple[float, float, float, np.ndarray, np.ndarray]] = None
+        # (params, floor): the measurement covariance's floor of these params (:meth:`_measurement_covariance`).
+        self._floor: Optional[Tuple[FilterParams, np.ndarray]] = None
 
     # --- state ------------------------------------------------------------------------------
 
@@ -228,9 +233,9 @@ class PoseFilter:
         # x = F x ; P = F P F^T + Q      (KalmanFilter.predict's equations and order, without its
         # copies of the prior: ~30 us of the ring frame's budget, issue 16)
         kf = self.kf
-        F = transition_matrix(dt)
+        F, Q = self._model(dt)
         kf.x = F @ kf.x
-        kf.P = (F @ kf.P) @ F.T + process_noise(dt, self.params.jerk_noise_xy, self.params.jerk_noise_yaw)
+        kf.P = (F @ kf.P) @ F.T + Q
         kf.x[IPHI, 0] = geo.wrap_angle(float(kf.x[IPHI, 0]))
         self.stamp = float(stamp)
 
@@ -239,7 +244,7 @@ class PoseFilter:
         if self.stamp is None:
             raise ValueError("the filter is not initialised")
         dt = min(max(float(stamp) - self.stamp, 0.0), self.params.max_dt)
-        x = transition_matrix(dt) @ self.kf.x.ravel()
+        x = self._model(dt)[0] @ self.kf.x.ravel()
         return np.array([x[IX], x[IY], geo.wrap_angle(float(x[IPHI]))])
 
     def predicted_covariance(self, stamp: float) -> np.ndarray:
@@ -248,8 +253,23 @@ class PoseFilter:
             raise ValueError("the filter is not initialised")
         dt = min(max(float(stamp) - self.stamp, 0.0), self.params.max_dt)
         # P = F P F^T + Q, only its (x, y, phi) block: F's rows of x, y and phi, Q's block.
-        Fp = transition_matrix(dt)[_POSE_ROWS]
-        return Fp @ self.kf.P @ Fp.T + process_noise(dt, self.params.jerk_noise_xy, self.params.jerk_noise_yaw)[_POSE_BLOCK]
+        F, Q = self._model(dt)
+        Fp = F[_POSE_ROWS]
+        return Fp @ self.kf.P @ Fp.T + Q[_POSE_BLOCK]
+
+    def _model(self, dt: float) -> Tuple[np.ndarray, np.ndarray]:
+        """(F, Q) over ``dt`` s (:func:`transition_matrix`, :func:`process_noise`; read-only): the
+        last interval's kept, since a ring frame asks for the same one up to three times."""
+        p = self.params
+        c = self._model_cache
+        if c is not None and c[0] == dt and c[1] == p.jerk_noise_xy and c[2] == p.jerk_noise_yaw:
+            return c[3], c[4]
+        F = transition_matrix(dt)
+        Q = process_noise(dt, p.jerk_noise_xy, p.jerk_noise_yaw)
+        F.flags.writeable = False
+        Q.flags.writeable = False
+        self._model_cache = (dt, p.jerk_noise_xy, p.jerk_noise_yaw, F, Q)
+        return F, Q
 
     def measurement_covariance(self, covariance: Optional[np.ndarray] = None) -> np.ndarray:
         """The R the filter uses for a measurement with estimator covariance ``covariance`` (3x3 or None)."""
@@ -261,15 +281,18 @@ class PoseFilter:
             R = _diag3(p.measurement_std_xy ** 2, p.measurement_std_xy ** 2, p.measurement_std_yaw ** 2)
         else:
             R = 0.5 * (np.asarray(covariance, dtype=np.float64) + np.asarray(covariance, dtype=np.float64).T)
-        # Floors: the estimator's covariance only knows the pixel noise.
-        floor = _diag3(p.min_measurement_std_xy ** 2, p.min_measurement_std_xy ** 2, p.min_measurement_std_yaw ** 2)
-        return R + floor
+        # Floors: the estimator's covariance only knows the pixel noise (built once per params).
+        if self._floor is None or self._floor[0] is not p:
+            floor = _diag3(p.min_measurement_std_xy ** 2, p.min_measurement_std_xy ** 2, p.min_measurement_std_yaw ** 2)
+            floor.flags.writeable = False
+            self._floor = (p, floor)
+        return R + self._floor[1]
 
     def _wrapped(self, z) -> np.ndarray:
         """z (3,) with its yaw moved to within pi of the predicted yaw (so y = z - Hx never jumps)."""
         z = np.asarray(z, dtype=np.float64).reshape(3).copy()
         phi = float(self.kf.x[IPHI, 0])
-        z[2] = phi + geo.angle_diff(z[2], phi)
+        z[2] = phi + geo.angle_diff(float(z[2]), phi)   # (Python floats: angle_diff's scalar path)
         return z
 
     def mahalanobis(self, z, covariance: Optional[np.ndarray] = None) -> float:

@@ -103,3 +103,26 @@ def test_time_jump_back_resets():
     f.update([5.0, 5.0, 1.0], 10.0)  # the bag looped: restart at the new measurement
     assert np.allclose(f.pose, [5.0, 5.0, 1.0]), f"after the time jump the filter is at {f.pose}"
     assert np.allclose(f.velocity, 0.0) and f.stamp == 10.0
+
+
+def test_kept_interval_model_is_the_one_of_each_interval_and_of_the_params():
+    # PoseFilter keeps the last interval's (F, Q) (a ring frame asks for it up to three times): a
+    # new interval or new jerk noises must not get the kept one.
+    f = PoseFilter(FilterParams(jerk_noise_xy=0.1, jerk_noise_yaw=0.1))
+    f.reset(np.array([1.0, 2.0, 0.3]), 0.0, np.diag([1e-4, 1e-4, 1e-5]))
+    f.kf.x[2, 0], f.kf.x[7, 0] = 0.5, 0.2   # moving: F matters
+
+    def expected(dt):
+        F, Q = transition_matrix(dt), process_noise(dt, f.params.jerk_noise_xy, f.params.jerk_noise_yaw)
+        P = F @ f.kf.P @ F.T + Q
+        return (F @ f.kf.x.ravel())[[0, 1, 6]], P[np.ix_([0, 1, 6], [0, 1, 6])]
+
+    for dt in (0.1, 0.1, 0.25, 0.1):
+        x, P = expected(dt)
+        assert np.array_equal(f.predicted(dt)[:2], x[:2]) and np.array_equal(f.predicted_covariance(dt), P)
+    f.params = FilterParams(jerk_noise_xy=3.0, jerk_noise_yaw=0.5)
+    x, P = expected(0.1)
+    assert np.array_equal(f.predicted_covariance(0.1), P)
+    F, Q = f._model(0.1)
+    with pytest.raises(ValueError):   # read-only: a caller cannot change the kept matrices
+        F[0, 0] = 2.0
