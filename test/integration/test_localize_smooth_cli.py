@@ -48,20 +48,23 @@ def test_smoothed_trajectory_follows_tagslam_where_the_per_frame_estimate_flips(
     assert _localize(ring_file, smooth, "--smooth", "--odom-tagslam", str(FILES / "tagslam.yaml")) == 0
     out = capsys.readouterr().out
     assert "/fla/vio/odom" in out and "placed by the odometry alone" in out and "per_message" in out, out
+    # The problem as tagslam.yaml states it: its odometry noise judged at the frames, against its 1 px corners.
+    assert "noise at the frames" in out and "corners at 1 px" in out and "tagslam_parameters.pixel_noise" in out, out
     assert _localize(ring_file, meas, "--output", "measurement") == 0
     ref, s, m = _poses(DATA / "test_11_odom" / "rig_poses.tum"), _poses(smooth), _poses(meas)
     # Every ring frame gets a pose, those without a mapped marker (the turn) from the odometry.
     assert len(s) == 110, f"{len(s)} smoothed poses of 110 ring frames"
     err = np.array([geo.pose_distance(ref[k], T) for k, T in s.items()])
-    assert np.max(err[:, 0]) < 0.06 and np.degrees(np.max(err[:, 1])) < 2.0, \
+    assert np.max(err[:, 0]) < 0.025 and np.degrees(np.max(err[:, 1])) < 2.0, \
         f"smoothed vs TagSLAM: max {1000 * np.max(err[:, 0]):.1f} mm, {np.degrees(np.max(err[:, 1])):.2f} deg"
     # On the frames the per-frame estimator posed: measured 9.1 mm median, 283 mm max (a single
-    # ambiguous tag) per frame; smoothed 7.4 / 10.8 mm.
+    # ambiguous tag) per frame; smoothed 1.60 / 2.54 mm (every frame: 11.6 mm max); with the
+    # localizer's 0.5 px and the odometry's messages one by one it was 7.4 / 10.8 mm (37 mm).
     keys = sorted(m)
     e_m = np.array([1000 * geo.pose_distance(ref[k], m[k])[0] for k in keys])
     e_s = np.array([1000 * geo.pose_distance(ref[k], s[k])[0] for k in keys])
     assert np.max(e_m) > 100.0, f"the per-frame estimate no longer flips here ({np.max(e_m):.1f} mm max)"
-    assert np.median(e_s) < np.median(e_m) and np.max(e_s) < 20.0, \
+    assert np.median(e_s) < 2.5 and np.max(e_s) < 5.0, \
         f"smoothed median {np.median(e_s):.2f} / max {np.max(e_s):.1f} mm vs per frame {np.median(e_m):.2f} / " \
         f"{np.max(e_m):.1f} mm"
 

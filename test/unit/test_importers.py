@@ -432,3 +432,18 @@ bodies:
     path.write_text(text.replace("odom_acceleration: 2.0", "odom_acceleration: -1"))
     with pytest.raises(ConfigError, match="odom_acceleration"):
         tagslam_odometry(str(path), "rig")
+
+
+def test_tagslam_pixel_noise_is_the_files_and_a_bad_one_is_named(tmp_path):
+    """``tagslam_parameters.pixel_noise`` (what ``localize --smooth --odom-tagslam`` weighs the
+    corners with), None when the file states none, and a non-positive one named by its key."""
+    from aruco_ring_localization.importers import tagslam_pixel_noise
+
+    path = tmp_path / "tagslam.yaml"
+    path.write_text("tagslam_parameters:\n  pixel_noise: 2.0\nbodies: []\n")
+    assert tagslam_pixel_noise(str(path)) == 2.0
+    path.write_text("tagslam_parameters:\n  max_num_incremental_opt: 100\nbodies: []\n")
+    assert tagslam_pixel_noise(str(path)) is None
+    path.write_text("tagslam_parameters:\n  pixel_noise: -1\nbodies: []\n")
+    with pytest.raises(ConfigError, match="pixel_noise"):
+        tagslam_pixel_noise(str(path))

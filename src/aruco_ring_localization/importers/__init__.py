@@ -9,8 +9,9 @@
 from __future__ import annotations
 
 from .rig import ImportedCamera, ImportedRig, read_rig, write_ring_files
-from .tagslam import TagslamOdometry, TagslamTags, read_tagslam_tags, tagslam_anchors, tagslam_boards, tagslam_odometry
+from .tagslam import TagslamOdometry, TagslamTags, read_tagslam_tags, tagslam_anchors, tagslam_boards, tagslam_odometry, \
+    tagslam_pixel_noise
 
 __all__ = ["ImportedCamera", "ImportedRig", "read_rig", "write_ring_files", "TagslamTags", "read_tagslam_tags",
-           "tagslam_anchors", "tagslam_boards", "tagslam_odometry",
+           "tagslam_anchors", "tagslam_boards", "tagslam_odometry", "tagslam_pixel_noise",
            "TagslamOdometry"]

@@ -233,6 +233,22 @@ def tagslam_odometry(path: str, rig_body: str) -> Optional[TagslamOdometry]:
     return None
 
 
+def tagslam_pixel_noise(path: str) -> Optional[float]:
+    """A ``tagslam.yaml``'s corner noise (``tagslam_parameters.pixel_noise``, px), or None when it
+    states none: what TagSLAM weighs the images with against its odometry and its priors."""
+    data = load_yaml_file(path)
+    if not isinstance(data, Mapping):
+        raise ConfigError("expected a mapping", path=path)
+    return _pixel_noise(data, path)
+
+
+def _pixel_noise(data: Mapping[str, Any], path: str) -> Optional[float]:
+    params = data.get("tagslam_parameters")
+    if isinstance(params, Mapping) and params.get("pixel_noise") is not None:
+        return _positive(params["pixel_noise"], path, "tagslam_parameters.pixel_noise")
+    return None
+
+
 def _noise(node: Mapping[str, Any], defaults: Any, path: str, key: str) -> Tuple[np.ndarray, float]:
     """(position std (3,), rotation std) of a TagSLAM pose: its own noise, else body_defaults'."""
     defaults = defaults if isinstance(defaults, Mapping) else {}
@@ -430,8 +446,7 @@ def read_tagslam_tags(path: str, rig_bodies: Tuple[str, ...] = ()) -> TagslamTag
     out.default_size = default_size
     out.default_body = None if default_body is None else str(default_body)
     params = data.get("tagslam_parameters")
-    if isinstance(params, Mapping) and params.get("pixel_noise") is not None:
-        out.pixel_noise = _positive(params["pixel_noise"], path, "tagslam_parameters.pixel_noise")
+    out.pixel_noise = _pixel_noise(data, path)
     if isinstance(params, Mapping) and params.get("minimum_viewing_angle") is not None:
         out.minimum_viewing_angle = _number(params["minimum_viewing_angle"], path,
                                             "tagslam_parameters.minimum_viewing_angle", "an angle in degrees")
