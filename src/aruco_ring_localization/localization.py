@@ -1570,6 +1570,19 @@ class _PersistenceCamera:
             self.lo += 1
 
 
+#: n -> (n, n) read-only mask of the pairs i < j (:meth:`CalibrationPersistence.correlation`: np.tri
+#: built it on every frame the window is updated, ~30 us; n is at most the window's length).
+_STRICT_UPPER: Dict[int, np.ndarray] = {}
+
+
+def _strict_upper(n: int) -> np.ndarray:
+    mask = _STRICT_UPPER.get(n)
+    if mask is None:
+        mask = _STRICT_UPPER[n] = ~np.tri(n, dtype=bool)
+        mask.flags.writeable = False
+    return mask
+
+
 class CalibrationPersistence:
     """Whether the cameras' disagreement through the extrinsics is a calibration error: over the
     last ``window`` multi-camera frames, does it follow the cameras from one marker to another?
@@ -1642,7 +1655,7 @@ class CalibrationPersistence:
             B[k, :m] = c.b[lo:hi]
             ok[k, :m, :m] = c.disjoint[lo:hi, lo:hi]
             A[k] = c.G[lo:hi].sum(axis=0)
-        ok &= ~np.tri(n, dtype=bool)   # the pairs i < j (np.triu(ok, 1), without its copies)
+        ok &= _strict_upper(n)   # the pairs i < j (np.triu(ok, 1), without its copies)
         pairs = int(ok.sum())
         if not pairs:
             return float("nan"), 0
