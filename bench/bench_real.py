@@ -685,33 +685,38 @@ def _odom_figures(test: str, src: str, ref, ring, marker_map, frames, reference,
 
 def _smoothed_figures(test: str, src: str, ref, ring, marker_map, frames, reference,
                       filtered: Dict[int, np.ndarray]) -> Dict[str, float]:
-    """The smoothed trajectory (smoother.py, what ``localize --smooth`` writes) on ``marker_map``
-    (TagSLAM's) with the ring's extrinsics (TagSLAM's), the bag's odometry as links between
-    consecutive ring frames (tagslam.yaml's ``odom_topic`` and ``T_body_odom``, the package's link
-    noise model: ``mapping.odometry`` defaults, ``--odom-noise``; ``max_gap`` ``ODOM_MAX_GAP``), started from the filtered output
-    without odometry (``filtered``, as ``localize --smooth``): ``tagslam_smooth_*`` (median / p95 /
-    max mm, rotation median deg against TagSLAM's rig poses, frames, odometry-only frames, CPU ms
-    per frame) and the median RMS reprojection (px) of the smoothed poses and of TagSLAM's through
-    TagSLAM's map and extrinsics (a rigid ring), over the same frames; nothing without odometry."""
-    from aruco_ring_localization.smoother import SmootherOptions, smooth_trajectory
+    """The smoothed trajectory (smoother.py) on ``marker_map`` (TagSLAM's) with the ring's extrinsics
+    (TagSLAM's), what ``localize --smooth --odom-tagslam tagslam.yaml`` writes: the bag's odometry
+    as links between consecutive ring frames (tagslam.yaml's ``odom_topic``, ``T_body_odom`` and
+    odometry noise judged at the frames) against the corners at tagslam.yaml's ``pixel_noise``
+    (Huber at 3 sigma, an observation above ``estimator/max_reprojection_error`` dropped, as the
+    command); ``max_gap`` ``ODOM_MAX_GAP``; started from the filtered output without odometry
+    (``filtered``, as ``localize --smooth``): ``tagslam_smooth_*`` (median / p95 / max mm, rotation
+    median deg against TagSLAM's rig poses, frames, odometry-only frames, CPU ms per frame) and the
+    median RMS reprojection (px) of the smoothed poses and of TagSLAM's through TagSLAM's map and
+    extrinsics (a rigid ring), over the same frames; ``tagslam_smooth_package_*``: the same with the
+    package's settings (``localize --smooth --odom-topic``: ``mapping.odometry``'s defaults, the
+    messages one by one, the corners at ``estimator/pixel_noise``); nothing without odometry."""
+    from aruco_ring_localization.importers.tagslam import tagslam_pixel_noise
     from aruco_ring_localization.mapping_odometry import OdometryTrack
+    from aruco_ring_localization.smoother import SmootherOptions, smooth_trajectory
 
-    opts, odo = _odometry(test, src, ref.rig_body, frames)
-    if opts is None:
+    found = tagslam_odometry(os.path.join(src, "tagslam.yaml"), ref.rig_body)
+    if found is None:
         return {}
+    _, odo = _odometry(test, src, ref.rig_body, frames)
     # Links across odometry gaps up to ODOM_MAX_GAP (test_22's VIO at 4.3 Hz has gaps of 0.5-1.0 s),
     # as the filtered-with-odometry rows; the links' interpolation term widens them by what it may miss.
-    opts = dataclasses.replace(opts, max_gap=ODOM_MAX_GAP)
+    stated = MappingOdometryOptions(topic=found.topic, base_to_odom=found.base_to_odom, **found.link_noise(),
+                                    message_sampling="frames", max_gap=ODOM_MAX_GAP)
+    package = MappingOdometryOptions(topic=found.topic, base_to_odom=found.base_to_odom, max_gap=ODOM_MAX_GAP)
     start = [filtered.get(int(round(f.stamp * 1e6))) for f in frames]
     est = LocalizerConfig().estimator
-    smoother = SmootherOptions(pixel_noise=est.pixel_noise, reject_px=est.max_reprojection_error)
-    res = smooth_trajectory(frames, ring, marker_map, OdometryTrack(*odo), opts, start, smoother)
-    # The same with tagslam.yaml's own odometry noise (odom_acceleration ... or the fixed
-    # odom_translation_noise / odom_rotation_noise), imported as a user's config would be
-    # (localize --smooth --odom-tagslam): what the links' weight changes.
-    found = tagslam_odometry(os.path.join(src, "tagslam.yaml"), ref.rig_body)
-    own = smooth_trajectory(frames, ring, marker_map, OdometryTrack(*odo),
-                            dataclasses.replace(opts, **found.link_noise()), start, smoother)
+    pixel_noise = tagslam_pixel_noise(os.path.join(src, "tagslam.yaml")) or est.pixel_noise
+    res = smooth_trajectory(frames, ring, marker_map, OdometryTrack(*odo), stated, start,
+                            SmootherOptions(pixel_noise=pixel_noise, reject_px=est.max_reprojection_error))
+    own = smooth_trajectory(frames, ring, marker_map, OdometryTrack(*odo), package, start,
+                            SmootherOptions(pixel_noise=est.pixel_noise, reject_px=est.max_reprojection_error))
     own_pos, _ = _pose_errors({int(round(t * 1e6)): T for t, T, o in zip(own.stamps, own.T_map_base, own.observed)
                                if o}, reference)
     # The frames with a mapped marker (those a per-frame estimate can pose) and, apart, those the
@@ -733,7 +738,8 @@ def _smoothed_figures(test: str, src: str, ref, ring, marker_map, frames, refere
             "tagslam_smooth_rot_median_deg": _stats(rot)[0], "tagslam_smooth_compared": len(pos),
             "tagslam_smooth_odometry_only_median_mm": dmed, "tagslam_smooth_odometry_only_max_mm": dmx,
             "tagslam_smooth_odometry_only_compared": len(dpos),
-            "tagslam_smooth_own_noise_median_mm": _stats(own_pos)[0], "tagslam_smooth_own_noise_max_mm": _stats(own_pos)[2],
+            "tagslam_smooth_package_median_mm": _stats(own_pos)[0], "tagslam_smooth_package_max_mm": _stats(own_pos)[2],
+            "tagslam_smooth_pixel_noise": pixel_noise,
             "tagslam_smooth_frames": len(res.stamps), "tagslam_smooth_odometry_only": int((~res.observed).sum()),
             "tagslam_smooth_rejected": res.rejected, "tagslam_smooth_links": res.links,
             "tagslam_smooth_reprojection_px": float(np.nanmedian(px)) if px else float("nan"),
@@ -1152,22 +1158,24 @@ def report(rows: Dict[str, dict], failed: Dict[str, str], load, quick: bool, tes
     if smooth_rows:
         lines += ["**Smoothed with the bag's odometry** (`real_<test>_loc_smoothed_median_mm`, `_max_mm`, "
                   "`_cpu_ms_per_frame`; `--loc-only` runs on TagSLAM's map with TagSLAM's extrinsics): what "
-                  "`aruco_ring localize --smooth` writes (smoother.py): every ring frame's pose from all the "
-                  "frames' corners (0.5 px, `estimator/pixel_noise`; Huber at 3 sigma; an observation above 3 px "
-                  "RMS dropped and the problem solved again) and the odometry between consecutive frames "
-                  "(tagslam.yaml's `odom_topic` and `T_body_odom`, the package's link noise model, "
-                  "`mapping.odometry`'s defaults: per_message, 5 m/s^2 and 5 rad/s^2, maxima 10 x), the map and "
-                  "the ring held, started from the filtered output without odometry: one batch problem, as "
-                  "TagSLAM's rig poses are. Position error against TagSLAM's rig pose, median / p95 / max mm, "
-                  "rot median deg, of the frames with a mapped marker and a reference pose (n), and apart the "
-                  "frames the odometry alone places (no mapped marker in view: median / max mm, n); the median RMS reprojection (px) of the smoothed poses through TagSLAM's map and "
-                  "extrinsics as a rigid ring beside TagSLAM's own poses' (the same frames, those with a mapped "
-                  "marker); CPU ms per frame of the smoother (assembly and solve); and the smoothed median / max "
-                  "mm with tagslam.yaml's own odometry noise instead of the package's (`--odom-tagslam`: its "
-                  "odom_acceleration ..., test_22's fixed 0.02 m / 0.02 rad per message).", "",
+                  "`aruco_ring localize --smooth --odom-tagslam tagslam.yaml` writes (smoother.py, "
+                  "docs/localization.md): every ring frame's pose from all the frames' corners and the "
+                  "odometry between consecutive frames, the map and the ring held, started from the filtered "
+                  "output without odometry: one batch problem, as TagSLAM's rig poses are, stated as tagslam.yaml "
+                  "states it: its `odom_topic`, `T_body_odom` and odometry noise (odom_acceleration ..., "
+                  "test_22's fixed 0.02 m / 0.02 rad per message) judged at the frames, against the corners at "
+                  "its `pixel_noise` (Huber at 3 sigma; an observation above 3 px RMS dropped and the problem "
+                  "solved again). Position error against TagSLAM's rig pose, median / p95 / max mm, rot median "
+                  "deg, of the frames with a mapped marker and a reference pose (n), and apart the frames the "
+                  "odometry alone places (no mapped marker in view: median / max mm, n); the median RMS "
+                  "reprojection (px) of the smoothed poses through TagSLAM's map and extrinsics as a rigid ring "
+                  "beside TagSLAM's own poses' (the same frames, those with a mapped marker); CPU ms per frame of "
+                  "the smoother (assembly and solve); and the smoothed median / max mm with the package's settings "
+                  "instead (`--odom-topic`: `mapping.odometry`'s defaults, per_message 5 m/s^2 and 5 rad/s^2, "
+                  "the messages one by one; the corners at `estimator/pixel_noise`, 0.5 px).", "",
                   "| test | per frame: median / max mm | filtered with odometry: median / max mm | smoothed: median / "
                   "p95 / max mm, rot median deg, n | smoothed, odometry only: median / max mm, n | smoothed px / "
-                  "TagSLAM's px | CPU ms per frame | smoothed with tagslam.yaml's odometry noise: median / max mm |",
+                  "TagSLAM's px | CPU ms per frame | smoothed with the package's settings: median / max mm |",
                   "|---|---|---|---|---|---|---|---|"]
         for t, r in smooth_rows.items():
             lines.append(
@@ -1179,7 +1187,7 @@ def report(rows: Dict[str, dict], failed: Dict[str, str], load, quick: bool, tes
                 f"{_fmt(r['tagslam_smooth_odometry_only_max_mm'])}, {r['tagslam_smooth_odometry_only_compared']} | "
                 f"{_fmt(r['tagslam_smooth_reprojection_px'], 3)} / {_fmt(r['tagslam_smooth_reference_reprojection_px'], 3)}"
                 f" | {_fmt(r['tagslam_smooth_cpu_ms_per_frame'], 2)} | "
-                f"{_fmt(r.get('tagslam_smooth_own_noise_median_mm'), 2)} / {_fmt(r.get('tagslam_smooth_own_noise_max_mm'))} |")
+                f"{_fmt(r.get('tagslam_smooth_package_median_mm'), 2)} / {_fmt(r.get('tagslam_smooth_package_max_mm'))} |")
         lines.append("")
     misses = [f"{t}: {why}" for t, why in LOC_MISSES.items() if t in rows]
     if misses:
