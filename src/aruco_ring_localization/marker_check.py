@@ -191,43 +191,65 @@ def _statistics(A: np.ndarray, b: np.ndarray, sys_std: float) -> Tuple[np.ndarra
     """Batched: displacement ``d = A^+ b`` (K, 3) and ``T = d^T (A^+ + sys_std^2 I)^-1 d`` (K,)
     for symmetric positive semi-definite information matrices ``A`` (K, 3, 3) and vectors ``b`` (K, 3).
 
-    ``A^+`` is ``np.linalg.pinv``'s (eigenvalues within 1e-15 of the largest count as zero), from
-    one batched eigh (``A`` is symmetric: its singular values are its eigenvalues' magnitudes): half
-    the CPU of pinv's SVD, the same numbers to rounding. With ``A + 1e-12 I = V diag(lam) V^T`` and
-    ``k = 1 / lam`` (0 where cut), ``A^+ + s^2 I = V diag(k + s^2) V^T``, so
-    ``T = sum_i (V^T b)_i^2 k_i^2 / (k_i + s^2)``: no second solve."""
-    lam, V = np.linalg.eigh(A + _EYE3)
+    ``A^+`` is ``np.linalg.pinv``'s (eigenvalues within 1e-15 of the largest count as zero). With
+    ``A_r = A + 1e-12 I`` (the ridge), ``A^+ + s^2 I = A_r^-1 (I + s^2 A_r)``, so
+    ``T = d^T (I + s^2 A_r)^-1 b``: both inverses by the adjugate, in one batch (:func:`_inv3`),
+    when every ``A_r`` is positive definite with a condition number below 1e5 (bounded by its
+    invariants: no eigenvalue is cut then, and the adjugate's rounding stays ~1e-11 relative); else
+    from one batched eigh (``A`` is symmetric: its singular values are its eigenvalues' magnitudes):
+    with ``A_r = V diag(lam) V^T`` and ``k = 1 / lam`` (0 where cut), ``A^+ + s^2 I = V diag(k + s^2) V^T``,
+    so ``T = sum_i (V^T b)_i^2 k_i^2 / (k_i + s^2)``."""
+    Ar = A + _EYE3
+    s2 = sys_std ** 2
+    # trace, sum of the principal 2x2 minors and determinant: all > 0 iff A_r is positive definite;
+    # then lam_max <= trace and lam_min >= det / minors, so cond(A_r) <= trace * minors / det.
+    Af = Ar.reshape(-1, 9)
+    cof = _cofactors(Af)
+    trace = Af[:, 0] + Af[:, 4] + Af[:, 8]
+    minors = cof[:, 0] + cof[:, 4] + cof[:, 8]
+    det = np.einsum("ki,ki->k", Af[:, :3], cof[:, :3])
+    if ((det > 0) & (trace > 0) & (minors > 0) & (trace * minors < 1e5 * det)).all():
+        k = len(A)
+        both = _inv3(np.concatenate([Ar, _EYE3_ONE + s2 * Ar]))    # A_r^-1, (I + s^2 A_r)^-1
+        y = np.matmul(both, np.concatenate([b, b])[:, :, None])[:, :, 0]
+        d = y[:k]
+        return d, np.einsum("ki,ki->k", d, y[k:])
+    lam, V = np.linalg.eigh(Ar)
     mag = np.abs(lam)
     keep = mag > 1e-15 * mag.max(axis=1, keepdims=True)
     k = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
     beta = np.einsum("kji,kj->ki", V, b)            # V^T b
     kb = k * beta
     d = np.einsum("kij,kj->ki", V, kb)              # V diag(k) V^T b
-    return d, np.sum(kb * kb / (k + sys_std ** 2), axis=1)
+    return d, np.sum(kb * kb / (k + s2), axis=1)
+
+
+#: per entry (i, j) of a 3x3 matrix (row-major), the flat indices of M[i+1, j+1], M[i+2, j+2],
+#: M[i+1, j+2], M[i+2, j+1] (indices mod 3): its cofactor is the first product minus the second.
+_COF = np.array([[4, 5, 3, 7, 8, 6, 1, 2, 0],
+                 [8, 6, 7, 2, 0, 1, 5, 3, 4],
+                 [5, 3, 4, 8, 6, 7, 2, 0, 1],
+                 [7, 8, 6, 1, 2, 0, 4, 5, 3]])
+
+
+def _cofactors(Mf: np.ndarray) -> np.ndarray:
+    """Batched cofactors (K, 9) of 3x3 matrices given flat (K, 9), in four array operations."""
+    G = Mf[:, _COF]
+    return G[:, 0] * G[:, 1] - G[:, 2] * G[:, 3]
 
 
 def _inv3(M: np.ndarray) -> np.ndarray:
     """Batched inverse of (K, 3, 3) non-singular matrices by the adjugate (no LAPACK call per matrix)."""
-    a, b, c = M[:, 0, 0], M[:, 0, 1], M[:, 0, 2]
-    d, e, f = M[:, 1, 0], M[:, 1, 1], M[:, 1, 2]
-    g, h, i = M[:, 2, 0], M[:, 2, 1], M[:, 2, 2]
-    adj = np.empty_like(M)
-    adj[:, 0, 0] = e * i - f * h
-    adj[:, 0, 1] = c * h - b * i
-    adj[:, 0, 2] = b * f - c * e
-    adj[:, 1, 0] = f * g - d * i
-    adj[:, 1, 1] = a * i - c * g
-    adj[:, 1, 2] = c * d - a * f
-    adj[:, 2, 0] = d * h - e * g
-    adj[:, 2, 1] = b * g - a * h
-    adj[:, 2, 2] = a * e - b * d
-    det = a * adj[:, 0, 0] + b * adj[:, 1, 0] + c * adj[:, 2, 0]
-    return adj / det[:, None, None]
+    Mf = M.reshape(-1, 9)
+    cof = _cofactors(Mf)
+    det = np.einsum("ki,ki->k", Mf[:, :3], cof[:, :3])
+    return cof.reshape(-1, 3, 3).transpose(0, 2, 1) / det[:, None, None]
 
 
 #: the ridges of the 6x6 pose solves and of the 3x3 displacement information
 _EYE6 = 1e-12 * np.eye(6)
 _EYE3 = 1e-12 * np.eye(3)
+_EYE3_ONE = np.eye(3)
 
 
 def _farther(a: Sequence[float], b: Sequence[float], distance: float) -> bool:
@@ -268,56 +290,49 @@ class _View:
     X: np.ndarray                # (4k, 3) map corners
 
 
+#: where :func:`_rows` writes the skew matrices -[P_base]x (columns 0-2 of its G) and [P_cam]x
+#: (columns 10-12) in G's flat (n, 39) rows: (flat index, index in [P_base, P_cam], sign)
+_SKEW = np.array([(1, 2, 1), (2, 1, -1), (13, 2, -1), (15, 0, 1), (26, 1, 1), (27, 0, -1),
+                  (11, 5, -1), (12, 4, 1), (23, 5, 1), (25, 3, -1), (36, 4, -1), (37, 3, 1)])
+_SKEW_AT, _SKEW_OF, _SKEW_SIGN = _SKEW[:, 0], _SKEW[:, 1], _SKEW[:, 2].astype(np.float64)
+
+
 def _rows(views: Sequence[_View], T_base_map: np.ndarray, pixel_noise: float):
-    """Every camera's rows in one pass, per (camera, marker) block of 4 corners (8 rows): residual
-    r (B, 8) in normalised coordinates, J_pose (B, 8, 6) w.r.t. a base-frame perturbation (w, v) of
-    ``T_base_map`` (geo.se3_perturb's order), J_marker (B, 8, 3) w.r.t. the marker's position in the
-    map, the weight 1/s^2 (B,) of the block's camera, J_rot (B, 8, 3), and the cameras' stacked
-    ``R_cam_map`` (V, 3, 3) and ``t_cam_map`` (V, 3)."""
+    """Every camera's rows in one pass, per (camera, marker) block of 4 corners (8 rows), as one
+    array J (B, 8, 13) with the columns: J_pose (0-5) w.r.t. a base-frame perturbation (w, v) of
+    ``T_base_map`` (geo.se3_perturb's order), J_marker (6-8) w.r.t. the marker's position in the
+    map, the residual r (9) in normalised coordinates, J_rot (10-12) w.r.t. the camera's rotation
+    (up to its sign); the weight 1/s^2 (B,) of the block's camera, and the cameras' stacked
+    ``R_cam_map`` (V, 3, 3) and ``t_cam_map`` (V, 3).
+
+    Each Jacobian is D G, with D = d xy / d P_cam = [[1/z, 0, -x/z], [0, 1/z, -y/z]] and G the
+    derivatives of the camera-frame point: R_cam_base [-P_base]x for the rotation (a row e^T [-q]x
+    is (q x e)^T), R_cam_base for the translation, R_cam_map for the marker, [P_cam]x for the camera
+    rotation: one batched product for them all (few array operations: their set-up dominates)."""
     counts = [len(v.X) for v in views]
     X = np.concatenate([v.X for v in views])
+    n = len(X)
     # Per corner, its camera's matrices: one gather from the stacks (np.repeat of each stack cost 3x).
     corner_view = np.repeat(np.arange(len(views)), counts)
     # (np.array of the list: np.stack's numbers without its per-array set-up)
     R_views = np.array([v.R_cam_map for v in views])
     t_views = np.array([v.t_cam_map for v in views])
-    R_cm = R_views[corner_view]                                                          # (n, 3, 3)
-    t_cm = t_views[corner_view]
-    R_cb = np.array([v.T_cam_base[:3, :3] for v in views])[corner_view]
-    P = np.matmul(R_cm, X[:, :, None])[:, :, 0] + t_cm
-    z = P[:, 2:3]
-    pred = P[:, :2] / z
-    inv_z = 1.0 / z[:, 0]
-    # d xy / d P_cam: [[1/z, 0, -x/z], [0, 1/z, -y/z]]; times R (3x3): row i = (R[i] - xy_i R[2]) / z.
-    def chain(R):
-        return (R[:, :2, :] - pred[:, :, None] * R[:, 2:3, :]) * inv_z[:, None, None]
-    E = chain(R_cb)                                                                      # d xy / d P_base
-    J_mark = chain(R_cm)
+    G = np.zeros((n, 3, 13))
+    G[:, :, 3:9] = np.concatenate([np.array([v.T_cam_base[:3, :3] for v in views]), R_views], axis=2)[corner_view]
+    P = np.matmul(G[:, :, 6:9], X[:, :, None])[:, :, 0] + t_views[corner_view]
+    pred = P[:, :2] / P[:, 2:3]
+    inv_z = 1.0 / P[:, 2]
     Pb = X @ T_base_map[:3, :3].T + T_base_map[:3, 3]
-    J_pose = np.empty((len(X), 2, 6))
-    # d P_base / d(w, v) = [-[P_base]x | I]; a row e^T [-[q]x] is (q x e)^T.
-    q = Pb[:, None, :]
-    # (each difference written in place: np.subtract(..., out=) spares a temporary and a copy)
-    np.subtract(q[..., 1] * E[..., 2], q[..., 2] * E[..., 1], out=J_pose[:, :, 0])
-    np.subtract(q[..., 2] * E[..., 0], q[..., 0] * E[..., 2], out=J_pose[:, :, 1])
-    np.subtract(q[..., 0] * E[..., 1], q[..., 1] * E[..., 0], out=J_pose[:, :, 2])
-    J_pose[:, :, 3:] = E
-    Pc = P[:, None, :]
-    Dm = np.zeros((len(X), 2, 3))
-    Dm[:, 0, 0] = Dm[:, 1, 1] = inv_z
-    Dm[:, :, 2] = -pred * inv_z[:, None]
-    # d xy / d (camera rotation), up to its sign: Dm x Pc per row (component-wise: np.cross costs
-    # ~15 us of set-up on arrays this small).
-    J_rot = np.empty((len(X), 2, 3))
-    np.subtract(Dm[..., 1] * Pc[..., 2], Dm[..., 2] * Pc[..., 1], out=J_rot[:, :, 0])
-    np.subtract(Dm[..., 2] * Pc[..., 0], Dm[..., 0] * Pc[..., 2], out=J_rot[:, :, 1])
-    np.subtract(Dm[..., 0] * Pc[..., 1], Dm[..., 1] * Pc[..., 0], out=J_rot[:, :, 2])
-    xy = np.concatenate([v.xy for v in views])
-    B = len(X) // 4
+    G.reshape(n, 39)[:, _SKEW_AT] = np.concatenate([Pb, P], axis=1)[:, _SKEW_OF] * _SKEW_SIGN
+    G[:, :, :3] = G[:, :, 3:6] @ G[:, :, :3]
+    D = np.zeros((n, 2, 3))
+    D[:, 0, 0] = D[:, 1, 1] = inv_z
+    D[:, :, 2] = -pred * inv_z[:, None]
+    J = D @ G
+    J[:, :, 9] = np.concatenate([v.xy for v in views]) - pred
     # (math.sqrt: np.sqrt's number, correctly rounded, without a ufunc call per camera)
     w = np.array([math.sqrt(v.model.fx * v.model.fy) ** 2 / pixel_noise ** 2 for v in views])[corner_view[::4]]
-    return ((xy - pred).reshape(B, 8), J_pose.reshape(B, 8, 6), J_mark.reshape(B, 8, 3), w, J_rot.reshape(B, 8, 3),
-            R_views, t_views)
+    return J.reshape(n // 4, 8, 13), w, R_views, t_views
 
 
 class MarkerCheck:
@@ -461,7 +476,8 @@ class MarkerCheck:
             return []
         drop = self.dropped
         # Blocks: one (camera, marker) pair, its 8 rows.
-        r, Jp, Jm, w, Jr, R_views, t_views = _rows(views, T_base_map, p.pixel_noise)
+        J, w, R_views, t_views = _rows(views, T_base_map, p.pixel_noise)
+        B = len(w)
         blk_view, blk_k, blk_mid = [], [], []
         for vi, v in enumerate(views):
             for k, i in enumerate(v.ids):
@@ -472,35 +488,31 @@ class MarkerCheck:
         mids_l = sorted(set(blk_mid))
         order = {m: j for j, m in enumerate(mids_l)}
         blk_m_l = [order[i] for i in blk_mid]
-        mids, blk_m = np.array(mids_l), np.array(blk_m_l)
+        blk_m = np.array(blk_m_l)
         M = len(mids_l)
         used_l = [m not in drop for m in mids_l]
         used = np.array(used_l)
-        S = np.zeros((M, len(w)))                                    # marker <- block sums
-        S[blk_m, np.arange(len(w))] = 1.0
-        Jpm = np.concatenate([Jp, Jm], axis=2)                       # (B, 8, 9)
+        # Marker <- block sums (M rows), and a last row: the sums over the blocks of used markers.
+        S = np.zeros((M + 1, B))
+        S[blk_m, np.arange(B)] = 1.0
+        S[M] = used[blk_m]
+        Z, Jr = J[:, :, :10], J[:, :, 10:]                              # Z = [Jp Jm r]
+        # Per block, Z^T W Z (10x10): [[H_b, cross^T, g_b], [cross, A, .], [., ., .]] (pose, marker,
+        # residual) from the Gram matrix J^T J (one product), with W the block's weight: the
+        # inverse of s^2 I + jitter^2 Jr Jr^T (8x8; s^2 = 1 / w), by Woodbury on 3x3:
+        # W = w (I - Jr K^-1 Jr^T), K = s^2 / jitter^2 I + Jr^T Jr (a batched 8x8 inverse cost twice
+        # as much). ``C`` = K^-1 Jr^T Z gives W Z = w (Z - Jr C) where needed (the judged blocks).
+        gram = J.transpose(0, 2, 1) @ J                                  # (B, 13, 13)
         if self.extrinsic_jitter > 0:
-            # Each block's weight W: the inverse of s^2 I + jitter^2 Jr Jr^T (8x8; s^2 = 1 / w), by
-            # Woodbury on 3x3: W = w (I - Jr (s^2 / jitter^2 I + Jr^T Jr)^-1 Jr^T) (a batched 8x8
-            # inverse cost twice as much).
-            JrT = Jr.transpose(0, 2, 1)
-            K = JrT @ Jr
-            k = 1.0 / (w * self.extrinsic_jitter ** 2)
-            K[:, 0, 0] += k
-            K[:, 1, 1] += k
-            K[:, 2, 2] += k
-            wJpm = (Jpm - Jr @ (_inv3(K) @ (JrT @ Jpm))) * w[:, None, None]
+            JrTZ = gram[:, 10:, :10]
+            C = _inv3(gram[:, 10:, 10:] + (1.0 / (w * self.extrinsic_jitter ** 2))[:, None, None] * _EYE3_ONE) @ JrTZ
+            NZ = (gram[:, :10, :10] - JrTZ.transpose(0, 2, 1) @ C) * w[:, None, None]
         else:
-            wJpm = w[:, None, None] * Jpm
-        wJpmT = wJpm.transpose(0, 2, 1)
-        # Per block, [Jp Jm]^T W [Jp Jm]: [[H_b, cross^T], [cross, A]] (pose, marker) in one product.
-        N = wJpmT @ Jpm                                               # (B, 9, 9)
-        H_b = N[:, :6, :6]
-        g_b = (wJpmT[:, :6] @ r[:, :, None])[:, :, 0]
-        Hm = (S @ H_b.reshape(-1, 36)).reshape(M, 6, 6)
-        gm = S @ g_b
-        H_all = Hm[used].sum(axis=0)
-        g_all = gm[used].sum(axis=0)
+            C = None
+            NZ = gram[:, :10, :10] * w[:, None, None]
+        sums = (S @ NZ.reshape(B, 100)).reshape(M + 1, 10, 10)
+        Hm, gm = sums[:M, :6, :6], sums[:M, :6, 9]
+        H_all, g_all = sums[M, :6, :6], sums[M, :6, 9]
         n_used = sum(used_l)
         self.frames_checked += 1
         if self.frames_checked % 100 == 0:
@@ -521,7 +533,7 @@ class MarkerCheck:
                     delta[m] = np.linalg.solve(H_loo[m] + eye6, g_loo[m])
                 except np.linalg.LinAlgError:
                     eligible[m] = False
-        res = r - np.matmul(Jp, delta[blk_m][:, :, None])[:, :, 0]
+        res = J[:, :, 9] - np.matmul(J[:, :, :6], delta[blk_m][:, :, None])[:, :, 0]
         # The (camera, marker) pairs that give the pose from the others: each camera's extrinsic
         # error pulls that pose its own way, and each marker seen weighs in, so the offset a
         # (marker, camera) pair shows holds for one set of others. A camera dropping out, or another
@@ -559,23 +571,24 @@ class MarkerCheck:
                 bases.append(base)
         if not judged_blocks:
             return self._judge(stamp, now)
-        have = np.zeros(len(w), dtype=bool)
-        have[judged_blocks] = True
-        e = np.zeros(res.shape)
-        e[judged_blocks] = res[judged_blocks] - np.array(bases)
+        e = res[judged_blocks] - np.array(bases)
+        Zj = Z[judged_blocks, :, :9]                                     # [Jp Jm] of the judged blocks
+        if C is not None:
+            Zj = Zj - Jr[judged_blocks] @ C[judged_blocks, :, :9]
+        WJe = (e[:, None, :] @ Zj)[:, 0] * w[judged_blocks, None]        # [Jp Jm]^T W e
         # The pose from the others is uncertain too (few markers, one camera): the residual's
         # covariance is W^-1 + Jp H^-1 Jp^T. Its inverse (Woodbury) W - W Jp H_joint^-1 Jp^T W
         # turns the sums into the displacement's information with the pose marginalised (the
         # Schur complement): a displacement that the pose from a few markers can absorb is weak
         # evidence, so a frame with few cameras or markers does not declare a move.
-        Sh = S * have[None, :]
-        # Per marker, the sums over its judged blocks of N (H_b, cross, A) and [Jp Jm]^T W e (proj, b).
-        M9 = Sh @ np.concatenate([N.reshape(-1, 81), (wJpmT @ e[:, :, None])[:, :, 0]], axis=1)
-        N_m = M9[:, :81].reshape(M, 9, 9)
-        A = N_m[:, 6:, 6:]
-        b = M9[:, 87:]
-        cross = N_m[:, 6:, :6]
-        proj = M9[:, 81:87]
+        Sh = S[:M, judged_blocks]
+        # Per marker, the sums over its judged blocks of Z^T W Z (H_b, cross, A) and [Jp Jm]^T W e (proj, b).
+        M9 = Sh @ np.concatenate([NZ[judged_blocks].reshape(-1, 100), WJe], axis=1)
+        N_m = M9[:, :100].reshape(M, 10, 10)
+        A = N_m[:, 6:9, 6:9]
+        b = M9[:, 106:]
+        cross = N_m[:, 6:9, :6]
+        proj = M9[:, 100:106]
         H_joint = H_loo + N_m[:, :6, :6]
         judged = Sh.any(axis=1).nonzero()[0]   # the markers with a judged block
         try:
