@@ -14,7 +14,7 @@ taken while it drives are skipped, at no cost), :class:`MarkerCheck` computes, p
    with ``s`` = ``pixel_noise / f`` and ``j`` the cameras' per-frame rotation jitter, ``Jr`` the
    corners w.r.t. the camera's rotation), with the uncertainty of the pose from the others
    marginalised (Schur complement), judged against the change from each (marker, camera) pair's
-   baseline for the current set of other (camera, marker) pairs (:meth:`MarkerCheck._baseline_of`).
+   baseline for the current set of other (camera, marker) pairs (the baselines in :meth:`MarkerCheck.update`).
 
 ``A`` and ``b`` are summed over the last ``window`` seconds. The estimated displacement is
 ``d = A^-1 b`` and the **test statistic**
@@ -166,10 +166,14 @@ class _Evidence:
         self.b = np.zeros(3)
 
     def add(self, stamp: float, A: np.ndarray, b: np.ndarray, window: float) -> None:
+        self.push(stamp, A, b)
+        self.prune(stamp - window)
+
+    def push(self, stamp: float, A: np.ndarray, b: np.ndarray) -> None:
+        """:meth:`add` without forgetting the old frames (the caller prunes next)."""
         self.items.append((stamp, A, b))
         self.A = self.A + A
         self.b = self.b + b
-        self.prune(stamp - window)
 
     def prune(self, oldest: float) -> None:
         """Forget the frames stamped before ``oldest``."""
@@ -252,11 +256,11 @@ _EYE3 = 1e-12 * np.eye(3)
 _EYE3_ONE = np.eye(3)
 
 
-def _farther(a: Sequence[float], b: Sequence[float], distance: float) -> bool:
-    """|a - b| > distance for 3-vectors as lists (np.linalg.norm's set-up costs more than the
+def _far(a: Sequence[float], b: Sequence[float], distance2: float) -> bool:
+    """|a - b|^2 > distance2 for 3-vectors as lists (np.linalg.norm's set-up costs more than the
     arithmetic: twice per (marker, camera) pair and frame)."""
     x, y, z = a[0] - b[0], a[1] - b[1], a[2] - b[2]
-    return x * x + y * y + z * z > distance * distance
+    return x * x + y * y + z * z > distance2
 
 
 @dataclass
@@ -552,23 +556,60 @@ class MarkerCheck:
         judged_blocks, bases = [], []   # the blocks with a baseline, and it (e = res - base there)
         eligible_l, res_rows, delta_rows = eligible.tolist(), res.tolist(), list(delta)
         records, oldest_record = self._records, stamp - p.remap_window
+        # Each block's (marker, camera, others) pair: its offset learnt from its residuals older than
+        # the window (None: none yet, the block is not judged); its residual queued for it (inline:
+        # one Python pass over the blocks with the parameters bound once, issue 16).
+        #
+        # A residual joins the baseline once it is ``window`` s old (a plain mean at first, then an
+        # exponential average over ``baseline_time``), so a move is judged against what the pair
+        # showed before it. The offset depends on the viewpoint (a calibration error projects
+        # differently from elsewhere): a baseline is valid within ``baseline_distance`` of the camera
+        # positions it was learnt at, and starts over beyond. A baseline that no residual refreshed
+        # for ``baseline_time`` starts over too (the robot came back after a loop: learnt from another
+        # heading, the same place is another view). The baseline of a dropped marker is frozen.
+        baselines, oldest = self._baselines, stamp - p.window
+        baseline_time, stale = p.baseline_time, p.window + p.baseline_time
+        far2 = p.baseline_distance * p.baseline_distance
         for b_, m in enumerate(blk_m_l):
             if not eligible_l[m]:
                 continue
             mid = mids_l[m]
             vi = blk_view[b_]
             v = views[vi]
+            camera = v.camera
             # The view for re-mapping (:meth:`observations`), the last ``remap_window`` s of it.
             q = records.get(mid)
             if q is None:
                 q = records[mid] = deque()
-            q.append((stamp, v.camera, v.px[blk_k[b_]], v.model, T_map_base, delta_rows[m], v.T_cam_base))
+            q.append((stamp, camera, v.px[blk_k[b_]], v.model, T_map_base, delta_rows[m], v.T_cam_base))
             while q[0][0] < oldest_record:
                 q.popleft()
-            base = self._baseline_of(mid, v.camera, masks[m], stamp, res_rows[b_], positions[vi])
-            if base is not None:   # else a pair not seen long enough to know its own offset yet
-                judged_blocks.append(b_)
-                bases.append(base)
+            position = positions[vi]
+            key = (mid, camera, masks[m])
+            bl = baselines.get(key)
+            if bl is None:
+                bl = baselines[key] = _Baseline()
+            pending = bl.pending
+            pending.append((stamp, res_rows[b_], position))
+            if pending[0][0] < oldest:
+                frozen = mid in drop
+                while pending and pending[0][0] < oldest:
+                    t, rr, pos = pending.popleft()
+                    if frozen:
+                        continue
+                    if bl.value is None or t - bl.stamp > baseline_time or _far(pos, bl.position, far2):
+                        bl.value, bl.position, bl.count, bl.stamp = list(rr), list(pos), 1, t
+                        continue
+                    bl.count += 1
+                    alpha = max(1.0 / bl.count, min(1.0, (t - bl.stamp) / baseline_time))
+                    bl.value = [a + alpha * (x - a) for a, x in zip(bl.value, rr)]
+                    bl.position = [a + alpha * (x - a) for a, x in zip(bl.position, pos)]
+                    bl.stamp = t
+            base = bl.value
+            if base is None or stamp - bl.stamp > stale or _far(position, bl.position, far2):
+                continue   # a pair not seen long enough (or from here) to know its own offset yet
+            judged_blocks.append(b_)
+            bases.append(base)
         if not judged_blocks:
             return self._judge(stamp, now)
         e = res[judged_blocks] - np.array(bases)
@@ -603,8 +644,8 @@ class MarkerCheck:
             ev = evidence.get(mids_l[m])
             if ev is None:
                 ev = evidence[mids_l[m]] = _Evidence()
-            ev.add(stamp, A[j], b[j], p.window)
-        return self._judge(stamp, now)
+            ev.push(stamp, A[j], b[j])
+        return self._judge(stamp, now)   # (it prunes every marker's evidence to the window)
 
     def _forget(self, stamp: float) -> None:
         """Drop the baselines that nothing refreshed for ``window + baseline_time`` (stale: they
@@ -613,46 +654,6 @@ class MarkerCheck:
         for key in [k for k, bl in self._baselines.items()
                     if (bl.stamp is None or bl.stamp < horizon) and (not bl.pending or bl.pending[-1][0] < horizon)]:
             del self._baselines[key]
-
-    def _baseline_of(self, mid: int, camera: str, basis: int, stamp: float, res: List[float],
-                     position: List[float]) -> Optional[List[float]]:
-        """The pair's offset learnt from its residuals older than the window (None: none yet); queue ``res``.
-
-        A residual joins the baseline once it is ``window`` s old (a plain mean at first, then an
-        exponential average over ``baseline_time``), so a move is judged against what the pair showed
-        before it. The offset depends on the viewpoint (a calibration error projects differently from
-        elsewhere): a baseline is valid within ``baseline_distance`` of the camera positions it was
-        learnt at, and starts over beyond. A baseline that no residual refreshed for ``baseline_time``
-        starts over too (the robot came back after a loop: learnt from another heading, the same
-        place is another view). The baseline of a marker declared moved is frozen.
-        """
-        p = self.params
-        key = (mid, camera, basis)
-        bl = self._baselines.get(key)
-        if bl is None:
-            bl = self._baselines[key] = _Baseline()
-        pending = bl.pending
-        pending.append((stamp, res, position))
-        oldest = stamp - p.window
-        if pending[0][0] < oldest:
-            frozen = mid in self.moved or mid in self.excluded
-            while pending and pending[0][0] < oldest:
-                t, r, pos = pending.popleft()
-                if frozen:
-                    continue
-                if bl.value is None or t - bl.stamp > p.baseline_time or \
-                        _farther(pos, bl.position, p.baseline_distance):
-                    bl.value, bl.position, bl.count, bl.stamp = list(r), list(pos), 1, t
-                    continue
-                bl.count += 1
-                alpha = max(1.0 / bl.count, min(1.0, (t - bl.stamp) / p.baseline_time))
-                bl.value = [v + alpha * (x - v) for v, x in zip(bl.value, r)]
-                bl.position = [v + alpha * (x - v) for v, x in zip(bl.position, pos)]
-                bl.stamp = t
-        if bl.value is None or stamp - bl.stamp > p.window + p.baseline_time or \
-                _farther(position, bl.position, p.baseline_distance):
-            return None
-        return bl.value
 
     def _judge(self, stamp: float, now: float) -> List[MovedMarker]:
         p = self.params
