@@ -276,17 +276,11 @@ class _Baseline:
     pending: Deque[Tuple[float, List[float], List[float]]] = field(default_factory=deque)
 
 
-#: a placeholder for a :class:`_View`'s pose until :meth:`MarkerCheck._views` writes it
-_NO_POSE = np.zeros(0)
-
-
 @dataclass
 class _View:
     camera: str
     index: int                   # the camera's index in the ring (bit of a basis mask)
     model: CameraModel
-    R_cam_map: np.ndarray
-    t_cam_map: np.ndarray
     T_cam_base: np.ndarray       # moved by the robot's motion to the camera's stamp (free-running)
     ids: List[int]
     px: Sequence[np.ndarray]     # per marker its (4, 2) raw corners (a list, or a (k, 4, 2) array)
@@ -301,13 +295,14 @@ _SKEW = np.array([(1, 2, 1), (2, 1, -1), (13, 2, -1), (15, 0, 1), (26, 1, 1), (2
 _SKEW_AT, _SKEW_OF, _SKEW_SIGN = _SKEW[:, 0], _SKEW[:, 1], _SKEW[:, 2].astype(np.float64)
 
 
-def _rows(views: Sequence[_View], T_base_map: np.ndarray, pixel_noise: float):
+def _rows(views: Sequence[_View], T_cam_bases: np.ndarray, T_cam_maps: np.ndarray, T_base_map: np.ndarray,
+          pixel_noise: float):
     """Every camera's rows in one pass, per (camera, marker) block of 4 corners (8 rows), as one
     array J (B, 8, 13) with the columns: J_pose (0-5) w.r.t. a base-frame perturbation (w, v) of
     ``T_base_map`` (geo.se3_perturb's order), J_marker (6-8) w.r.t. the marker's position in the
     map, the residual r (9) in normalised coordinates, J_rot (10-12) w.r.t. the camera's rotation
-    (up to its sign); the weight 1/s^2 (B,) of the block's camera, and the cameras' stacked
-    ``R_cam_map`` (V, 3, 3) and ``t_cam_map`` (V, 3).
+    (up to its sign), and the weight 1/s^2 (B,) of the block's camera. ``T_cam_bases``,
+    ``T_cam_maps``: the views' (V, 4, 4) stacked (:meth:`MarkerCheck._views`).
 
     Each Jacobian is D G, with D = d xy / d P_cam = [[1/z, 0, -x/z], [0, 1/z, -y/z]] and G the
     derivatives of the camera-frame point: R_cam_base [-P_base]x for the rotation (a row e^T [-q]x
@@ -318,25 +313,19 @@ def _rows(views: Sequence[_View], T_base_map: np.ndarray, pixel_noise: float):
     n = len(X)
     # Per corner, its camera's matrices: one gather from the stacks (np.repeat of each stack cost 3x).
     corner_view = np.repeat(np.arange(len(views)), counts)
-    # (np.array of the list: np.stack's numbers without its per-array set-up)
-    R_views = np.array([v.R_cam_map for v in views])
-    t_views = np.array([v.t_cam_map for v in views])
     G = np.zeros((n, 3, 13))
-    G[:, :, 3:9] = np.concatenate([np.array([v.T_cam_base[:3, :3] for v in views]), R_views], axis=2)[corner_view]
-    P = np.matmul(G[:, :, 6:9], X[:, :, None])[:, :, 0] + t_views[corner_view]
+    G[:, :, 3:9] = np.concatenate([T_cam_bases[:, :3, :3], T_cam_maps[:, :3, :3]], axis=2)[corner_view]
+    P = np.matmul(G[:, :, 6:9], X[:, :, None])[:, :, 0] + T_cam_maps[corner_view, :3, 3]
     pred = P[:, :2] / P[:, 2:3]
-    inv_z = 1.0 / P[:, 2]
     Pb = X @ T_base_map[:3, :3].T + T_base_map[:3, 3]
     G.reshape(n, 39)[:, _SKEW_AT] = np.concatenate([Pb, P], axis=1)[:, _SKEW_OF] * _SKEW_SIGN
     G[:, :, :3] = G[:, :, 3:6] @ G[:, :, :3]
-    D = np.zeros((n, 2, 3))
-    D[:, 0, 0] = D[:, 1, 1] = inv_z
-    D[:, :, 2] = -pred * inv_z[:, None]
-    J = D @ G
+    # D G = (G's rows x, y minus the prediction times its row z) / z
+    J = (G[:, :2] - pred[:, :, None] * G[:, 2:3]) * (1.0 / P[:, 2])[:, None, None]
     J[:, :, 9] = np.concatenate([v.xy for v in views]) - pred
     # (math.sqrt: np.sqrt's number, correctly rounded, without a ufunc call per camera)
     w = np.array([math.sqrt(v.model.fx * v.model.fy) ** 2 / pixel_noise ** 2 for v in views])[corner_view[::4]]
-    return J.reshape(n // 4, 8, 13), w, R_views, t_views
+    return J.reshape(n // 4, 8, 13), w
 
 
 class MarkerCheck:
@@ -401,8 +390,9 @@ class MarkerCheck:
     # --- the check -------------------------------------------------------------------------------
 
     def _views(self, frame: RingFrame, ring: CameraRing, T_base_map: np.ndarray, motion=None,
-               known_views: Optional[Dict[str, object]] = None) -> List[_View]:
-        """The frame's views of mapped markers (``T_base_map``: the inverse of the accepted pose);
+               known_views: Optional[Dict[str, object]] = None) -> Tuple[List[_View], np.ndarray, np.ndarray]:
+        """The frame's views of mapped markers (``T_base_map``: the inverse of the accepted pose) and
+        their T_cam_base and T_cam_map stacked (V, 4, 4) (None without views);
         ``known_views``: the estimator's views of this frame (:attr:`RingLocalizer.last_views`,
         name -> CameraView), whose corners are reused where a camera's markers are the same."""
         mm = self.marker_map
@@ -419,8 +409,8 @@ class MarkerCheck:
             known = cameras.get(name)
             if known is None:
                 continue
-            obs = [o for o in cf.observations if int(o.marker_id) in mm]
-            if not obs:
+            ids = [i for i in [int(o.marker_id) for o in cf.observations] if i in mm]
+            if not ids:
                 continue
             index, T_base_cam, T_cam_base = known
             model = cf.model if cf.model is not None else ring[name].model
@@ -430,7 +420,6 @@ class MarkerCheck:
                 # (as the estimator takes it: RingLocalizer._moved_extrinsics).
                 T_base_cam = displacement_to_transform(moved[0]) @ T_base_cam
                 T_cam_base = geo.inverse(T_base_cam)
-            ids = [int(o.marker_id) for o in obs]
             same = None if known_views is None else known_views.get(name)
             if same is not None and same.ids == ids and same.model is model:
                 # The estimator's view of these very detections (its corners, normalised and in the
@@ -438,17 +427,16 @@ class MarkerCheck:
                 px = same.px.reshape(-1, 4, 2)
                 xy, X = same.xy, same.X
             else:
-                px = [np.asarray(o.corners, dtype=np.float64).reshape(4, 2) for o in obs]
+                px = [np.asarray(o.corners, dtype=np.float64).reshape(4, 2) for o in cf.observations
+                      if int(o.marker_id) in mm]
                 xy, X = model.normalize(np.concatenate(px)), np.concatenate([mm.corners(i) for i in ids])
-            out.append(_View(name, index, model, _NO_POSE, _NO_POSE, T_cam_base, ids, px, xy, X))
+            out.append(_View(name, index, model, T_cam_base, ids, px, xy, X))
             T_cam_bases.append(T_cam_base)
-        if out:
-            # Every view's T_cam_map in one batched product (the same numbers as one product per
-            # view; issue 16): the views' R_cam_map and t_cam_map are slices of it.
-            T_cam_maps = np.matmul(np.array(T_cam_bases), T_base_map)
-            for v, T in zip(out, T_cam_maps):
-                v.R_cam_map, v.t_cam_map = T[:3, :3], T[:3, 3]
-        return out
+        if not out:
+            return out, None, None
+        # Every view's T_cam_map in one batched product (the same numbers as one product per view).
+        stack = np.array(T_cam_bases)
+        return out, stack, np.matmul(stack, T_base_map)
 
     def update(self, frame: RingFrame, T_map_base: np.ndarray, ring: CameraRing, now: float,
                motion=None, speed: Tuple[float, float] = (0.0, 0.0),
@@ -475,12 +463,12 @@ class MarkerCheck:
             return []
         self._last_checked = stamp
         T_base_map = geo.inverse(T_map_base)
-        views = self._views(frame, ring, T_base_map, motion, known_views)
+        views, T_cam_bases, T_cam_maps = self._views(frame, ring, T_base_map, motion, known_views)
         if not views:
             return []
         drop = self.dropped
         # Blocks: one (camera, marker) pair, its 8 rows.
-        J, w, R_views, t_views = _rows(views, T_base_map, p.pixel_noise)
+        J, w = _rows(views, T_cam_bases, T_cam_maps, T_base_map, p.pixel_noise)
         B = len(w)
         blk_view, blk_k, blk_mid = [], [], []
         for vi, v in enumerate(views):
@@ -521,8 +509,8 @@ class MarkerCheck:
         self.frames_checked += 1
         if self.frames_checked % 100 == 0:
             self._forget(stamp)
-        eligible = (n_used - used.astype(int)) >= p.min_other_markers
-        if not eligible.any():
+        eligible_l = [n_used - u >= p.min_other_markers for u in used_l]
+        if not any(eligible_l):
             return self._judge(stamp, now)
         # The pose from the others: one Gauss-Newton step without the marker's rows.
         H_loo = H_all[None] - Hm * used[:, None, None]
@@ -532,11 +520,13 @@ class MarkerCheck:
             delta = np.linalg.solve(H_loo + eye6, g_loo[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:
             delta = np.zeros((M, 6))
-            for m in np.flatnonzero(eligible):
+            for m in range(M):
+                if not eligible_l[m]:
+                    continue
                 try:
                     delta[m] = np.linalg.solve(H_loo[m] + eye6, g_loo[m])
                 except np.linalg.LinAlgError:
-                    eligible[m] = False
+                    eligible_l[m] = False
         res = J[:, :, 9] - np.matmul(J[:, :, :6], delta[blk_m][:, :, None])[:, :, 0]
         # The (camera, marker) pairs that give the pose from the others: each camera's extrinsic
         # error pulls that pose its own way, and each marker seen weighs in, so the offset a
@@ -552,9 +542,9 @@ class MarkerCheck:
             own.setdefault(m, set()).add(pr)
         masks = [hash(everyone - own[m]) for m in range(M)]
         # Camera positions in the map, -R^T t, batched (8 small matmuls on strided views cost ~20 us).
-        positions = (-np.einsum("kji,kj->ki", R_views, t_views)).tolist()
+        positions = (-np.einsum("kji,kj->ki", T_cam_maps[:, :3, :3], T_cam_maps[:, :3, 3])).tolist()
         judged_blocks, bases = [], []   # the blocks with a baseline, and it (e = res - base there)
-        eligible_l, res_rows, delta_rows = eligible.tolist(), res.tolist(), list(delta)
+        res_rows, delta_rows = res.tolist(), list(delta)
         records, oldest_record = self._records, stamp - p.remap_window
         # Each block's (marker, camera, others) pair: its offset learnt from its residuals older than
         # the window (None: none yet, the block is not judged); its residual queued for it (inline:
