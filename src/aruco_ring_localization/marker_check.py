@@ -409,9 +409,13 @@ class MarkerCheck:
             known = cameras.get(name)
             if known is None:
                 continue
-            ids = [i for i in [int(o.marker_id) for o in cf.observations] if i in mm]
-            if not ids:
-                continue
+            ids = [int(o.marker_id) for o in cf.observations]
+            same = None if known_views is None else known_views.get(name)
+            if same is None or same.ids != ids:
+                # (else the estimator's view of the same ids: every one mapped, RingLocalizer._gather)
+                ids = [i for i in ids if i in mm]
+                if not ids:
+                    continue
             index, T_base_cam, T_cam_base = known
             model = cf.model if cf.model is not None else ring[name].model
             moved = None if motion is None or cf.stamp == t_ref else motion(t_ref, float(cf.stamp))
@@ -420,7 +424,6 @@ class MarkerCheck:
                 # (as the estimator takes it: RingLocalizer._moved_extrinsics).
                 T_base_cam = displacement_to_transform(moved[0]) @ T_base_cam
                 T_cam_base = geo.inverse(T_base_cam)
-            same = None if known_views is None else known_views.get(name)
             if same is not None and same.ids == ids and same.model is model:
                 # The estimator's view of these very detections (its corners, normalised and in the
                 # map, are the same numbers): not computed again.
@@ -650,9 +653,11 @@ class MarkerCheck:
         oldest = stamp - p.window
         ids, As, bs, counts, fresh = [], [], [], [], []
         for mid, ev in self._evidence.items():
-            ev.prune(oldest)
-            if not ev.items:
-                continue
+            items = ev.items
+            if not items or items[0][0] < oldest:   # (else nothing to forget: no call)
+                ev.prune(oldest)
+                if not items:
+                    continue
             ids.append(mid)
             As.append(ev.A)
             bs.append(ev.b)
