@@ -491,8 +491,7 @@ class MarkerCheck:
         S = np.zeros((M + 1, B))
         S[blk_m, np.arange(B)] = 1.0
         S[M] = used[blk_m]
-        Z, Jr = J[:, :, :10], J[:, :, 10:]                              # Z = [Jp Jm r]
-        # Per block, Z^T W Z (10x10): [[H_b, cross^T, g_b], [cross, A, .], [., ., .]] (pose, marker,
+        # J = [Z Jr], Z = [Jp Jm r]. Per block, Z^T W Z (10x10): [[H_b, cross^T, g_b], [cross, A, .], [., ., .]] (pose, marker,
         # residual) from the Gram matrix J^T J (one product), with W the block's weight: the
         # inverse of s^2 I + jitter^2 Jr Jr^T (8x8; s^2 = 1 / w), by Woodbury on 3x3:
         # W = w (I - Jr K^-1 Jr^T), K = s^2 / jitter^2 I + Jr^T Jr (a batched 8x8 inverse cost twice
@@ -500,7 +499,8 @@ class MarkerCheck:
         gram = J.transpose(0, 2, 1) @ J                                  # (B, 13, 13)
         if self.extrinsic_jitter > 0:
             JrTZ = gram[:, 10:, :10]
-            C = _inv3(gram[:, 10:, 10:] + (1.0 / (w * self.extrinsic_jitter ** 2))[:, None, None] * _EYE3_ONE) @ JrTZ
+            gram.reshape(B, 169)[:, 140::14] += (1.0 / (w * self.extrinsic_jitter ** 2))[:, None]   # Jr^T Jr -> K
+            C = _inv3(gram[:, 10:, 10:]) @ JrTZ
             NZ = (gram[:, :10, :10] - JrTZ.transpose(0, 2, 1) @ C) * w[:, None, None]
         else:
             C = None
@@ -606,10 +606,11 @@ class MarkerCheck:
         if not judged_blocks:
             return self._judge(stamp, now)
         e = res[judged_blocks] - np.array(bases)
-        Zj = Z[judged_blocks, :, :9]                                     # [Jp Jm] of the judged blocks
+        eJ = (e[:, None, :] @ J[judged_blocks])[:, 0]                    # e^T J (k, 13)
+        WJe = eJ[:, :9]                                                  # [Jp Jm]^T W e = w (e^T Z - e^T Jr C)
         if C is not None:
-            Zj = Zj - Jr[judged_blocks] @ C[judged_blocks, :, :9]
-        WJe = (e[:, None, :] @ Zj)[:, 0] * w[judged_blocks, None]        # [Jp Jm]^T W e
+            WJe = WJe - (eJ[:, None, 10:] @ C[judged_blocks, :, :9])[:, 0]
+        WJe = WJe * w[judged_blocks, None]
         # The pose from the others is uncertain too (few markers, one camera): the residual's
         # covariance is W^-1 + Jp H^-1 Jp^T. Its inverse (Woodbury) W - W Jp H_joint^-1 Jp^T W
         # turns the sums into the displacement's information with the pose marginalised (the
