@@ -473,14 +473,25 @@ class MarkerCheck:
         # Blocks: one (camera, marker) pair, its 8 rows.
         J, w = _rows(views, T_cam_bases, T_cam_maps, T_base_map, p.pixel_noise)
         B = len(w)
-        blk_view, blk_k, blk_mid = [], [], []
+        # Per block its view, its index in the view, its marker and its (camera index, marker) pair;
+        # per marker its pairs (``own``: for the baselines' sets of others below).
+        blk_view, blk_k, blk_mid, pairs = [], [], [], []
+        own: Dict[int, set] = {}
         for vi, v in enumerate(views):
+            cam = v.index
             for k, i in enumerate(v.ids):
                 blk_view.append(vi)
                 blk_k.append(k)
                 blk_mid.append(i)
+                pr = (cam, i)
+                pairs.append(pr)
+                mine = own.get(i)
+                if mine is None:
+                    own[i] = {pr}
+                else:
+                    mine.add(pr)
         # The markers in view, sorted, and each block's (np.unique's, without its set-up).
-        mids_l = sorted(set(blk_mid))
+        mids_l = sorted(own)
         order = {m: j for j, m in enumerate(mids_l)}
         blk_m_l = [order[i] for i in blk_mid]
         blk_m = np.array(blk_m_l)
@@ -537,13 +548,8 @@ class MarkerCheck:
         # marker coming into view, changes the set: the pair's residual jumps although nothing
         # moved (on the harsh lab, 6 mrad when cam4 started to see one more marker); it is judged
         # against the baseline of the new set once that is learnt.
-        index = [v.index for v in views]
-        pairs = [(index[vi], mid) for mid, vi in zip(blk_mid, blk_view)]
-        everyone = frozenset(pr for pr, m in zip(pairs, blk_m_l) if used_l[m])
-        own: Dict[int, set] = {}
-        for pr, m in zip(pairs, blk_m_l):
-            own.setdefault(m, set()).add(pr)
-        masks = [hash(everyone - own[m]) for m in range(M)]
+        everyone = frozenset(pr for pr, mid in zip(pairs, blk_mid) if mid not in drop)
+        masks = [hash(everyone - own[mid]) for mid in mids_l]
         # Camera positions in the map, -R^T t, batched (8 small matmuls on strided views cost ~20 us).
         positions = (-np.einsum("kji,kj->ki", T_cam_maps[:, :3, :3], T_cam_maps[:, :3, 3])).tolist()
         judged_blocks, bases = [], []   # the blocks with a baseline, and it (e = res - base there)
