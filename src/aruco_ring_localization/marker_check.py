@@ -502,8 +502,8 @@ class MarkerCheck:
         S = np.zeros((M + 1, B))
         S[blk_m, np.arange(B)] = 1.0
         S[M] = used[blk_m]
-        # J = [Z Jr], Z = [Jp Jm r]. Per block, Z^T W Z (10x10): [[H_b, cross^T, g_b], [cross, A, .], [., ., .]] (pose, marker,
-        # residual) from the Gram matrix J^T J (one product), with W the block's weight: the
+        # J = [Z Jr], Z = [Jp Jm r]. Per block, Z^T W Z (10x10): [[H_b, cross^T, g_b], [cross, A, .],
+        # [., ., .]] (pose, marker, residual) from the Gram matrix J^T J (one product), with W the block's weight: the
         # inverse of s^2 I + jitter^2 Jr Jr^T (8x8; s^2 = 1 / w), by Woodbury on 3x3:
         # W = w (I - Jr K^-1 Jr^T), K = s^2 / jitter^2 I + Jr^T Jr (a batched 8x8 inverse cost twice
         # as much). ``C`` = K^-1 Jr^T Z gives W Z = w (Z - Jr C) where needed (the judged blocks).
