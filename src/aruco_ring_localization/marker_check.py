@@ -155,40 +155,44 @@ class MovedMarker:
 
 
 class _Evidence:
-    """A marker's displacement information over the window: the frames' (stamp, A, b) and their
-    running sums (kept exactly zero once the window is empty, so no rounding accumulates)."""
+    """A marker's displacement information over the window: the frames' (stamp, [A | b]) and their
+    running sum (kept exactly zero once the window is empty, so no rounding accumulates). A (3x3)
+    and b (3) side by side in one (3, 4) array: one array operation per frame and sum, not two."""
 
-    __slots__ = ("items", "A", "b")
+    __slots__ = ("items", "Ab")
 
     def __init__(self) -> None:
-        self.items: Deque[Tuple[float, np.ndarray, np.ndarray]] = deque()
-        self.A = np.zeros((3, 3))
-        self.b = np.zeros(3)
+        self.items: Deque[Tuple[float, np.ndarray]] = deque()
+        self.Ab = np.zeros((3, 4))
+
+    @property
+    def A(self) -> np.ndarray:
+        return self.Ab[:, :3]
+
+    @property
+    def b(self) -> np.ndarray:
+        return self.Ab[:, 3]
 
     def add(self, stamp: float, A: np.ndarray, b: np.ndarray, window: float) -> None:
-        self.push(stamp, A, b)
+        self.push(stamp, np.concatenate([A, np.reshape(b, (3, 1))], axis=1))
         self.prune(stamp - window)
 
-    def push(self, stamp: float, A: np.ndarray, b: np.ndarray) -> None:
-        """:meth:`add` without forgetting the old frames (the caller prunes next)."""
-        self.items.append((stamp, A, b))
-        self.A = self.A + A
-        self.b = self.b + b
+    def push(self, stamp: float, Ab: np.ndarray) -> None:
+        """:meth:`add` of ``[A | b]`` (3, 4) without forgetting the old frames (the caller prunes next)."""
+        self.items.append((stamp, Ab))
+        self.Ab = self.Ab + Ab
 
     def prune(self, oldest: float) -> None:
         """Forget the frames stamped before ``oldest``."""
         items = self.items
         while items and items[0][0] < oldest:
-            _, A, b = items.popleft()
-            self.A = self.A - A
-            self.b = self.b - b
+            self.Ab = self.Ab - items.popleft()[1]
         if not items:
             self.clear()
 
     def clear(self) -> None:
         self.items.clear()
-        self.A = np.zeros((3, 3))
-        self.b = np.zeros(3)
+        self.Ab = np.zeros((3, 4))
 
 
 def _statistics(A: np.ndarray, b: np.ndarray, sys_std: float) -> Tuple[np.ndarray, np.ndarray]:
@@ -640,11 +644,11 @@ class MarkerCheck:
         A = 0.5 * (A + A.transpose(0, 2, 1))
         b = b[judged] - (K.transpose(0, 2, 1) @ proj[judged][:, :, None])[:, :, 0]
         evidence = self._evidence
-        for j, m in enumerate(judged.tolist()):
+        for m, Ab in zip(judged.tolist(), np.concatenate([A, b[:, :, None]], axis=2)):
             ev = evidence.get(mids_l[m])
             if ev is None:
                 ev = evidence[mids_l[m]] = _Evidence()
-            ev.push(stamp, A[j], b[j])
+            ev.push(stamp, Ab)
         return self._judge(stamp, now)   # (it prunes every marker's evidence to the window)
 
     def _forget(self, stamp: float) -> None:
@@ -658,7 +662,7 @@ class MarkerCheck:
     def _judge(self, stamp: float, now: float) -> List[MovedMarker]:
         p = self.params
         oldest = stamp - p.window
-        ids, As, bs, counts, fresh = [], [], [], [], []
+        ids, Abs, counts, fresh = [], [], [], []
         for mid, ev in self._evidence.items():
             items = ev.items
             if not items or items[0][0] < oldest:   # (else nothing to forget: no call)
@@ -666,17 +670,15 @@ class MarkerCheck:
                 if not items:
                     continue
             ids.append(mid)
-            As.append(ev.A)
-            bs.append(ev.b)
+            Abs.append(ev.Ab)
             counts.append(len(ev.items))
             if ev.items[-1][0] == stamp:
                 fresh.append(len(ids) - 1)
         if not ids:
             return []
         # The window sums and the latest frame alone (``fresh``) in one batch.
-        last = [self._evidence[ids[j]].items[-1] for j in fresh]
-        d_both, T_both = _statistics(np.array(As + [a for _, a, _ in last]), np.array(bs + [v for _, _, v in last]),
-                                     p.systematic_std)
+        Ab = np.array(Abs + [self._evidence[ids[j]].items[-1][1] for j in fresh])
+        d_both, T_both = _statistics(Ab[:, :, :3], Ab[:, :, 3], p.systematic_std)
         k = len(ids)
         d_all, T_all = d_both[:k], T_both[:k].tolist()
         dist = np.sqrt(np.einsum("ki,ki->k", d_both, d_both)).tolist()

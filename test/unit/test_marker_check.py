@@ -307,8 +307,8 @@ def test_window_sums_follow_the_items():
     ev = _Evidence()
     for k in range(50):
         ev.add(0.1 * k, rng.normal(size=(3, 3)) * 1e5, rng.normal(size=3) * 1e3, window=1.0)
-        assert np.allclose(ev.A, sum(a for _, a, _ in ev.items), rtol=0, atol=1e-6)
-        assert np.allclose(ev.b, sum(b for _, _, b in ev.items), rtol=0, atol=1e-8)
+        assert np.allclose(ev.A, sum(ab[:, :3] for _, ab in ev.items), rtol=0, atol=1e-6)
+        assert np.allclose(ev.b, sum(ab[:, 3] for _, ab in ev.items), rtol=0, atol=1e-8)
     ev.prune(100.0)
     assert not ev.items and not ev.A.any() and not ev.b.any()
 
