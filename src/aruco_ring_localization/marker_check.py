@@ -418,8 +418,8 @@ class MarkerCheck:
             if same is None or same.ids != ids:
                 # (else the estimator's view of the same ids: every one mapped, RingLocalizer._gather)
                 ids = [i for i in ids if i in mm]
-                if not ids:
-                    continue
+            if not ids:
+                continue
             index, T_base_cam, T_cam_base = known
             model = cf.model if cf.model is not None else ring[name].model
             moved = None if motion is None or cf.stamp == t_ref else motion(t_ref, float(cf.stamp))
