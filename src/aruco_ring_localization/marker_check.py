@@ -14,7 +14,7 @@ taken while it drives are skipped, at no cost), :class:`MarkerCheck` computes, p
    with ``s`` = ``pixel_noise / f`` and ``j`` the cameras' per-frame rotation jitter, ``Jr`` the
    corners w.r.t. the camera's rotation), with the uncertainty of the pose from the others
    marginalised (Schur complement), judged against the change from each (marker, camera) pair's
-   baseline for the current set of other (camera, marker) pairs (:meth:`MarkerCheck._baseline_of`).
+   baseline for the current set of other (camera, marker) pairs (the baselines in :meth:`MarkerCheck.update`).
 
 ``A`` and ``b`` are summed over the last ``window`` seconds. The estimated displacement is
 ``d = A^-1 b`` and the **test statistic**
@@ -155,86 +155,116 @@ class MovedMarker:
 
 
 class _Evidence:
-    """A marker's displacement information over the window: the frames' (stamp, A, b) and their
-    running sums (kept exactly zero once the window is empty, so no rounding accumulates)."""
+    """A marker's displacement information over the window: the frames' (stamp, [A | b]) and their
+    running sum (kept exactly zero once the window is empty, so no rounding accumulates). A (3x3)
+    and b (3) side by side in one (3, 4) array: one array operation per frame and sum, not two."""
 
-    __slots__ = ("items", "A", "b")
+    __slots__ = ("items", "Ab")
 
     def __init__(self) -> None:
-        self.items: Deque[Tuple[float, np.ndarray, np.ndarray]] = deque()
-        self.A = np.zeros((3, 3))
-        self.b = np.zeros(3)
+        self.items: Deque[Tuple[float, np.ndarray]] = deque()
+        self.Ab = np.zeros((3, 4))
+
+    @property
+    def A(self) -> np.ndarray:
+        return self.Ab[:, :3]
+
+    @property
+    def b(self) -> np.ndarray:
+        return self.Ab[:, 3]
 
     def add(self, stamp: float, A: np.ndarray, b: np.ndarray, window: float) -> None:
-        self.items.append((stamp, A, b))
-        self.A = self.A + A
-        self.b = self.b + b
+        self.push(stamp, np.concatenate([A, np.reshape(b, (3, 1))], axis=1))
         self.prune(stamp - window)
+
+    def push(self, stamp: float, Ab: np.ndarray) -> None:
+        """:meth:`add` of ``[A | b]`` (3, 4) without forgetting the old frames (the caller prunes next)."""
+        self.items.append((stamp, Ab))
+        self.Ab = self.Ab + Ab
 
     def prune(self, oldest: float) -> None:
         """Forget the frames stamped before ``oldest``."""
         items = self.items
         while items and items[0][0] < oldest:
-            _, A, b = items.popleft()
-            self.A = self.A - A
-            self.b = self.b - b
+            self.Ab = self.Ab - items.popleft()[1]
         if not items:
             self.clear()
 
     def clear(self) -> None:
         self.items.clear()
-        self.A = np.zeros((3, 3))
-        self.b = np.zeros(3)
+        self.Ab = np.zeros((3, 4))
 
 
 def _statistics(A: np.ndarray, b: np.ndarray, sys_std: float) -> Tuple[np.ndarray, np.ndarray]:
     """Batched: displacement ``d = A^+ b`` (K, 3) and ``T = d^T (A^+ + sys_std^2 I)^-1 d`` (K,)
     for symmetric positive semi-definite information matrices ``A`` (K, 3, 3) and vectors ``b`` (K, 3).
 
-    ``A^+`` is ``np.linalg.pinv``'s (eigenvalues within 1e-15 of the largest count as zero), from
-    one batched eigh (``A`` is symmetric: its singular values are its eigenvalues' magnitudes): half
-    the CPU of pinv's SVD, the same numbers to rounding. With ``A + 1e-12 I = V diag(lam) V^T`` and
-    ``k = 1 / lam`` (0 where cut), ``A^+ + s^2 I = V diag(k + s^2) V^T``, so
-    ``T = sum_i (V^T b)_i^2 k_i^2 / (k_i + s^2)``: no second solve."""
-    lam, V = np.linalg.eigh(A + _EYE3)
+    ``A^+`` is ``np.linalg.pinv``'s (eigenvalues within 1e-15 of the largest count as zero). With
+    ``A_r = A + 1e-12 I`` (the ridge), ``A^+ + s^2 I = A_r^-1 (I + s^2 A_r)``, so
+    ``T = d^T (I + s^2 A_r)^-1 b``: both inverses by the adjugate, in one batch (:func:`_inv3`),
+    when every ``A_r`` is positive definite with a condition number below 1e5 (bounded by its
+    invariants: no eigenvalue is cut then, and the adjugate's rounding stays ~1e-11 relative); else
+    from one batched eigh (``A`` is symmetric: its singular values are its eigenvalues' magnitudes):
+    with ``A_r = V diag(lam) V^T`` and ``k = 1 / lam`` (0 where cut), ``A^+ + s^2 I = V diag(k + s^2) V^T``,
+    so ``T = sum_i (V^T b)_i^2 k_i^2 / (k_i + s^2)``."""
+    Ar = A + _EYE3
+    s2 = sys_std ** 2
+    # trace, sum of the principal 2x2 minors and determinant: all > 0 iff A_r is positive definite;
+    # then lam_max <= trace and lam_min >= det / minors, so cond(A_r) <= trace * minors / det.
+    Af = Ar.reshape(-1, 9)
+    cof = _cofactors(Af)
+    trace = Af[:, 0] + Af[:, 4] + Af[:, 8]
+    minors = cof[:, 0] + cof[:, 4] + cof[:, 8]
+    det = np.einsum("ki,ki->k", Af[:, :3], cof[:, :3])
+    if ((det > 0) & (trace > 0) & (minors > 0) & (trace * minors < 1e5 * det)).all():
+        k = len(A)
+        both = _inv3(np.concatenate([Ar, _EYE3_ONE + s2 * Ar]))    # A_r^-1, (I + s^2 A_r)^-1
+        y = np.matmul(both, np.concatenate([b, b])[:, :, None])[:, :, 0]
+        d = y[:k]
+        return d, np.einsum("ki,ki->k", d, y[k:])
+    lam, V = np.linalg.eigh(Ar)
     mag = np.abs(lam)
     keep = mag > 1e-15 * mag.max(axis=1, keepdims=True)
     k = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
     beta = np.einsum("kji,kj->ki", V, b)            # V^T b
     kb = k * beta
     d = np.einsum("kij,kj->ki", V, kb)              # V diag(k) V^T b
-    return d, np.sum(kb * kb / (k + sys_std ** 2), axis=1)
+    return d, np.sum(kb * kb / (k + s2), axis=1)
+
+
+#: per entry (i, j) of a 3x3 matrix (row-major), the flat indices of M[i+1, j+1], M[i+2, j+2],
+#: M[i+1, j+2], M[i+2, j+1] (indices mod 3): its cofactor is the first product minus the second.
+_COF = np.array([[4, 5, 3, 7, 8, 6, 1, 2, 0],
+                 [8, 6, 7, 2, 0, 1, 5, 3, 4],
+                 [5, 3, 4, 8, 6, 7, 2, 0, 1],
+                 [7, 8, 6, 1, 2, 0, 4, 5, 3]])
+
+
+def _cofactors(Mf: np.ndarray) -> np.ndarray:
+    """Batched cofactors (K, 9) of 3x3 matrices given flat (K, 9), in four array operations."""
+    G = Mf[:, _COF]
+    return G[:, 0] * G[:, 1] - G[:, 2] * G[:, 3]
 
 
 def _inv3(M: np.ndarray) -> np.ndarray:
     """Batched inverse of (K, 3, 3) non-singular matrices by the adjugate (no LAPACK call per matrix)."""
-    a, b, c = M[:, 0, 0], M[:, 0, 1], M[:, 0, 2]
-    d, e, f = M[:, 1, 0], M[:, 1, 1], M[:, 1, 2]
-    g, h, i = M[:, 2, 0], M[:, 2, 1], M[:, 2, 2]
-    adj = np.empty_like(M)
-    adj[:, 0, 0] = e * i - f * h
-    adj[:, 0, 1] = c * h - b * i
-    adj[:, 0, 2] = b * f - c * e
-    adj[:, 1, 0] = f * g - d * i
-    adj[:, 1, 1] = a * i - c * g
-    adj[:, 1, 2] = c * d - a * f
-    adj[:, 2, 0] = d * h - e * g
-    adj[:, 2, 1] = b * g - a * h
-    adj[:, 2, 2] = a * e - b * d
-    det = a * adj[:, 0, 0] + b * adj[:, 1, 0] + c * adj[:, 2, 0]
-    return adj / det[:, None, None]
+    Mf = M.reshape(-1, 9)
+    cof = _cofactors(Mf)
+    det = np.einsum("ki,ki->k", Mf[:, :3], cof[:, :3])
+    return cof.reshape(-1, 3, 3).transpose(0, 2, 1) / det[:, None, None]
 
 
 #: the ridges of the 6x6 pose solves and of the 3x3 displacement information
 _EYE6 = 1e-12 * np.eye(6)
 _EYE3 = 1e-12 * np.eye(3)
+_EYE3_ONE = np.eye(3)
 
 
-def _farther(a: Sequence[float], b: Sequence[float], distance: float) -> bool:
-    """|a - b| > distance for 3-vectors as lists (np.linalg.norm's set-up costs more than the
+def _far(a: Sequence[float], b: Sequence[float], distance2: float) -> bool:
+    """|a - b|^2 > distance2 for 3-vectors as lists (np.linalg.norm's set-up costs more than the
     arithmetic: twice per (marker, camera) pair and frame)."""
     x, y, z = a[0] - b[0], a[1] - b[1], a[2] - b[2]
-    return x * x + y * y + z * z > distance * distance
+    return x * x + y * y + z * z > distance2
 
 
 @dataclass
@@ -250,17 +280,11 @@ class _Baseline:
     pending: Deque[Tuple[float, List[float], List[float]]] = field(default_factory=deque)
 
 
-#: a placeholder for a :class:`_View`'s pose until :meth:`MarkerCheck._views` writes it
-_NO_POSE = np.zeros(0)
-
-
 @dataclass
 class _View:
     camera: str
     index: int                   # the camera's index in the ring (bit of a basis mask)
     model: CameraModel
-    R_cam_map: np.ndarray
-    t_cam_map: np.ndarray
     T_cam_base: np.ndarray       # moved by the robot's motion to the camera's stamp (free-running)
     ids: List[int]
     px: Sequence[np.ndarray]     # per marker its (4, 2) raw corners (a list, or a (k, 4, 2) array)
@@ -268,56 +292,44 @@ class _View:
     X: np.ndarray                # (4k, 3) map corners
 
 
-def _rows(views: Sequence[_View], T_base_map: np.ndarray, pixel_noise: float):
-    """Every camera's rows in one pass, per (camera, marker) block of 4 corners (8 rows): residual
-    r (B, 8) in normalised coordinates, J_pose (B, 8, 6) w.r.t. a base-frame perturbation (w, v) of
-    ``T_base_map`` (geo.se3_perturb's order), J_marker (B, 8, 3) w.r.t. the marker's position in the
-    map, the weight 1/s^2 (B,) of the block's camera, J_rot (B, 8, 3), and the cameras' stacked
-    ``R_cam_map`` (V, 3, 3) and ``t_cam_map`` (V, 3)."""
+#: where :func:`_rows` writes the skew matrices -[P_base]x (columns 0-2 of its G) and [P_cam]x
+#: (columns 10-12) in G's flat (n, 39) rows: (flat index, index in [P_base, P_cam], sign)
+_SKEW = np.array([(1, 2, 1), (2, 1, -1), (13, 2, -1), (15, 0, 1), (26, 1, 1), (27, 0, -1),
+                  (11, 5, -1), (12, 4, 1), (23, 5, 1), (25, 3, -1), (36, 4, -1), (37, 3, 1)])
+_SKEW_AT, _SKEW_OF, _SKEW_SIGN = _SKEW[:, 0], _SKEW[:, 1], _SKEW[:, 2].astype(np.float64)
+
+
+def _rows(views: Sequence[_View], T_cam_bases: np.ndarray, T_cam_maps: np.ndarray, T_base_map: np.ndarray,
+          pixel_noise: float):
+    """Every camera's rows in one pass, per (camera, marker) block of 4 corners (8 rows), as one
+    array J (B, 8, 13) with the columns: J_pose (0-5) w.r.t. a base-frame perturbation (w, v) of
+    ``T_base_map`` (geo.se3_perturb's order), J_marker (6-8) w.r.t. the marker's position in the
+    map, the residual r (9) in normalised coordinates, J_rot (10-12) w.r.t. the camera's rotation
+    (up to its sign), and the weight 1/s^2 (B,) of the block's camera. ``T_cam_bases``,
+    ``T_cam_maps``: the views' (V, 4, 4) stacked (:meth:`MarkerCheck._views`).
+
+    Each Jacobian is D G, with D = d xy / d P_cam = [[1/z, 0, -x/z], [0, 1/z, -y/z]] and G the
+    derivatives of the camera-frame point: R_cam_base [-P_base]x for the rotation (a row e^T [-q]x
+    is (q x e)^T), R_cam_base for the translation, R_cam_map for the marker, [P_cam]x for the camera
+    rotation: one batched product for them all (few array operations: their set-up dominates)."""
     counts = [len(v.X) for v in views]
     X = np.concatenate([v.X for v in views])
+    n = len(X)
     # Per corner, its camera's matrices: one gather from the stacks (np.repeat of each stack cost 3x).
     corner_view = np.repeat(np.arange(len(views)), counts)
-    # (np.array of the list: np.stack's numbers without its per-array set-up)
-    R_views = np.array([v.R_cam_map for v in views])
-    t_views = np.array([v.t_cam_map for v in views])
-    R_cm = R_views[corner_view]                                                          # (n, 3, 3)
-    t_cm = t_views[corner_view]
-    R_cb = np.array([v.T_cam_base[:3, :3] for v in views])[corner_view]
-    P = np.matmul(R_cm, X[:, :, None])[:, :, 0] + t_cm
-    z = P[:, 2:3]
-    pred = P[:, :2] / z
-    inv_z = 1.0 / z[:, 0]
-    # d xy / d P_cam: [[1/z, 0, -x/z], [0, 1/z, -y/z]]; times R (3x3): row i = (R[i] - xy_i R[2]) / z.
-    def chain(R):
-        return (R[:, :2, :] - pred[:, :, None] * R[:, 2:3, :]) * inv_z[:, None, None]
-    E = chain(R_cb)                                                                      # d xy / d P_base
-    J_mark = chain(R_cm)
+    G = np.zeros((n, 3, 13))
+    G[:, :, 3:9] = np.concatenate([T_cam_bases[:, :3, :3], T_cam_maps[:, :3, :3]], axis=2)[corner_view]
+    P = np.matmul(G[:, :, 6:9], X[:, :, None])[:, :, 0] + T_cam_maps[corner_view, :3, 3]
+    pred = P[:, :2] / P[:, 2:3]
     Pb = X @ T_base_map[:3, :3].T + T_base_map[:3, 3]
-    J_pose = np.empty((len(X), 2, 6))
-    # d P_base / d(w, v) = [-[P_base]x | I]; a row e^T [-[q]x] is (q x e)^T.
-    q = Pb[:, None, :]
-    # (each difference written in place: np.subtract(..., out=) spares a temporary and a copy)
-    np.subtract(q[..., 1] * E[..., 2], q[..., 2] * E[..., 1], out=J_pose[:, :, 0])
-    np.subtract(q[..., 2] * E[..., 0], q[..., 0] * E[..., 2], out=J_pose[:, :, 1])
-    np.subtract(q[..., 0] * E[..., 1], q[..., 1] * E[..., 0], out=J_pose[:, :, 2])
-    J_pose[:, :, 3:] = E
-    Pc = P[:, None, :]
-    Dm = np.zeros((len(X), 2, 3))
-    Dm[:, 0, 0] = Dm[:, 1, 1] = inv_z
-    Dm[:, :, 2] = -pred * inv_z[:, None]
-    # d xy / d (camera rotation), up to its sign: Dm x Pc per row (component-wise: np.cross costs
-    # ~15 us of set-up on arrays this small).
-    J_rot = np.empty((len(X), 2, 3))
-    np.subtract(Dm[..., 1] * Pc[..., 2], Dm[..., 2] * Pc[..., 1], out=J_rot[:, :, 0])
-    np.subtract(Dm[..., 2] * Pc[..., 0], Dm[..., 0] * Pc[..., 2], out=J_rot[:, :, 1])
-    np.subtract(Dm[..., 0] * Pc[..., 1], Dm[..., 1] * Pc[..., 0], out=J_rot[:, :, 2])
-    xy = np.concatenate([v.xy for v in views])
-    B = len(X) // 4
+    G.reshape(n, 39)[:, _SKEW_AT] = np.concatenate([Pb, P], axis=1)[:, _SKEW_OF] * _SKEW_SIGN
+    G[:, :, :3] = G[:, :, 3:6] @ G[:, :, :3]
+    # D G = (G's rows x, y minus the prediction times its row z) / z
+    J = (G[:, :2] - pred[:, :, None] * G[:, 2:3]) * (1.0 / P[:, 2])[:, None, None]
+    J[:, :, 9] = np.concatenate([v.xy for v in views]) - pred
     # (math.sqrt: np.sqrt's number, correctly rounded, without a ufunc call per camera)
     w = np.array([math.sqrt(v.model.fx * v.model.fy) ** 2 / pixel_noise ** 2 for v in views])[corner_view[::4]]
-    return ((xy - pred).reshape(B, 8), J_pose.reshape(B, 8, 6), J_mark.reshape(B, 8, 3), w, J_rot.reshape(B, 8, 3),
-            R_views, t_views)
+    return J.reshape(n // 4, 8, 13), w
 
 
 class MarkerCheck:
@@ -382,8 +394,9 @@ class MarkerCheck:
     # --- the check -------------------------------------------------------------------------------
 
     def _views(self, frame: RingFrame, ring: CameraRing, T_base_map: np.ndarray, motion=None,
-               known_views: Optional[Dict[str, object]] = None) -> List[_View]:
-        """The frame's views of mapped markers (``T_base_map``: the inverse of the accepted pose);
+               known_views: Optional[Dict[str, object]] = None) -> Tuple[List[_View], np.ndarray, np.ndarray]:
+        """The frame's views of mapped markers (``T_base_map``: the inverse of the accepted pose) and
+        their T_cam_base and T_cam_map stacked (V, 4, 4) (None without views);
         ``known_views``: the estimator's views of this frame (:attr:`RingLocalizer.last_views`,
         name -> CameraView), whose corners are reused where a camera's markers are the same."""
         mm = self.marker_map
@@ -400,8 +413,12 @@ class MarkerCheck:
             known = cameras.get(name)
             if known is None:
                 continue
-            obs = [o for o in cf.observations if int(o.marker_id) in mm]
-            if not obs:
+            ids = [int(o.marker_id) for o in cf.observations]
+            same = None if known_views is None else known_views.get(name)
+            if same is None or same.ids != ids:
+                # (else the estimator's view of the same ids: every one mapped, RingLocalizer._gather)
+                ids = [i for i in ids if i in mm]
+            if not ids:
                 continue
             index, T_base_cam, T_cam_base = known
             model = cf.model if cf.model is not None else ring[name].model
@@ -411,25 +428,22 @@ class MarkerCheck:
                 # (as the estimator takes it: RingLocalizer._moved_extrinsics).
                 T_base_cam = displacement_to_transform(moved[0]) @ T_base_cam
                 T_cam_base = geo.inverse(T_base_cam)
-            ids = [int(o.marker_id) for o in obs]
-            same = None if known_views is None else known_views.get(name)
             if same is not None and same.ids == ids and same.model is model:
                 # The estimator's view of these very detections (its corners, normalised and in the
                 # map, are the same numbers): not computed again.
                 px = same.px.reshape(-1, 4, 2)
                 xy, X = same.xy, same.X
             else:
-                px = [np.asarray(o.corners, dtype=np.float64).reshape(4, 2) for o in obs]
+                px = [np.asarray(o.corners, dtype=np.float64).reshape(4, 2) for o in cf.observations
+                      if int(o.marker_id) in mm]
                 xy, X = model.normalize(np.concatenate(px)), np.concatenate([mm.corners(i) for i in ids])
-            out.append(_View(name, index, model, _NO_POSE, _NO_POSE, T_cam_base, ids, px, xy, X))
+            out.append(_View(name, index, model, T_cam_base, ids, px, xy, X))
             T_cam_bases.append(T_cam_base)
-        if out:
-            # Every view's T_cam_map in one batched product (the same numbers as one product per
-            # view; issue 16): the views' R_cam_map and t_cam_map are slices of it.
-            T_cam_maps = np.matmul(np.array(T_cam_bases), T_base_map)
-            for v, T in zip(out, T_cam_maps):
-                v.R_cam_map, v.t_cam_map = T[:3, :3], T[:3, 3]
-        return out
+        if not out:
+            return out, None, None
+        # Every view's T_cam_map in one batched product (the same numbers as one product per view).
+        stack = np.array(T_cam_bases)
+        return out, stack, np.matmul(stack, T_base_map)
 
     def update(self, frame: RingFrame, T_map_base: np.ndarray, ring: CameraRing, now: float,
                motion=None, speed: Tuple[float, float] = (0.0, 0.0),
@@ -456,57 +470,65 @@ class MarkerCheck:
             return []
         self._last_checked = stamp
         T_base_map = geo.inverse(T_map_base)
-        views = self._views(frame, ring, T_base_map, motion, known_views)
+        views, T_cam_bases, T_cam_maps = self._views(frame, ring, T_base_map, motion, known_views)
         if not views:
             return []
         drop = self.dropped
         # Blocks: one (camera, marker) pair, its 8 rows.
-        r, Jp, Jm, w, Jr, R_views, t_views = _rows(views, T_base_map, p.pixel_noise)
-        blk_view, blk_k, blk_mid = [], [], []
+        J, w = _rows(views, T_cam_bases, T_cam_maps, T_base_map, p.pixel_noise)
+        B = len(w)
+        # Per block its view, its index in the view, its marker and its (camera index, marker) pair;
+        # per marker its pairs (``own``: for the baselines' sets of others below).
+        blk_view, blk_k, blk_mid, pairs = [], [], [], []
+        own: Dict[int, set] = {}
         for vi, v in enumerate(views):
+            cam = v.index
             for k, i in enumerate(v.ids):
                 blk_view.append(vi)
                 blk_k.append(k)
                 blk_mid.append(i)
+                pr = (cam, i)
+                pairs.append(pr)
+                mine = own.get(i)
+                if mine is None:
+                    own[i] = {pr}
+                else:
+                    mine.add(pr)
         # The markers in view, sorted, and each block's (np.unique's, without its set-up).
-        mids_l = sorted(set(blk_mid))
+        mids_l = sorted(own)
         order = {m: j for j, m in enumerate(mids_l)}
         blk_m_l = [order[i] for i in blk_mid]
-        mids, blk_m = np.array(mids_l), np.array(blk_m_l)
+        blk_m = np.array(blk_m_l)
         M = len(mids_l)
         used_l = [m not in drop for m in mids_l]
         used = np.array(used_l)
-        S = np.zeros((M, len(w)))                                    # marker <- block sums
-        S[blk_m, np.arange(len(w))] = 1.0
-        Jpm = np.concatenate([Jp, Jm], axis=2)                       # (B, 8, 9)
+        # Marker <- block sums (M rows), and a last row: the sums over the blocks of used markers.
+        S = np.zeros((M + 1, B))
+        S[blk_m, np.arange(B)] = 1.0
+        S[M] = used[blk_m]
+        # J = [Z Jr], Z = [Jp Jm r]. Per block, Z^T W Z (10x10): [[H_b, cross^T, g_b], [cross, A, .],
+        # [., ., .]] (pose, marker, residual) from the Gram matrix J^T J (one product), with W the block's weight: the
+        # inverse of s^2 I + jitter^2 Jr Jr^T (8x8; s^2 = 1 / w), by Woodbury on 3x3:
+        # W = w (I - Jr K^-1 Jr^T), K = s^2 / jitter^2 I + Jr^T Jr (a batched 8x8 inverse cost twice
+        # as much). ``C`` = K^-1 Jr^T Z gives W Z = w (Z - Jr C) where needed (the judged blocks).
+        gram = J.transpose(0, 2, 1) @ J                                  # (B, 13, 13)
         if self.extrinsic_jitter > 0:
-            # Each block's weight W: the inverse of s^2 I + jitter^2 Jr Jr^T (8x8; s^2 = 1 / w), by
-            # Woodbury on 3x3: W = w (I - Jr (s^2 / jitter^2 I + Jr^T Jr)^-1 Jr^T) (a batched 8x8
-            # inverse cost twice as much).
-            JrT = Jr.transpose(0, 2, 1)
-            K = JrT @ Jr
-            k = 1.0 / (w * self.extrinsic_jitter ** 2)
-            K[:, 0, 0] += k
-            K[:, 1, 1] += k
-            K[:, 2, 2] += k
-            wJpm = (Jpm - Jr @ (_inv3(K) @ (JrT @ Jpm))) * w[:, None, None]
+            JrTZ = gram[:, 10:, :10]
+            gram.reshape(B, 169)[:, 140::14] += (1.0 / (w * self.extrinsic_jitter ** 2))[:, None]   # Jr^T Jr -> K
+            C = _inv3(gram[:, 10:, 10:]) @ JrTZ
+            NZ = (gram[:, :10, :10] - JrTZ.transpose(0, 2, 1) @ C) * w[:, None, None]
         else:
-            wJpm = w[:, None, None] * Jpm
-        wJpmT = wJpm.transpose(0, 2, 1)
-        # Per block, [Jp Jm]^T W [Jp Jm]: [[H_b, cross^T], [cross, A]] (pose, marker) in one product.
-        N = wJpmT @ Jpm                                               # (B, 9, 9)
-        H_b = N[:, :6, :6]
-        g_b = (wJpmT[:, :6] @ r[:, :, None])[:, :, 0]
-        Hm = (S @ H_b.reshape(-1, 36)).reshape(M, 6, 6)
-        gm = S @ g_b
-        H_all = Hm[used].sum(axis=0)
-        g_all = gm[used].sum(axis=0)
+            C = None
+            NZ = gram[:, :10, :10] * w[:, None, None]
+        sums = (S @ NZ.reshape(B, 100)).reshape(M + 1, 10, 10)
+        Hm, gm = sums[:M, :6, :6], sums[:M, :6, 9]
+        H_all, g_all = sums[M, :6, :6], sums[M, :6, 9]
         n_used = sum(used_l)
         self.frames_checked += 1
         if self.frames_checked % 100 == 0:
             self._forget(stamp)
-        eligible = (n_used - used.astype(int)) >= p.min_other_markers
-        if not eligible.any():
+        eligible_l = [n_used - u >= p.min_other_markers for u in used_l]
+        if not any(eligible_l):
             return self._judge(stamp, now)
         # The pose from the others: one Gauss-Newton step without the marker's rows.
         H_loo = H_all[None] - Hm * used[:, None, None]
@@ -516,66 +538,102 @@ class MarkerCheck:
             delta = np.linalg.solve(H_loo + eye6, g_loo[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:
             delta = np.zeros((M, 6))
-            for m in np.flatnonzero(eligible):
+            for m in range(M):
+                if not eligible_l[m]:
+                    continue
                 try:
                     delta[m] = np.linalg.solve(H_loo[m] + eye6, g_loo[m])
                 except np.linalg.LinAlgError:
-                    eligible[m] = False
-        res = r - np.matmul(Jp, delta[blk_m][:, :, None])[:, :, 0]
+                    eligible_l[m] = False
+        res = J[:, :, 9] - np.matmul(J[:, :, :6], delta[blk_m][:, :, None])[:, :, 0]
         # The (camera, marker) pairs that give the pose from the others: each camera's extrinsic
         # error pulls that pose its own way, and each marker seen weighs in, so the offset a
         # (marker, camera) pair shows holds for one set of others. A camera dropping out, or another
         # marker coming into view, changes the set: the pair's residual jumps although nothing
         # moved (on the harsh lab, 6 mrad when cam4 started to see one more marker); it is judged
         # against the baseline of the new set once that is learnt.
-        index = [v.index for v in views]
-        pairs = [(index[vi], mid) for mid, vi in zip(blk_mid, blk_view)]
-        everyone = frozenset(pr for pr, m in zip(pairs, blk_m_l) if used_l[m])
-        own: Dict[int, set] = {}
-        for pr, m in zip(pairs, blk_m_l):
-            own.setdefault(m, set()).add(pr)
-        masks = [hash(everyone - own[m]) for m in range(M)]
+        everyone = frozenset(pr for pr, mid in zip(pairs, blk_mid) if mid not in drop)
+        masks = [hash(everyone - own[mid]) for mid in mids_l]
         # Camera positions in the map, -R^T t, batched (8 small matmuls on strided views cost ~20 us).
-        positions = (-np.einsum("kji,kj->ki", R_views, t_views)).tolist()
+        positions = (-np.einsum("kji,kj->ki", T_cam_maps[:, :3, :3], T_cam_maps[:, :3, 3])).tolist()
         judged_blocks, bases = [], []   # the blocks with a baseline, and it (e = res - base there)
-        eligible_l, res_rows, delta_rows = eligible.tolist(), res.tolist(), list(delta)
+        res_rows, delta_rows = res.tolist(), list(delta)
         records, oldest_record = self._records, stamp - p.remap_window
+        # Each block's (marker, camera, others) pair: its offset learnt from its residuals older than
+        # the window (None: none yet, the block is not judged); its residual queued for it (inline:
+        # one Python pass over the blocks with the parameters bound once, issue 16).
+        #
+        # A residual joins the baseline once it is ``window`` s old (a plain mean at first, then an
+        # exponential average over ``baseline_time``), so a move is judged against what the pair
+        # showed before it. The offset depends on the viewpoint (a calibration error projects
+        # differently from elsewhere): a baseline is valid within ``baseline_distance`` of the camera
+        # positions it was learnt at, and starts over beyond. A baseline that no residual refreshed
+        # for ``baseline_time`` starts over too (the robot came back after a loop: learnt from another
+        # heading, the same place is another view). The baseline of a dropped marker is frozen.
+        baselines, oldest = self._baselines, stamp - p.window
+        baseline_time, stale = p.baseline_time, p.window + p.baseline_time
+        far2 = p.baseline_distance * p.baseline_distance
         for b_, m in enumerate(blk_m_l):
             if not eligible_l[m]:
                 continue
             mid = mids_l[m]
             vi = blk_view[b_]
             v = views[vi]
+            camera = v.camera
             # The view for re-mapping (:meth:`observations`), the last ``remap_window`` s of it.
             q = records.get(mid)
             if q is None:
                 q = records[mid] = deque()
-            q.append((stamp, v.camera, v.px[blk_k[b_]], v.model, T_map_base, delta_rows[m], v.T_cam_base))
+            q.append((stamp, camera, v.px[blk_k[b_]], v.model, T_map_base, delta_rows[m], v.T_cam_base))
             while q[0][0] < oldest_record:
                 q.popleft()
-            base = self._baseline_of(mid, v.camera, masks[m], stamp, res_rows[b_], positions[vi])
-            if base is not None:   # else a pair not seen long enough to know its own offset yet
-                judged_blocks.append(b_)
-                bases.append(base)
+            position = positions[vi]
+            key = (mid, camera, masks[m])
+            bl = baselines.get(key)
+            if bl is None:
+                bl = baselines[key] = _Baseline()
+            pending = bl.pending
+            pending.append((stamp, res_rows[b_], position))
+            if pending[0][0] < oldest:
+                frozen = mid in drop
+                while pending and pending[0][0] < oldest:
+                    t, rr, pos = pending.popleft()
+                    if frozen:
+                        continue
+                    if bl.value is None or t - bl.stamp > baseline_time or _far(pos, bl.position, far2):
+                        bl.value, bl.position, bl.count, bl.stamp = list(rr), list(pos), 1, t
+                        continue
+                    bl.count += 1
+                    alpha = max(1.0 / bl.count, min(1.0, (t - bl.stamp) / baseline_time))
+                    bl.value = [a + alpha * (x - a) for a, x in zip(bl.value, rr)]
+                    bl.position = [a + alpha * (x - a) for a, x in zip(bl.position, pos)]
+                    bl.stamp = t
+            base = bl.value
+            if base is None or stamp - bl.stamp > stale or _far(position, bl.position, far2):
+                continue   # a pair not seen long enough (or from here) to know its own offset yet
+            judged_blocks.append(b_)
+            bases.append(base)
         if not judged_blocks:
             return self._judge(stamp, now)
-        have = np.zeros(len(w), dtype=bool)
-        have[judged_blocks] = True
-        e = np.zeros(res.shape)
-        e[judged_blocks] = res[judged_blocks] - np.array(bases)
+        e = res[judged_blocks] - np.array(bases)
+        eJ = (e[:, None, :] @ J[judged_blocks])[:, 0]                    # e^T J (k, 13)
+        WJe = eJ[:, :9]                                                  # [Jp Jm]^T W e = w (e^T Z - e^T Jr C)
+        if C is not None:
+            WJe = WJe - (eJ[:, None, 10:] @ C[judged_blocks, :, :9])[:, 0]
+        WJe = WJe * w[judged_blocks, None]
         # The pose from the others is uncertain too (few markers, one camera): the residual's
         # covariance is W^-1 + Jp H^-1 Jp^T. Its inverse (Woodbury) W - W Jp H_joint^-1 Jp^T W
         # turns the sums into the displacement's information with the pose marginalised (the
         # Schur complement): a displacement that the pose from a few markers can absorb is weak
         # evidence, so a frame with few cameras or markers does not declare a move.
-        Sh = S * have[None, :]
-        # Per marker, the sums over its judged blocks of N (H_b, cross, A) and [Jp Jm]^T W e (proj, b).
-        M9 = Sh @ np.concatenate([N.reshape(-1, 81), (wJpmT @ e[:, :, None])[:, :, 0]], axis=1)
-        N_m = M9[:, :81].reshape(M, 9, 9)
-        A = N_m[:, 6:, 6:]
-        b = M9[:, 87:]
-        cross = N_m[:, 6:, :6]
-        proj = M9[:, 81:87]
+        Sh = S[:M, judged_blocks]
+        # Per marker, the sums over its judged blocks of Z^T W Z (H_b, cross, A) and [Jp Jm]^T W e (proj, b).
+        M9 = Sh @ np.concatenate([NZ[judged_blocks].reshape(-1, 100), WJe], axis=1)
+        N_m = M9[:, :100].reshape(M, 10, 10)
+        A = N_m[:, 6:9, 6:9]
+        b = M9[:, 106:]
+        cross = N_m[:, 6:9, :6]
+        proj = M9[:, 100:106]
         H_joint = H_loo + N_m[:, :6, :6]
         judged = Sh.any(axis=1).nonzero()[0]   # the markers with a judged block
         try:
@@ -586,12 +644,12 @@ class MarkerCheck:
         A = 0.5 * (A + A.transpose(0, 2, 1))
         b = b[judged] - (K.transpose(0, 2, 1) @ proj[judged][:, :, None])[:, :, 0]
         evidence = self._evidence
-        for j, m in enumerate(judged.tolist()):
+        for m, Ab in zip(judged.tolist(), np.concatenate([A, b[:, :, None]], axis=2)):
             ev = evidence.get(mids_l[m])
             if ev is None:
                 ev = evidence[mids_l[m]] = _Evidence()
-            ev.add(stamp, A[j], b[j], p.window)
-        return self._judge(stamp, now)
+            ev.push(stamp, Ab)
+        return self._judge(stamp, now)   # (it prunes every marker's evidence to the window)
 
     def _forget(self, stamp: float) -> None:
         """Drop the baselines that nothing refreshed for ``window + baseline_time`` (stale: they
@@ -601,66 +659,26 @@ class MarkerCheck:
                     if (bl.stamp is None or bl.stamp < horizon) and (not bl.pending or bl.pending[-1][0] < horizon)]:
             del self._baselines[key]
 
-    def _baseline_of(self, mid: int, camera: str, basis: int, stamp: float, res: List[float],
-                     position: List[float]) -> Optional[List[float]]:
-        """The pair's offset learnt from its residuals older than the window (None: none yet); queue ``res``.
-
-        A residual joins the baseline once it is ``window`` s old (a plain mean at first, then an
-        exponential average over ``baseline_time``), so a move is judged against what the pair showed
-        before it. The offset depends on the viewpoint (a calibration error projects differently from
-        elsewhere): a baseline is valid within ``baseline_distance`` of the camera positions it was
-        learnt at, and starts over beyond. A baseline that no residual refreshed for ``baseline_time``
-        starts over too (the robot came back after a loop: learnt from another heading, the same
-        place is another view). The baseline of a marker declared moved is frozen.
-        """
-        p = self.params
-        key = (mid, camera, basis)
-        bl = self._baselines.get(key)
-        if bl is None:
-            bl = self._baselines[key] = _Baseline()
-        pending = bl.pending
-        pending.append((stamp, res, position))
-        oldest = stamp - p.window
-        if pending[0][0] < oldest:
-            frozen = mid in self.moved or mid in self.excluded
-            while pending and pending[0][0] < oldest:
-                t, r, pos = pending.popleft()
-                if frozen:
-                    continue
-                if bl.value is None or t - bl.stamp > p.baseline_time or \
-                        _farther(pos, bl.position, p.baseline_distance):
-                    bl.value, bl.position, bl.count, bl.stamp = list(r), list(pos), 1, t
-                    continue
-                bl.count += 1
-                alpha = max(1.0 / bl.count, min(1.0, (t - bl.stamp) / p.baseline_time))
-                bl.value = [v + alpha * (x - v) for v, x in zip(bl.value, r)]
-                bl.position = [v + alpha * (x - v) for v, x in zip(bl.position, pos)]
-                bl.stamp = t
-        if bl.value is None or stamp - bl.stamp > p.window + p.baseline_time or \
-                _farther(position, bl.position, p.baseline_distance):
-            return None
-        return bl.value
-
     def _judge(self, stamp: float, now: float) -> List[MovedMarker]:
         p = self.params
         oldest = stamp - p.window
-        ids, As, bs, counts, fresh = [], [], [], [], []
+        ids, Abs, counts, fresh = [], [], [], []
         for mid, ev in self._evidence.items():
-            ev.prune(oldest)
-            if not ev.items:
-                continue
+            items = ev.items
+            if not items or items[0][0] < oldest:   # (else nothing to forget: no call)
+                ev.prune(oldest)
+                if not items:
+                    continue
             ids.append(mid)
-            As.append(ev.A)
-            bs.append(ev.b)
+            Abs.append(ev.Ab)
             counts.append(len(ev.items))
             if ev.items[-1][0] == stamp:
                 fresh.append(len(ids) - 1)
         if not ids:
             return []
         # The window sums and the latest frame alone (``fresh``) in one batch.
-        last = [self._evidence[ids[j]].items[-1] for j in fresh]
-        d_both, T_both = _statistics(np.array(As + [a for _, a, _ in last]), np.array(bs + [v for _, _, v in last]),
-                                     p.systematic_std)
+        Ab = np.array(Abs + [self._evidence[ids[j]].items[-1][1] for j in fresh])
+        d_both, T_both = _statistics(Ab[:, :, :3], Ab[:, :, 3], p.systematic_std)
         k = len(ids)
         d_all, T_all = d_both[:k], T_both[:k].tolist()
         dist = np.sqrt(np.einsum("ki,ki->k", d_both, d_both)).tolist()

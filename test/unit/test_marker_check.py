@@ -307,7 +307,49 @@ def test_window_sums_follow_the_items():
     ev = _Evidence()
     for k in range(50):
         ev.add(0.1 * k, rng.normal(size=(3, 3)) * 1e5, rng.normal(size=3) * 1e3, window=1.0)
-        assert np.allclose(ev.A, sum(a for _, a, _ in ev.items), rtol=0, atol=1e-6)
-        assert np.allclose(ev.b, sum(b for _, _, b in ev.items), rtol=0, atol=1e-8)
+        assert np.allclose(ev.A, sum(ab[:, :3] for _, ab in ev.items), rtol=0, atol=1e-6)
+        assert np.allclose(ev.b, sum(ab[:, 3] for _, ab in ev.items), rtol=0, atol=1e-8)
     ev.prune(100.0)
     assert not ev.items and not ev.A.any() and not ev.b.any()
+
+
+def _statistics_reference(A, b, sys_std):
+    """d = pinv(A + 1e-12 I) b and T = d^T (pinv + sys_std^2 I)^-1 d, matrix by matrix (numpy's pinv cuts
+    singular values within 1e-15 of the largest, as the check's)."""
+    d, T = [], []
+    for a, v in zip(A, b):
+        P = np.linalg.pinv(a + 1e-12 * np.eye(3), rcond=1e-15)
+        d.append(P @ v)
+        T.append(d[-1] @ np.linalg.solve(P + sys_std ** 2 * np.eye(3), d[-1]))
+    return np.array(d), np.array(T)
+
+
+def test_statistics_closed_form_and_eigh_fallback(monkeypatch):
+    """_statistics: by cofactors for well-conditioned information matrices (no eigh call), by eigh when
+    one is singular or ill-conditioned (the pinv's cut applies); both give pinv's displacement and statistic."""
+    from aruco_ring_localization import marker_check
+
+    calls = []
+    eigh = np.linalg.eigh
+    monkeypatch.setattr(np.linalg, "eigh", lambda a: calls.append(len(a)) or eigh(a))
+    rng = np.random.default_rng(5)
+    Q = np.linalg.qr(rng.normal(size=(6, 3, 3)))[0]
+    lam = 10.0 ** rng.uniform(3, 6, size=(6, 3))
+    lam[:, 0] = lam[:, 1] / 50.0                       # condition numbers 50 to ~5e4
+    A = Q @ (lam[:, :, None] * Q.transpose(0, 2, 1))
+    b = rng.normal(size=(6, 3)) * 1e3
+    d, T = marker_check._statistics(A, b, 0.005)
+    d_ref, T_ref = _statistics_reference(A, b, 0.005)
+    assert not calls
+    assert np.max(np.abs(d - d_ref)) <= 1e-10 * np.max(np.abs(d_ref))
+    assert np.max(np.abs(T - T_ref)) <= 1e-10 * np.max(np.abs(T_ref))
+    # A rank-1 matrix (two eigenvalues cut) and one with condition 1e9 in the batch: eigh for all.
+    u = np.array([0.6, 0.8, 0.0])
+    A2 = np.concatenate([A, [1e5 * np.outer(u, u), np.diag([1e6, 1e3, 1e-3])]])
+    b2 = np.concatenate([b, [[1e3, -2e3, 5e2], [1e3, 1e2, 1e-2]]])
+    d2, T2 = marker_check._statistics(A2, b2, 0.005)
+    d2_ref, T2_ref = _statistics_reference(A2, b2, 0.005)
+    assert calls == [8]
+    assert abs(d2[6] @ np.array([0.8, -0.6, 0.0])) < 1e-12 and abs(d2[6][2]) < 1e-12   # in the rank-1 span
+    for x, y in ((d2, d2_ref), (T2, T2_ref)):
+        assert np.max(np.abs(x - y)) <= 1e-9 * np.max(np.abs(y))
