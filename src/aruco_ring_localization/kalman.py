@@ -122,6 +122,25 @@ def _unit_process_noise(q_xy: float, q_yaw: float) -> np.ndarray:
     return Q
 
 
+@functools.lru_cache(maxsize=8)
+def _interval_model(dt: float, q_xy: float, q_yaw: float) -> Tuple[np.ndarray, np.ndarray]:
+    """(:func:`transition_matrix`, :func:`process_noise`) over ``dt`` (read-only, cached: a ring
+    frame predicts over the same dt up to three times: the pose prediction, the gate's covariance
+    and the update)."""
+    F, Q = transition_matrix(dt), process_noise(dt, q_xy, q_yaw)
+    F.flags.writeable = False
+    Q.flags.writeable = False
+    return F, Q
+
+
+@functools.lru_cache(maxsize=8)
+def _measurement_floor(std_xy: float, std_yaw: float) -> np.ndarray:
+    """The (3, 3) floor added to every measurement covariance (read-only, cached per params)."""
+    floor = _diag3(std_xy ** 2, std_xy ** 2, std_yaw ** 2)
+    floor.flags.writeable = False
+    return floor
+
+
 def process_noise(dt: float, q_xy: float, q_yaw: float) -> np.ndarray:
     """Q (9, 9): white jerk of spectral density ``q`` per axis (filterpy's
     ``Q_continuous_white_noise``), per axis ``q * [[dt^5/20, dt^4/8, dt^3/6],
@@ -150,11 +169,6 @@ class PoseFilter:
         self.kf.H = H
         self.stamp: Optional[float] = None
         self.resets = 0
-        # (dt, jerk noises, F, Q) of the last prediction interval: a ring frame predicts over the
-        # same dt up to three times (the pose prediction, the gate's covariance, the update).
-        self._model_cache: Optional[Tuple[float, float, float, np.ndarray, np.ndarray]] = None
-        # (params, floor): the measurement covariance's floor of these params (:meth:`_measurement_covariance`).
-        self._floor: Optional[Tuple[FilterParams, np.ndarray]] = None
 
     # --- state ------------------------------------------------------------------------------
 
@@ -258,18 +272,8 @@ class PoseFilter:
         return Fp @ self.kf.P @ Fp.T + Q[_POSE_BLOCK]
 
     def _model(self, dt: float) -> Tuple[np.ndarray, np.ndarray]:
-        """(F, Q) over ``dt`` s (:func:`transition_matrix`, :func:`process_noise`; read-only): the
-        last interval's kept, since a ring frame asks for the same one up to three times."""
-        p = self.params
-        c = self._model_cache
-        if c is not None and c[0] == dt and c[1] == p.jerk_noise_xy and c[2] == p.jerk_noise_yaw:
-            return c[3], c[4]
-        F = transition_matrix(dt)
-        Q = process_noise(dt, p.jerk_noise_xy, p.jerk_noise_yaw)
-        F.flags.writeable = False
-        Q.flags.writeable = False
-        self._model_cache = (dt, p.jerk_noise_xy, p.jerk_noise_yaw, F, Q)
-        return F, Q
+        """(F, Q) over ``dt`` s with these params' jerk noises (:func:`_interval_model`)."""
+        return _interval_model(dt, self.params.jerk_noise_xy, self.params.jerk_noise_yaw)
 
     def measurement_covariance(self, covariance: Optional[np.ndarray] = None) -> np.ndarray:
         """The R the filter uses for a measurement with estimator covariance ``covariance`` (3x3 or None)."""
@@ -281,12 +285,8 @@ class PoseFilter:
             R = _diag3(p.measurement_std_xy ** 2, p.measurement_std_xy ** 2, p.measurement_std_yaw ** 2)
         else:
             R = 0.5 * (np.asarray(covariance, dtype=np.float64) + np.asarray(covariance, dtype=np.float64).T)
-        # Floors: the estimator's covariance only knows the pixel noise (built once per params).
-        if self._floor is None or self._floor[0] is not p:
-            floor = _diag3(p.min_measurement_std_xy ** 2, p.min_measurement_std_xy ** 2, p.min_measurement_std_yaw ** 2)
-            floor.flags.writeable = False
-            self._floor = (p, floor)
-        return R + self._floor[1]
+        # Floors: the estimator's covariance only knows the pixel noise.
+        return R + _measurement_floor(p.min_measurement_std_xy, p.min_measurement_std_yaw)
 
     def _wrapped(self, z) -> np.ndarray:
         """z (3,) with its yaw moved to within pi of the predicted yaw (so y = z - Hx never jumps)."""

@@ -50,6 +50,7 @@ and 3x3 over (x, y, yaw).
 from __future__ import annotations
 
 import collections
+import functools
 import logging
 import math
 from collections.abc import MutableMapping
@@ -1570,16 +1571,12 @@ class _PersistenceCamera:
             self.lo += 1
 
 
-#: n -> (n, n) read-only mask of the pairs i < j (:meth:`CalibrationPersistence.correlation`: np.tri
-#: built it on every frame the window is updated, ~30 us; n is at most the window's length).
-_STRICT_UPPER: Dict[int, np.ndarray] = {}
-
-
+@functools.lru_cache(maxsize=None)
 def _strict_upper(n: int) -> np.ndarray:
-    mask = _STRICT_UPPER.get(n)
-    if mask is None:
-        mask = _STRICT_UPPER[n] = ~np.tri(n, dtype=bool)
-        mask.flags.writeable = False
+    """(n, n) read-only mask of the pairs i < j (:meth:`CalibrationPersistence.correlation`: np.tri
+    built it on every frame the window is updated, ~30 us; n is at most the window's length)."""
+    mask = ~np.tri(n, dtype=bool)
+    mask.flags.writeable = False
     return mask
 
 
