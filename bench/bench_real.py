@@ -484,7 +484,7 @@ def _odometry(test: str, src: str, rig_body: str, frames) -> Tuple[Optional[Mapp
     # that model with its defaults (TagSLAM's: 5 m/s^2, 5 rad/s^2, maxima 10 x), tagslam.yaml's values unread.
     # "tagslam" judges the odometry at the frames, one message per frame, as TagSLAM's synchronizer
     # pairs them (message_sampling: frames; test_21's 30 Hz VIO under 5 Hz frames, docs/mapping.md).
-    noise = ({**found.link_noise(), "message_sampling": "frames"} if ODOM_NOISE == "tagslam" else
+    noise = (found.stated_link_noise() if ODOM_NOISE == "tagslam" else
              {"noise_model": ODOM_NOISE} if ODOM_NOISE in ("per_message", "random_walk") else {})
     opts = MappingOdometryOptions(topic=found.topic, base_to_odom=found.base_to_odom, **noise)
     if frames:
@@ -727,8 +727,8 @@ def _smoothed_figures(test: str, src: str, ref, ring, marker_map, frames, refere
     _, odo = _odometry(test, src, ref.rig_body, frames)
     # Links across odometry gaps up to ODOM_MAX_GAP (test_22's VIO at 4.3 Hz has gaps of 0.5-1.0 s),
     # as the filtered-with-odometry rows; the links' interpolation term widens them by what it may miss.
-    stated = MappingOdometryOptions(topic=found.topic, base_to_odom=found.base_to_odom, **found.link_noise(),
-                                    message_sampling="frames", max_gap=ODOM_MAX_GAP)
+    stated = MappingOdometryOptions(topic=found.topic, base_to_odom=found.base_to_odom, **found.stated_link_noise(),
+                                    max_gap=ODOM_MAX_GAP)
     package = MappingOdometryOptions(topic=found.topic, base_to_odom=found.base_to_odom, max_gap=ODOM_MAX_GAP)
     start = [filtered.get(int(round(f.stamp * 1e6))) for f in frames]
     est = LocalizerConfig().estimator

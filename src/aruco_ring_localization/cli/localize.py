@@ -143,10 +143,8 @@ def odometry_options(args: argparse.Namespace, ring: CameraRing) -> Tuple[Mappin
         if found is None:
             raise ConfigError(f"no body {ring.base_frame!r} (the ring's base frame) with an odom_topic",
                               path=args.odom_tagslam)
-        # TagSLAM judges its odometry at the frames its synchronizer pairs with it (message_sampling:
-        # frames); the messages one by one would weigh a 30 Hz odometry 15 times more (docs/mapping.md).
-        opts = dataclasses.replace(opts, topic=found.topic, base_to_odom=found.base_to_odom, **found.link_noise(),
-                                   message_sampling="frames")
+        opts = dataclasses.replace(opts, topic=found.topic, base_to_odom=found.base_to_odom,
+                                   **found.stated_link_noise())
         source = f"{args.odom_tagslam} (body {ring.base_frame}: odom_topic, T_body_odom, odom_* noise at the frames)"
     if args.odom_topic:
         opts = dataclasses.replace(opts, topic=args.odom_topic)
