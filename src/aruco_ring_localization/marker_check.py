@@ -173,12 +173,8 @@ class _Evidence:
     def b(self) -> np.ndarray:
         return self.Ab[:, 3]
 
-    def add(self, stamp: float, A: np.ndarray, b: np.ndarray, window: float) -> None:
-        self.push(stamp, np.concatenate([A, np.reshape(b, (3, 1))], axis=1))
-        self.prune(stamp - window)
-
     def push(self, stamp: float, Ab: np.ndarray) -> None:
-        """:meth:`add` of ``[A | b]`` (3, 4) without forgetting the old frames (the caller prunes next)."""
+        """One frame's ``[A | b]`` (3, 4) in; the old frames stay until :meth:`prune` (the caller's next step)."""
         self.items.append((stamp, Ab))
         self.Ab = self.Ab + Ab
 

@@ -306,7 +306,8 @@ def test_window_sums_follow_the_items():
     rng = np.random.default_rng(3)
     ev = _Evidence()
     for k in range(50):
-        ev.add(0.1 * k, rng.normal(size=(3, 3)) * 1e5, rng.normal(size=3) * 1e3, window=1.0)
+        ev.push(0.1 * k, np.concatenate([rng.normal(size=(3, 3)) * 1e5, rng.normal(size=(3, 1)) * 1e3], axis=1))
+        ev.prune(0.1 * k - 1.0)
         assert np.allclose(ev.A, sum(ab[:, :3] for _, ab in ev.items), rtol=0, atol=1e-6)
         assert np.allclose(ev.b, sum(ab[:, 3] for _, ab in ev.items), rtol=0, atol=1e-8)
     ev.prune(100.0)
