@@ -165,14 +165,6 @@ class _Evidence:
         self.items: Deque[Tuple[float, np.ndarray]] = deque()
         self.Ab = np.zeros((3, 4))
 
-    @property
-    def A(self) -> np.ndarray:
-        return self.Ab[:, :3]
-
-    @property
-    def b(self) -> np.ndarray:
-        return self.Ab[:, 3]
-
     def push(self, stamp: float, Ab: np.ndarray) -> None:
         """One frame's ``[A | b]`` (3, 4) in; the old frames stay until :meth:`prune` (the caller's next step)."""
         self.items.append((stamp, Ab))

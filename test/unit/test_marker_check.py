@@ -308,10 +308,10 @@ def test_window_sums_follow_the_items():
     for k in range(50):
         ev.push(0.1 * k, np.concatenate([rng.normal(size=(3, 3)) * 1e5, rng.normal(size=(3, 1)) * 1e3], axis=1))
         ev.prune(0.1 * k - 1.0)
-        assert np.allclose(ev.A, sum(ab[:, :3] for _, ab in ev.items), rtol=0, atol=1e-6)
-        assert np.allclose(ev.b, sum(ab[:, 3] for _, ab in ev.items), rtol=0, atol=1e-8)
+        assert np.allclose(ev.Ab[:, :3], sum(ab[:, :3] for _, ab in ev.items), rtol=0, atol=1e-6)
+        assert np.allclose(ev.Ab[:, 3], sum(ab[:, 3] for _, ab in ev.items), rtol=0, atol=1e-8)
     ev.prune(100.0)
-    assert not ev.items and not ev.A.any() and not ev.b.any()
+    assert not ev.items and not ev.Ab.any()
 
 
 def _statistics_reference(A, b, sys_std):
