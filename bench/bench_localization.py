@@ -434,11 +434,11 @@ def run(quick: bool = False) -> dict:
     try:
         with threadpool_limits(limits=1):
             lat_frames = _latency_frames(scene, true_ring, n_lat)
-            timed = _latency({**{n: (ring, _grown_map(truth, n), "joint", lat_frames) for n in (10, 100, 1000)},
+            grown = {n: _grown_map(truth, n) for n in (10, 100, 1000)}
+            timed = _latency({**{n: (ring, grown[n], "joint", lat_frames) for n in grown},
                               "exact": (ring, truth, "joint_exact_extrinsics", lat_frames),
                               "paper": (ring, truth, "paper", _latency_frames(scene, true_ring, n_lat // 2)),
-                              "paced": (ring, _grown_map(truth, 10), "joint", lat_frames[::LATENCY_PACE_STRIDE],
-                                        LATENCY_PACE)},
+                              "paced": (ring, grown[10], "joint", lat_frames[::LATENCY_PACE_STRIDE], LATENCY_PACE)},
                              rounds=1 if quick else LATENCY_ROUNDS)
             lat = {n: timed[n] for n in (10, 100, 1000)}
             lat_exact, lat_paper, lat_paced = timed["exact"], timed["paper"], timed["paced"]
