@@ -148,6 +148,9 @@ class MappingOptions:
                                      unit="m")
     max_marker_rms_px: float = param(3.0, "refined maps: a marker still reprojecting worse than this after the "
                                           "adjustment is rejected and the adjustment redone without it", unit="px")
+    max_marker_rms_sigmas: float = param(6.0, "... and worse than this many ba.pixel_noise: a corner noise stated "
+                                              "above the default 0.5 px (a coarser detector, TagSLAM's pixel_noise) "
+                                              "raises the limit with it (6: 3 px at 0.5 px, 12 px at 2 px)")
     refine_passes: int = param(3, "alternating marker/station re-averaging passes in multi-station maps")
     refined_reference: bool = param(True, "refined maps without a reference_marker: fix the frame to the marker "
                                           "whose heading the adjustment determines best, not the paper's reference")
@@ -199,6 +202,17 @@ class MappingOptions:
         if self.extrinsics_prior not in EXTRINSICS_PRIORS:
             raise ConfigError(f"expected one of {', '.join(EXTRINSICS_PRIORS)}, got {self.extrinsics_prior!r}",
                               key="extrinsics_prior")
+        for name in ("max_marker_rms_px", "max_marker_rms_sigmas"):
+            if not float(getattr(self, name)) > 0:
+                raise ConfigError(f"must be > 0, got {getattr(self, name)!r}", key=name)
+
+    @property
+    def marker_rms_limit_px(self) -> float:
+        """The per-marker reprojection limit of refined maps, px: ``max_marker_rms_px``, or
+        ``max_marker_rms_sigmas`` times ``ba.pixel_noise`` where that is larger (a limit in pixels
+        alone would reject the views of a map whose stated corner noise is near it: TagSLAM's test_24
+        at 2 px lost the views of 10 tags over 3 px, 1.5 sigma)."""
+        return max(float(self.max_marker_rms_px), float(self.max_marker_rms_sigmas) * float(self.ba.pixel_noise))
 
 
 @dataclass
@@ -1508,7 +1522,8 @@ class MapBuilder:
                                 ambiguous=amb, rms_px=rms.get(m)))
         out.quality = {"reprojection_rms_px": float(np.sqrt(np.mean(np.square(per_obs)))) if len(per_obs) else 0.0,
                        "frames": int(self.frames), "stations": len(init.T_W_stations),
-                       "station_model": "planar" if init.planar else "se3"}
+                       "station_model": "planar" if init.planar else "se3",
+                       "pixel_noise": float(self.options.ba.pixel_noise)}
         if init.station_note and not init.planar:
             out.quality["station_note"] = init.station_note
         if self.anchors is not None:
@@ -1742,7 +1757,8 @@ class MapBuilder:
     def _refine(self, init: _Init) -> Tuple[BAResult, List[int], _Init]:
         """The bundle adjustment, and again without the markers that do not fit it.
 
-        A marker whose observations still reproject worse than ``max_marker_rms_px`` after the
+        A marker whose observations still reproject worse than ``max_marker_rms_px`` (or
+        ``max_marker_rms_sigmas`` ``ba.pixel_noise``: :attr:`MappingOptions.marker_rms_limit_px`) after the
         adjustment (a flipped initial pose the adjustment could not leave, tiny tags at grazing
         angles, a wrong size) is rejected with the reason and the adjustment redone without it
         (twice at most): a map of the markers that fit rather than a map that fails its checks.
@@ -1756,6 +1772,7 @@ class MapBuilder:
         if boards is not None:
             init = self._place_boards(init, boards)
         n_rejections = 0
+        limit = self.options.marker_rms_limit_px
         # Rejections at most twice; with boards, dropping the views that do not fit their board does
         # not count (at most twice as well).
         for attempt in range(3 if boards is None else 5):
@@ -1767,7 +1784,7 @@ class MapBuilder:
             # A surveyed marker stays (the sanity checks name it if it does not fit): without it a group
             # placed through it would have nothing to hold it.
             surveyed = set(self.anchors.ids) if self.anchors is not None else set()
-            bad = [m for k, m in enumerate(mids) if rms[k] > self.options.max_marker_rms_px and m != init.reference
+            bad = [m for k, m in enumerate(mids) if rms[k] > limit and m != init.reference
                    and m not in surveyed]
             if not bad or n_rejections == 2 or attempt == (2 if boards is None else 4) or len(bad) >= len(mids) - 1:
                 break
@@ -1778,7 +1795,7 @@ class MapBuilder:
                 if held:
                     logger.warning("mapping: the views of markers %s do not fit their boards (over %g px RMS): "
                                    "dropped, the markers placed by their boards' layout", held,
-                                   self.options.max_marker_rms_px)
+                                   limit)
                     init = dataclasses.replace(init, marker_obs={m: ([] if m in held else v)
                                                                  for m, v in init.marker_obs.items()})
                     bad = [m for m in bad if m not in held]
@@ -1787,7 +1804,7 @@ class MapBuilder:
             n_rejections += 1
             for m in bad:
                 rejected[m] = (f"reprojects at {rms[mids.index(m)]:.1f} px RMS after the adjustment (limit "
-                               f"{self.options.max_marker_rms_px:g} px): a flipped pose, a tag too small or seen "
+                               f"{limit:g} px): a flipped pose, a tag too small or seen "
                                f"too obliquely, or a wrong size")
                 logger.warning("mapping: marker %d rejected: %s", m, rejected[m])
             keep = {m: T for m, T in init.T_W_markers.items() if m not in rejected}

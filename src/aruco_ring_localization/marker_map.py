@@ -96,6 +96,9 @@ class MapSanityLimits:
                               unit="m")
     max_rms_px: float = param(5.0, "largest reprojection RMS of the whole map and of any one marker (when "
                                    "the map records it)", unit="px")
+    max_rms_sigmas: float = param(10.0, "... or this many of the corner noise the map was adjusted with "
+                                        "(quality.pixel_noise, the mapping's ba.pixel_noise) where that is larger "
+                                        "(10: 5 px at 0.5 px, 20 px at 2 px)")
     max_extrinsics_sigmas: float = param(6.0, "refined ring extrinsics may move at most this many prior "
                                               "standard deviations from the calibration")
     max_anchor_sigmas: float = param(5.0, "surveyed frame: every anchor mapped within this many of its survey "
@@ -103,7 +106,7 @@ class MapSanityLimits:
                                           "moved marker)")
 
     def __post_init__(self) -> None:
-        for name in ("max_extent", "max_rms_px", "max_extrinsics_sigmas", "max_anchor_sigmas"):
+        for name in ("max_extent", "max_rms_px", "max_rms_sigmas", "max_extrinsics_sigmas", "max_anchor_sigmas"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"must be positive, got {getattr(self, name)!r}", key=name)
 
@@ -338,6 +341,11 @@ class MarkerMap:
         if quality is not None and not isinstance(quality, Mapping):
             raise ConfigError("expected a mapping", path=source, key="quality")
         out.quality = dict(quality or {})
+        noise = out.quality.get("pixel_noise")
+        if noise is not None and (isinstance(noise, bool) or not isinstance(noise, (int, float))
+                                  or not math.isfinite(noise) or not noise > 0):
+            raise ConfigError(f"expected a positive number of pixels (the corner noise the map was adjusted with), "
+                              f"got {noise!r}", path=source, key="quality.pixel_noise")
         if not _add_all_vectorised(out, markers):
             # Something is wrong (or unusual) in the list: one marker at a time, naming the key.
             for i, m in enumerate(markers):
@@ -633,6 +641,16 @@ def _ids_text(ids: List[int], n: int = 12) -> str:
     return ", ".join(str(i) for i in ids[:n]) + (f" and {len(ids) - n} more" if len(ids) > n else "")
 
 
+def rms_limit_px(limits: MapSanityLimits, quality: Mapping) -> float:
+    """The reprojection check's limit, px, for a map whose ``quality`` records the corner noise it was
+    adjusted with (``pixel_noise``, px): ``max_rms_px``, or ``max_rms_sigmas`` times that noise where
+    larger (a map without the record: ``max_rms_px``)."""
+    noise = quality.get("pixel_noise") if isinstance(quality, Mapping) else None
+    if isinstance(noise, (int, float)) and not isinstance(noise, bool) and math.isfinite(noise) and noise > 0:
+        return max(float(limits.max_rms_px), float(limits.max_rms_sigmas) * float(noise))
+    return float(limits.max_rms_px)
+
+
 def check_map(m: "MarkerMap", limits: Optional[MapSanityLimits] = None, ring: Any = None) -> List[str]:
     """The sanity checks every map passes before it is written; the problems found (empty: OK).
 
@@ -641,7 +659,8 @@ def check_map(m: "MarkerMap", limits: Optional[MapSanityLimits] = None, ring: An
     * ``finite``: every pose and uncertainty is a finite number;
     * ``extent``: every marker lies within ``max_extent`` of the origin (a hall-sized box);
     * ``reprojection``: the map's recorded reprojection RMS (``quality.reprojection_rms_px``) and
-      every marker's (``rms_px``) are within ``max_rms_px``;
+      every marker's (``rms_px``) are within ``max_rms_px`` (or ``max_rms_sigmas`` of the recorded
+      corner noise, ``quality.pixel_noise``, where larger: :func:`rms_limit_px`);
     * ``anchors``: every surveyed marker is mapped within ``max_anchor_sigmas`` of its survey std
       from its surveyed position (:func:`anchors.check_anchor_report`);
     * ``measurements``: every surveyed distance and plane (``quality.survey_measurements``) is met
@@ -665,16 +684,18 @@ def check_map(m: "MarkerMap", limits: Optional[MapSanityLimits] = None, ring: An
                         f"from the map origin (marker {e.marker_id} at ({t[0]:.3g}, {t[1]:.3g}, {t[2]:.3g}) m): the "
                         f"estimate diverged; check the ring file (extrinsics, base frame), the marker sizes "
                         f"(fiducial_len_override) and, for a handheld rig, planar: false")
-    rms = m.quality.get("reprojection_rms_px") if isinstance(m.quality, Mapping) else None
-    if isinstance(rms, (int, float)) and not rms <= lim.max_rms_px:
+    quality = m.quality if isinstance(m.quality, Mapping) else {}
+    rms = quality.get("reprojection_rms_px")
+    max_rms = rms_limit_px(lim, quality)
+    if isinstance(rms, (int, float)) and not rms <= max_rms:
         problems.append(f"reprojection: the map reprojects its observations with {rms:.2f} px RMS (limit "
-                        f"{lim.max_rms_px:g} px): the ring calibration (intrinsics, extrinsics) or the marker sizes "
+                        f"{max_rms:g} px): the ring calibration (intrinsics, extrinsics) or the marker sizes "
                         f"do not fit the detections")
-    worst = sorted((e for e in m if e.rms_px is not None and not e.rms_px <= lim.max_rms_px),
+    worst = sorted((e for e in m if e.rms_px is not None and not e.rms_px <= max_rms),
                    key=lambda e: -float(e.rms_px))
     if worst:
         problems.append(f"reprojection: markers {_ids_text([e.marker_id for e in worst])} reproject worse than "
-                        f"{lim.max_rms_px:g} px RMS (marker {worst[0].marker_id}: {worst[0].rms_px:.2f} px): a wrong "
+                        f"{max_rms:g} px RMS (marker {worst[0].marker_id}: {worst[0].rms_px:.2f} px): a wrong "
                         f"size, a marker that moved or an id printed twice; fix its size or ignore it")
     sigma_t = m.ring_prior_sigma.get("translation")
     sigma_r = m.ring_prior_sigma.get("rotation")

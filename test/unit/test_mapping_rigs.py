@@ -11,10 +11,11 @@ import pytest
 from aruco_ring_localization import geometry as geo
 from aruco_ring_localization.cli import main
 from aruco_ring_localization.detections import CameraFrame, MarkerObservation, RingFrame
-from aruco_ring_localization.errors import MapSanityError
+from aruco_ring_localization.bundle_adjustment import BAOptions
+from aruco_ring_localization.errors import ConfigError, MapSanityError
 from aruco_ring_localization.evaluation.maps import map_error
 from aruco_ring_localization.mapping import MapBuilder, MappingOptions
-from aruco_ring_localization.marker_map import MarkerEntry, MarkerMap, check_map
+from aruco_ring_localization.marker_map import MapSanityLimits, MarkerEntry, MarkerMap, check_map, rms_limit_px
 from aruco_ring_localization.markers import MarkerSizes, marker_corners
 from aruco_ring_localization.simulation.ring_sim import RingSimulator
 from aruco_ring_localization.simulation.scene import Scene
@@ -224,6 +225,32 @@ def test_a_map_failing_its_checks_is_never_written(tmp_path):
     assert path.read_text() == before
 
 
+def test_the_reprojection_limits_scale_with_the_stated_corner_noise(tmp_path):
+    """A map adjusted at a stated corner noise of 2 px (TagSLAM's test_24) may hold markers at 11 px
+    RMS (5.6 sigma): the check's limit is max_rms_px or max_rms_sigmas noises, whichever is larger;
+    without the record, max_rms_px alone. The mapping's per-marker limit scales the same way."""
+    grazing = _map()
+    grazing.add(MarkerEntry(11, grazing.T_map_marker(11), 0.2, np.full(3, 0.002), np.zeros(3), 40, rms_px=11.25))
+    problems = check_map(grazing)
+    assert len(problems) == 1 and "markers 11 reproject worse than 5 px" in problems[0], problems
+    grazing.quality = {"reprojection_rms_px": 1.3, "pixel_noise": 2.0}
+    assert check_map(grazing) == []
+    assert rms_limit_px(MapSanityLimits(), grazing.quality) == 20.0
+    assert rms_limit_px(MapSanityLimits(), {"pixel_noise": 0.1}) == 5.0      # never below max_rms_px
+    assert "11.25 px" in check_map(grazing, MapSanityLimits(max_rms_sigmas=5.0))[0]   # 10 px
+    path = tmp_path / "map.yaml"
+    grazing.save(str(path))
+    assert MarkerMap.load(str(path)).quality["pixel_noise"] == 2.0
+    path.write_text(path.read_text().replace("pixel_noise: 2.0", "pixel_noise: -2.0"))
+    with pytest.raises(ConfigError, match="quality.pixel_noise"):
+        MarkerMap.load(str(path))
+    assert MappingOptions().marker_rms_limit_px == 3.0
+    assert MappingOptions(ba=BAOptions(pixel_noise=2.0)).marker_rms_limit_px == 12.0
+    assert MappingOptions(max_marker_rms_px=20.0, ba=BAOptions(pixel_noise=2.0)).marker_rms_limit_px == 20.0
+    with pytest.raises(ConfigError, match="max_marker_rms_sigmas"):
+        MappingOptions(max_marker_rms_sigmas=0.0)
+
+
 def test_check_config_applies_the_same_checks(tmp_path, capsys):
     path = tmp_path / "map.yaml"
     m = _map()
@@ -244,8 +271,10 @@ def test_save_map_refuses_what_fails_and_keeps_the_old_file(ring, scene, tmp_pat
     path = tmp_path / "map.yaml"
     b.save_map(str(path))
     before = path.read_text()
+    # (both limits: the check refuses what is worse than max_rms_px and max_rms_sigmas corner noises)
     strict = MapBuilder(ring, MarkerSizes(0.2), method="paper",
-                        options=MappingOptions(sanity=type(MappingOptions().sanity)(max_rms_px=1e-6)))
+                        options=MappingOptions(sanity=type(MappingOptions().sanity)(max_rms_px=1e-6,
+                                                                                     max_rms_sigmas=1e-6)))
     strict.add_frame(sim.observe(Scene.T_world_base(scene.mapping_pose)))
     with pytest.raises(MapSanityError, match="reprojection"):
         strict.save_map(str(path))
@@ -278,16 +307,26 @@ def test_a_marker_that_does_not_fit_the_adjustment_is_rejected_not_saved(ring, s
                          m.size) for m in scene.markers]
     before = RingSimulator(scene, ring, pixel_noise=0.3, seed=4)
     after = RingSimulator(Scene(**{**scene.__dict__, "markers": moved}), ring, pixel_noise=0.3, seed=5)
-    b = MapBuilder(ring, MarkerSizes(0.2))
+    frames = []
     for k, pose in enumerate(scene.mapping_stations):
         sim = before if k < len(scene.mapping_stations) // 2 + 1 else after
-        for _ in range(3):
-            b.add_frame(sim.observe(Scene.T_world_base(pose), stamp=0.1 * k), station=k)
+        frames += [(sim.observe(Scene.T_world_base(pose), stamp=0.1 * k), k) for _ in range(3)]
+    b = MapBuilder(ring, MarkerSizes(0.2))
+    for f, k in frames:
+        b.add_frame(f, station=k)
     m = b.build("refined")
     s = b.summary()
     assert 42 not in m and "after the adjustment" in s["rejected"].get(42, ""), s["rejected"]
     assert len(m) == len(scene.markers) - 1 and all(e.rms_px < 1.0 for e in m)
     m.save(str(tmp_path / "map.yaml"), b.options.sanity)
+    # The same frames with a stated corner noise of 10 px: the limit is 60 px (max_marker_rms_sigmas),
+    # marker 42's misfit is within what such corners allow, and it stays.
+    loose = MapBuilder(ring, MarkerSizes(0.2), options=MappingOptions(ba=BAOptions(pixel_noise=10.0)))
+    for f, k in frames:
+        loose.add_frame(f, station=k)
+    m_loose = loose.build("refined")
+    assert 42 in m_loose and 3.0 < m_loose[42].rms_px < 60.0, m_loose[42].rms_px
+    assert m_loose.quality["pixel_noise"] == 10.0 and check_map(m_loose, loose.options.sanity) == []
 
 
 def test_a_frame_that_links_markers_is_kept_while_moving(ring, scene):
