@@ -129,6 +129,28 @@ def _one_view_frame(ring, T_cam_markers, rng, camera="cam0"):
     return RingFrame(0.0, {camera: CameraFrame(camera, 0.0, obs)})
 
 
+def test_a_detection_is_dropped_beyond_the_reprojection_limit_scaled_by_the_stated_noise(ring):
+    """A marker whose best single-marker pose reprojects at 4.6 px RMS (a coarse detector): dropped at
+    the default 3 px, kept when the corners are stated at 1 px (limit 6 px, max_reprojection_sigmas)."""
+    flip = geo.rotation_from_rvec([np.pi, 0.0, 0.0])
+    T = {1: geo.make_transform(flip, [0.0, 0.0, 1.5])}
+    frame = _one_view_frame(ring, T, np.random.default_rng(2))
+    obs = frame.cameras["cam0"].observations[0]
+    skew = obs.corners + np.array([[17.0, 17.0], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0]])   # one corner 24 px off
+    frame = RingFrame(0.0, {"cam0": CameraFrame("cam0", 0.0, [MarkerObservation(1, skew)])})
+    errors = []
+    for noise in (0.5, 1.0):
+        b = MapBuilder(ring, MarkerSizes(0.2), method="paper", options=MappingOptions(ba=BAOptions(pixel_noise=noise)))
+        b.add_frame(frame, station=0)
+        errors.append((b.rejected_detections["reprojection"], b.summary()["mapped"]))
+    assert errors == [(1, []), (0, [1])], errors
+    assert MappingOptions().reprojection_limit_px == 3.0
+    assert MappingOptions(ba=BAOptions(pixel_noise=1.0)).reprojection_limit_px == 6.0
+    assert MappingOptions(max_reprojection_px=float("inf")).reprojection_limit_px == float("inf")
+    with pytest.raises(ConfigError, match="max_reprojection_sigmas"):
+        MappingOptions(max_reprojection_sigmas=-1.0)
+
+
 def test_a_marker_seen_from_one_viewpoint_is_mapped_flagged_and_resolved_later(ring, tmp_path):
     flip = geo.rotation_from_rvec([np.pi, 0.0, 0.0])
     near = geo.make_transform(flip, [0.0, 0.0, 1.5])
