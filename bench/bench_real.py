@@ -956,15 +956,7 @@ def doc_explained(path: str = DOC) -> Dict[str, str]:
 def doc_notes(path: str = DOC) -> List[str]:
     """The paragraphs of the current "Real recordings" section that say what was re-measured when
     (``**Re-measured ...``): kept by ``--render`` under the table."""
-    if not os.path.exists(path):
-        return []
-    with open(path, encoding="utf-8") as fh:
-        text = fh.read()
-    start = text.find("## Real recordings")
-    if start < 0:
-        return []
-    end = text.find("\n## ", start + 1)
-    paras = text[start:end if end > 0 else None].split("\n\n")
+    paras = _doc_section(path).split("\n\n")
     return [p.strip() for p in paras if p.strip().startswith("**Re-measured")]
 
 
@@ -1241,8 +1233,9 @@ def report(rows: Dict[str, dict], failed: Dict[str, str], load, quick: bool, tes
 def render_saved(extra_notes: Optional[List[str]] = None) -> dict:
     """The section from the saved rows: the last full run (rows.json), rows re-measured alone
     (``--only ... --merge``: <test>/row.json, newer than rows.json) and localization-only rows
-    (loc_row.json), and for every recording this worktree never measured, its line of the current
-    docs/benchmarks.md verbatim (with its date); the document's ``**Re-measured`` notes are kept."""
+    (loc_row.json); the document's ``**Re-measured`` notes are kept. Refused (SystemExit, naming what
+    to re-run) when a recording has no saved row on this machine (its keys would be read back from the
+    document's rounded cells) or when a table of ``--loc-only`` runs the document has would be dropped."""
     saved = {"rows": {}, "failed": {}, "load": os.getloadavg(), "quick": False, "tests": _tests()}
     if os.path.exists(os.path.join(OUT, "rows.json")):
         with open(os.path.join(OUT, "rows.json"), encoding="utf-8") as fh:
@@ -1263,6 +1256,15 @@ def render_saved(extra_notes: Optional[List[str]] = None) -> dict:
     for t, cells in in_doc.items():   # rows this worktree never measured: as the doc has them
         if t not in saved["rows"]:
             saved["rows"][t] = {"_doc_only": cells}
+    doc_only = [t for t, r in saved["rows"].items() if "_doc_only" in r]
+    if doc_only:
+        # Their keys would come from the document's rounded cells (0.0020 mm written as 0.0) and the
+        # worst-case keys the cells do not hold would be NaN (seen 2026-12-07 on a new machine).
+        raise SystemExit(f"bench_real --render: no saved row on this machine for {', '.join(doc_only)} "
+                         f"(results/bench/real/rows.json or <test>/row.json): rendering them from the document "
+                         f"would round their keys in results.json and leave the worst-case keys NaN. Re-measure "
+                         f"them (python bench/bench_real.py --only {','.join(doc_only)} --merge) or run the "
+                         f"whole section (python bench/run.py --only real), or edit the rows by hand")
     saved["rows"] = {k: saved["rows"][k] for k in sorted(saved["rows"], key=lambda n: int(n.split("_")[1]))}
     notes = doc_notes() + list(extra_notes or [])
     explained = doc_explained()
@@ -1273,7 +1275,33 @@ def render_saved(extra_notes: Optional[List[str]] = None) -> dict:
         m = re.match(r"^(\d+)", cells[5]) if len(cells) == 7 else None
         if "_doc_only" in r and m:
             r["_frame_flips"] = int(m.group(1))
-    return report(saved["rows"], saved["failed"], None, saved["quick"], saved["tests"], notes, explained)
+    out = report(saved["rows"], saved["failed"], None, saved["quick"], saved["tests"], notes, explained)
+    # The tables of --loc-only runs come from their saved rows only: one the document has and this
+    # render would not write again is refused, not dropped.
+    dropped = [h for h in _LOC_TABLES if h in _doc_section() and h not in out["markdown"]]
+    if dropped:
+        raise SystemExit(f"bench_real --render: the document's tables {'; '.join(dropped)} come from --loc-only "
+                         f"runs this machine has not saved (results/bench/real/<test>/loc_row.json): rendering "
+                         f"would drop them. Re-run them (python bench/bench_real.py --only TESTS --loc-only --merge) "
+                         f"or edit the rows by hand")
+    return out
+
+
+#: the headings of the section's tables made from --loc-only runs (:func:`report`)
+_LOC_TABLES = ("**Filtered with the bag's odometry**", "**Smoothed with the bag's odometry**")
+
+
+def _doc_section(path: str = DOC) -> str:
+    """The current "Real recordings" section of docs/benchmarks.md ("" without one)."""
+    if not os.path.exists(path):
+        return ""
+    with open(path, encoding="utf-8") as fh:
+        text = fh.read()
+    start = text.find("## Real recordings")
+    if start < 0:
+        return ""
+    end = text.find("\n## ", start + 1)
+    return text[start:end if end > 0 else None]
 
 
 if __name__ == "__main__":
