@@ -206,8 +206,9 @@ class MappingOptions:
             raise ConfigError(f"expected one of {', '.join(EXTRINSICS_PRIORS)}, got {self.extrinsics_prior!r}",
                               key="extrinsics_prior")
         for name in ("max_reprojection_px", "max_reprojection_sigmas", "max_marker_rms_px", "max_marker_rms_sigmas"):
-            if not float(getattr(self, name)) > 0:
-                raise ConfigError(f"must be > 0, got {getattr(self, name)!r}", key=name)
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+                raise ConfigError(f"must be a number > 0, got {value!r}", key=name)
 
     @property
     def reprojection_limit_px(self) -> float:
@@ -688,8 +689,9 @@ class MapBuilder:
     def _board_views(self, groups: List[_Group], boards: BoardSet) -> None:
         """Markers of one board seen together by one camera at one station: each one's pose from
         the board's (:func:`boards.solve_board_view`, all their corners at once), unambiguous (in
-        place). A marker that does not fit its board's view (over :attr:`MappingOptions.reprojection_limit_px`) keeps its
-        own single-marker solution; a view that does not fit at all is left alone."""
+        place). A marker that does not fit its board's view (over
+        :attr:`MappingOptions.reprojection_limit_px`) keeps its own single-marker solution; a view
+        that does not fit at all is left alone."""
         views: Dict[Tuple[int, str, int], List[_Group]] = defaultdict(list)
         for g in groups:
             b = boards.board_of(g.marker_id)
