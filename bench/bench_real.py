@@ -965,20 +965,6 @@ def _doc_number(cell: str, pattern: str) -> float:
     return float(m.group(1)) if m else float("nan")
 
 
-def _from_doc(cells: List[str]) -> dict:
-    """A row's figures read back from its doc line (a recording not re-measured here), rendered verbatim."""
-    loc = [_doc_number(x, r"([\d.]+)") for x in cells[7].replace(",", " /").split(" / ")[:3]] + [float("nan")] * 3
-    cpu = cells[10].split(" / ") + ["-"]
-    return {"_doc_cells": cells, "_verbatim": True, "cameras": cells[1], "frames": int(cells[2]),
-            "map_rms_mm": _doc_number(cells[4], r"^([\d.]+)"),
-            "tags_missing": int(_doc_number(cells[6], r"^(\d+)")) if re.match(r"^\d+", cells[6]) else 0,
-            "tagslam_loc_median_mm": loc[0], "tagslam_loc_max_mm": loc[2],
-            "tagslam_flips": int(_doc_number(cells[8], r", (\d+)(?: of [\d-]+)?$")),
-            "tagslam_frame_flips": "?",
-            "map_cpu_ms_per_frame": _doc_number(cpu[0], r"^([\d.]+)"),
-            "tagslam_loc_cpu_ms_per_frame": _doc_number(cpu[1], r"^([\d.]+)")}
-
-
 def merge_loc(row: Optional[dict], loc: dict, cells: Optional[List[str]]) -> dict:
     """A table row from a localization-only run (``--loc-only``) over the recording's mapping row
     (``row``: its JSON, or None) or, without one, the cells of the current doc line (``cells``)."""
@@ -998,9 +984,6 @@ def report(rows: Dict[str, dict], failed: Dict[str, str], load, quick: bool, tes
            notes: Optional[List[str]] = None, explained_doc: Optional[Dict[str, str]] = None) -> dict:
     """The results keys and the markdown section of a run (also from a saved rows.json: --render)."""
     results: Dict[str, float] = {}
-    rows = {t: (dict(_from_doc(r["_doc_only"]), **({"tagslam_frame_flips": r["_frame_flips"]}
-                                                   if "_frame_flips" in r else {}))
-                if "_doc_only" in r else r) for t, r in rows.items()}
     for t, r in rows.items():
         results[f"real_{t}_map_rms_mm"] = r["map_rms_mm"]
         results[f"real_{t}_tags_missing"] = r["tags_missing"]
@@ -1065,9 +1048,6 @@ def report(rows: Dict[str, dict], failed: Dict[str, str], load, quick: bool, tes
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for t, r in rows.items():
         cells = r.get("_doc_cells")
-        if r.get("_verbatim"):
-            lines.append("| " + " | ".join(cells) + " |")
-            continue
         if cells is not None or "stations" not in r:
             # Localization re-measured alone: the mapping columns as the doc has them.
             c = list(cells) if cells is not None else [t] + ["-"] * 12
@@ -1253,10 +1233,7 @@ def render_saved(extra_notes: Optional[List[str]] = None) -> dict:
         if os.path.exists(path):
             with open(path, encoding="utf-8") as fh:
                 saved["rows"][t] = merge_loc(saved["rows"].get(t), json.load(fh), in_doc.get(t))
-    for t, cells in in_doc.items():   # rows this worktree never measured: as the doc has them
-        if t not in saved["rows"]:
-            saved["rows"][t] = {"_doc_only": cells}
-    doc_only = [t for t, r in saved["rows"].items() if "_doc_only" in r]
+    doc_only = [t for t in in_doc if t not in saved["rows"]]
     if doc_only:
         # Their keys would come from the document's rounded cells (0.0020 mm written as 0.0) and the
         # worst-case keys the cells do not hold would be NaN (seen 2026-12-07 on a new machine).
@@ -1268,13 +1245,6 @@ def render_saved(extra_notes: Optional[List[str]] = None) -> dict:
     saved["rows"] = {k: saved["rows"][k] for k in sorted(saved["rows"], key=lambda n: int(n.split("_")[1]))}
     notes = doc_notes() + list(extra_notes or [])
     explained = doc_explained()
-    for t, line in explained.items():     # per-frame flips of rows kept from the doc: its explained table's
-        r = saved["rows"].get(t, {})
-        # Its "per frame > 10 deg (ambiguous)" cell, the 6th (the 2nd is the paper's "median / max mm, px").
-        cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        m = re.match(r"^(\d+)", cells[5]) if len(cells) == 7 else None
-        if "_doc_only" in r and m:
-            r["_frame_flips"] = int(m.group(1))
     out = report(saved["rows"], saved["failed"], None, saved["quick"], saved["tests"], notes, explained)
     # The tables of --loc-only runs come from their saved rows only: one the document has and this
     # render would not write again is refused, not dropped.
