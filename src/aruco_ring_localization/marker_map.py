@@ -342,8 +342,7 @@ class MarkerMap:
             raise ConfigError("expected a mapping", path=source, key="quality")
         out.quality = dict(quality or {})
         noise = out.quality.get("pixel_noise")
-        if noise is not None and (isinstance(noise, bool) or not isinstance(noise, (int, float))
-                                  or not math.isfinite(noise) or not noise > 0):
+        if noise is not None and not _is_pixel_noise(noise):
             raise ConfigError(f"expected a positive number of pixels (the corner noise the map was adjusted with), "
                               f"got {noise!r}", path=source, key="quality.pixel_noise")
         if not _add_all_vectorised(out, markers):
@@ -641,12 +640,17 @@ def _ids_text(ids: List[int], n: int = 12) -> str:
     return ", ".join(str(i) for i in ids[:n]) + (f" and {len(ids) - n} more" if len(ids) > n else "")
 
 
+def _is_pixel_noise(value: Any) -> bool:
+    """Whether ``value`` is a usable corner noise: a finite number of pixels > 0."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
+
+
 def rms_limit_px(limits: MapSanityLimits, quality: Mapping) -> float:
     """The reprojection check's limit, px, for a map whose ``quality`` records the corner noise it was
     adjusted with (``pixel_noise``, px): ``max_rms_px``, or ``max_rms_sigmas`` times that noise where
     larger (a map without the record: ``max_rms_px``)."""
     noise = quality.get("pixel_noise") if isinstance(quality, Mapping) else None
-    if isinstance(noise, (int, float)) and not isinstance(noise, bool) and math.isfinite(noise) and noise > 0:
+    if _is_pixel_noise(noise):
         return max(float(limits.max_rms_px), float(limits.max_rms_sigmas) * float(noise))
     return float(limits.max_rms_px)
 
