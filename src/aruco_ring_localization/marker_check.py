@@ -320,6 +320,58 @@ def _rows(views: Sequence[_View], T_cam_bases: np.ndarray, T_cam_maps: np.ndarra
     return J.reshape(n // 4, 8, 13), w
 
 
+class _Layout:
+    """Which (camera, marker) block is which in one check, and what follows from it alone (the
+    views' cameras and marker ids and the dropped markers; no measurement): per block its view, its
+    index in the view and its marker's row; the markers in view sorted; which are used in the pose,
+    which may be judged (enough other used markers); the marker <- block summing matrix; per marker
+    the hash of its set of others (the (camera, marker) pairs of the other used markers: the key of
+    its baselines). :meth:`MarkerCheck._layout` keeps the last few."""
+
+    __slots__ = ("blk_view", "blk_k", "blk_m_l", "blk_m", "mids", "M", "used_l", "used", "S", "eligible",
+                 "any_eligible", "masks")
+
+    def __init__(self, views: Sequence[_View], drop: set, min_other_markers: int):
+        blk_view, blk_k, blk_mid, pairs = [], [], [], []
+        own: Dict[int, set] = {}
+        for vi, v in enumerate(views):
+            cam = v.index
+            for k, i in enumerate(v.ids):
+                blk_view.append(vi)
+                blk_k.append(k)
+                blk_mid.append(i)
+                pr = (cam, i)
+                pairs.append(pr)
+                mine = own.get(i)
+                if mine is None:
+                    own[i] = {pr}
+                else:
+                    mine.add(pr)
+        B = len(blk_mid)
+        # The markers in view, sorted, and each block's (np.unique's, without its set-up).
+        mids = sorted(own)
+        order = {m: j for j, m in enumerate(mids)}
+        self.blk_view, self.blk_k = blk_view, blk_k
+        self.blk_m_l = [order[i] for i in blk_mid]
+        self.blk_m = np.array(self.blk_m_l, dtype=np.intp)
+        self.mids, self.M = mids, len(mids)
+        self.used_l = [m not in drop for m in mids]
+        self.used = np.array(self.used_l, dtype=bool)
+        # Marker <- block sums (M rows), and a last row: the sums over the blocks of used markers.
+        self.S = np.zeros((self.M + 1, B))
+        self.S[self.blk_m, np.arange(B)] = 1.0
+        self.S[self.M] = self.used[self.blk_m]
+        n_used = sum(self.used_l)
+        self.eligible = tuple(n_used - u >= min_other_markers for u in self.used_l)
+        self.any_eligible = any(self.eligible)
+        everyone = frozenset(pr for pr, mid in zip(pairs, blk_mid) if mid not in drop)
+        self.masks = [hash(everyone - own[mid]) for mid in mids]
+
+
+#: how many block layouts a MarkerCheck keeps (a standing robot repeats one or a few)
+_LAYOUTS_KEPT = 16
+
+
 class MarkerCheck:
     """Per-marker consistency check over time (module docstring).
 
@@ -360,6 +412,8 @@ class MarkerCheck:
         self.latest: Dict[int, Tuple[np.ndarray, float, int]] = {}
         #: (ring, {camera: (index, T_base_cam, T_cam_base)}) of the last ring checked (:meth:`_views`).
         self._ring_cameras: Optional[Tuple[CameraRing, Dict[str, Tuple[int, np.ndarray, np.ndarray]]]] = None
+        #: (the views' (camera index, ids), the dropped ids) -> its :class:`_Layout` (:meth:`_layout`)
+        self._layouts: Dict[tuple, _Layout] = {}
 
     # --- the pose side -------------------------------------------------------------------------
 
@@ -433,6 +487,18 @@ class MarkerCheck:
         stack = np.array(T_cam_bases)
         return out, stack, np.matmul(stack, T_base_map)
 
+    def _layout(self, views: Sequence[_View], drop: set, min_other_markers: int) -> _Layout:
+        """The :class:`_Layout` of these views with these markers dropped: built once, then looked up
+        (its arrays are only read). The table holds the last :data:`_LAYOUTS_KEPT` and starts over
+        beyond (the robot has gone elsewhere)."""
+        key = (tuple((v.index, tuple(v.ids)) for v in views), frozenset(drop), min_other_markers)
+        lay = self._layouts.get(key)
+        if lay is None:
+            if len(self._layouts) >= _LAYOUTS_KEPT:
+                self._layouts.clear()
+            lay = self._layouts[key] = _Layout(views, drop, min_other_markers)
+        return lay
+
     def update(self, frame: RingFrame, T_map_base: np.ndarray, ring: CameraRing, now: float,
                motion=None, speed: Tuple[float, float] = (0.0, 0.0),
                known_views: Optional[Dict[str, object]] = None) -> List[MovedMarker]:
@@ -465,35 +531,11 @@ class MarkerCheck:
         # Blocks: one (camera, marker) pair, its 8 rows.
         J, w = _rows(views, T_cam_bases, T_cam_maps, T_base_map, p.pixel_noise)
         B = len(w)
-        # Per block its view, its index in the view, its marker and its (camera index, marker) pair;
-        # per marker its pairs (``own``: for the baselines' sets of others below).
-        blk_view, blk_k, blk_mid, pairs = [], [], [], []
-        own: Dict[int, set] = {}
-        for vi, v in enumerate(views):
-            cam = v.index
-            for k, i in enumerate(v.ids):
-                blk_view.append(vi)
-                blk_k.append(k)
-                blk_mid.append(i)
-                pr = (cam, i)
-                pairs.append(pr)
-                mine = own.get(i)
-                if mine is None:
-                    own[i] = {pr}
-                else:
-                    mine.add(pr)
-        # The markers in view, sorted, and each block's (np.unique's, without its set-up).
-        mids_l = sorted(own)
-        order = {m: j for j, m in enumerate(mids_l)}
-        blk_m_l = [order[i] for i in blk_mid]
-        blk_m = np.array(blk_m_l)
-        M = len(mids_l)
-        used_l = [m not in drop for m in mids_l]
-        used = np.array(used_l)
-        # Marker <- block sums (M rows), and a last row: the sums over the blocks of used markers.
-        S = np.zeros((M + 1, B))
-        S[blk_m, np.arange(B)] = 1.0
-        S[M] = used[blk_m]
+        # Which block is which (pure functions of the views' cameras and ids and of the dropped
+        # markers): the same from check to check while the robot stands, so kept (:meth:`_layout`).
+        lay = self._layout(views, drop, p.min_other_markers)
+        blk_view, blk_k, blk_m_l, blk_m = lay.blk_view, lay.blk_k, lay.blk_m_l, lay.blk_m
+        mids_l, M, used_l, used, S = lay.mids, lay.M, lay.used_l, lay.used, lay.S
         # J = [Z Jr], Z = [Jp Jm r]. Per block, Z^T W Z (10x10): [[H_b, cross^T, g_b], [cross, A, .],
         # [., ., .]] (pose, marker, residual) from the Gram matrix J^T J (one product), with W the block's weight: the
         # inverse of s^2 I + jitter^2 Jr Jr^T (8x8; s^2 = 1 / w), by Woodbury on 3x3:
@@ -511,12 +553,11 @@ class MarkerCheck:
         sums = (S @ NZ.reshape(B, 100)).reshape(M + 1, 10, 10)
         Hm, gm = sums[:M, :6, :6], sums[:M, :6, 9]
         H_all, g_all = sums[M, :6, :6], sums[M, :6, 9]
-        n_used = sum(used_l)
         self.frames_checked += 1
         if self.frames_checked % 100 == 0:
             self._forget(stamp)
-        eligible_l = [n_used - u >= p.min_other_markers for u in used_l]
-        if not any(eligible_l):
+        eligible_l = lay.eligible
+        if not lay.any_eligible:
             return self._judge(stamp, now)
         # The pose from the others: one Gauss-Newton step without the marker's rows.
         H_loo = H_all[None] - Hm * used[:, None, None]
@@ -526,6 +567,7 @@ class MarkerCheck:
             delta = np.linalg.solve(H_loo + eye6, g_loo[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:
             delta = np.zeros((M, 6))
+            eligible_l = list(eligible_l)   # (the layout's is shared with later checks)
             for m in range(M):
                 if not eligible_l[m]:
                     continue
@@ -540,8 +582,7 @@ class MarkerCheck:
         # marker coming into view, changes the set: the pair's residual jumps although nothing
         # moved (on the harsh lab, 6 mrad when cam4 started to see one more marker); it is judged
         # against the baseline of the new set once that is learnt.
-        everyone = frozenset(pr for pr, mid in zip(pairs, blk_mid) if mid not in drop)
-        masks = [hash(everyone - own[mid]) for mid in mids_l]
+        masks = lay.masks   # per marker: its set of others (the layout's)
         # Camera positions in the map, -R^T t, batched (8 small matmuls on strided views cost ~20 us).
         positions = (-np.einsum("kji,kj->ki", T_cam_maps[:, :3, :3], T_cam_maps[:, :3, 3])).tolist()
         judged_blocks, bases = [], []   # the blocks with a baseline, and it (e = res - base there)

@@ -299,6 +299,38 @@ def test_parked_frames_are_checked_at_the_rate():
         MarkerCheckParams(rate=-1.0)
 
 
+def test_kept_block_layouts_give_what_fresh_ones_give(monkeypatch):
+    """The check keeps each frame's block layout (which block is which marker, the markers used, the
+    sets of others) from check to check (issue 16): a parked run with a marker moved (the dropped set
+    changes mid-run) gives the same evidence, statistics and declaration to the last bit as the same
+    run with a layout built afresh for every check, and the kept ones are reused."""
+    from aruco_ring_localization import marker_check as mcmod
+
+    built = []
+    real = mcmod._Layout.__init__
+
+    def counting(self, *a, **k):
+        built.append(1)
+        real(self, *a, **k)
+
+    monkeypatch.setattr(mcmod._Layout, "__init__", counting)
+    _, _, pipe, mid, declared_at, _ = _parked_run(1, move_at=5.0, duration=8.0, **EVERY_FRAME)
+    kept_run = pipe.marker_check
+    assert declared_at is not None and mid in kept_run.moved
+    assert len(built) < kept_run.frames_checked / 10, f"{len(built)} layouts built for {kept_run.frames_checked} checks"
+
+    monkeypatch.setattr(mcmod.MarkerCheck, "_layout", lambda self, views, drop, k: mcmod._Layout(views, drop, k))
+    _, _, pipe, mid2, declared_at2, _ = _parked_run(1, move_at=5.0, duration=8.0, **EVERY_FRAME)
+    fresh = pipe.marker_check
+    assert (mid2, declared_at2, sorted(fresh.moved)) == (mid, declared_at, sorted(kept_run.moved))
+    assert sorted(fresh.latest) == sorted(kept_run.latest)
+    for k, (d, T, n) in kept_run.latest.items():
+        d2, T2, n2 = fresh.latest[k]
+        assert np.array_equal(d, d2) and T == T2 and n == n2, k
+    assert {k: ev.Ab.tobytes() for k, ev in kept_run._evidence.items()} == \
+        {k: ev.Ab.tobytes() for k, ev in fresh._evidence.items()}
+
+
 def test_window_sums_follow_the_items():
     """The running sums of a marker's evidence equal the sum of what is in its window."""
     from aruco_ring_localization.marker_check import _Evidence
