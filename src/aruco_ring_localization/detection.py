@@ -406,27 +406,35 @@ _I_NEXT = np.array([0, 1, 2, 3])             # half-side (i -> i+1) near its sta
 _ROT = np.array([1.0, -1.0])
 
 
-def _unclipped_lobe(g: np.ndarray, cut: np.ndarray) -> np.ndarray:
-    """The dark -> light gradients ``g`` (..., k - 1) of profiles whose samples ``cut`` (..., k)
-    touch a pixel at full scale, with, in every profile that has such a sample, only the steps
-    within the largest window symmetric about the largest uncut step that ends before the first
-    cut one after it (a step is cut when its light end is).
-
-    A blurred edge's gradient is symmetric about the edge (what the centroid relies on); the
-    sensor's full scale cuts it on the light side, so the whole lobe's centroid moves toward the
-    dark side. Its peak stays on the edge as long as the edge's mid level is below full scale, and
-    so does the centroid of a window symmetric about the peak. Profiles without a cut sample are
-    returned unchanged."""
-    k1 = g.shape[-1]
-    idx = np.arange(k1)
+def _clipped_edge_shift(g: np.ndarray, cut: np.ndarray, mid: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """``shift`` (the gradient centroids, (..., )) with, in every profile that has a sample at
+    full scale (``cut`` (..., k)), the peak of a Gaussian fitted to its uncut dark -> light steps
+    ``g`` (..., k - 1) at positions ``mid``: ln g is a parabola in the position, fitted by least
+    squares weighted by g^2, its vertex the edge. A profile whose fit is not a peak (fewer than 3
+    steps, no curvature, vertex outside the profile) keeps its centroid."""
     step_cut = cut[..., 1:]
-    peak = np.argmax(np.where(step_cut, 0.0, g), axis=-1)[..., None]    # (..., 1)
-    after = step_cut & (idx > peak)
-    first = np.where(after.any(axis=-1), np.argmax(after, axis=-1), k1)[..., None]
-    half = np.minimum(np.minimum(peak, first - 1 - peak), k1 - 1 - peak)
-    keep = np.abs(idx - peak) <= np.maximum(half, 0)
-    touched = step_cut.any(axis=-1, keepdims=True)
-    return np.where(touched & ~keep, 0.0, g)
+    gu = np.where(step_cut, 0.0, g)
+    top = gu.max(axis=-1, keepdims=True)
+    use = (gu > 0.1 * top) & (top > 0.0)
+    y = np.log(np.where(use, gu, 1.0))
+    wt = np.where(use, gu * gu, 0.0)
+    m1, m2 = mid, mid * mid
+    S0, S1, S2 = wt.sum(-1), (wt * m1).sum(-1), (wt * m2).sum(-1)
+    S3, S4 = (wt * m2 * m1).sum(-1), (wt * m2 * m2).sum(-1)
+    T0, T1, T2 = (wt * y).sum(-1), (wt * y * m1).sum(-1), (wt * y * m2).sum(-1)
+    A = np.stack([np.stack([S0, S1, S2], -1), np.stack([S1, S2, S3], -1), np.stack([S2, S3, S4], -1)], -2)
+    rhs = np.stack([T0, T1, T2], -1)
+    n = use.sum(-1)
+    ok = (n >= 3) & step_cut.any(-1)
+    A = np.where(ok[..., None, None], A, np.eye(3))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        try:
+            coef = np.linalg.solve(A, np.where(ok[..., None], rhs, 0.0)[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            return shift
+        x0 = -coef[..., 1] / (2.0 * coef[..., 2])
+    ok &= (coef[..., 2] < 0.0) & np.isfinite(x0) & (np.abs(x0) <= mid[-1])
+    return np.where(ok, x0, shift)
 
 
 def refine_corners_lines(gray: np.ndarray, corners, iterations: int = 2) -> np.ndarray:
@@ -445,7 +453,7 @@ def refine_corners_lines(gray: np.ndarray, corners, iterations: int = 2) -> np.n
     light side, and the centroid of what is left lies on the dark side of the edge: the marker comes
     out smaller, and so farther away (0.04-0.07 px per edge on the harsh lab's bright frames, about
     0.3 % of a 30 px marker). There the centroid is taken over the part of the gradient symmetric
-    about its peak that no clipped sample touches (:func:`_unclipped_lobe`).
+    fitted to the gradient's unclipped steps (:func:`_clipped_edge_shift`).
 
     Args:
         gray: (H, W) uint8 image.
@@ -473,7 +481,7 @@ def refine_corners_lines(gray: np.ndarray, corners, iterations: int = 2) -> np.n
         return c
     roi = gray[y0:y1, x0:x1].astype(np.float32)  # float: remap on uint8 would round the profiles
     # A white margin at the sensor's full scale cuts the light side of its edges' profiles
-    # (:func:`_unclipped_lobe`); only then is the gradient trimmed (one max per marker otherwise).
+    # (:func:`_clipped_edge_shift`); only then is the edge fitted (one max per marker otherwise).
     saturated = bool(roi.max() >= _SATURATED)
     origin = np.array([x0, y0], dtype=np.float64)
     c -= origin
@@ -497,10 +505,10 @@ def refine_corners_lines(gray: np.ndarray, corners, iterations: int = 2) -> np.n
         prof = cv2.remap(roi, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
                          ).astype(np.float64).reshape(8, ns, k)
         g = np.maximum(prof[:, :, 1:] - prof[:, :, :-1], 0.0)                          # dark -> light
-        if saturated:
-            g = _unclipped_lobe(g, prof >= _SATURATED)
         w = g.sum(axis=2)
         shift = (g * mid).sum(axis=2) / np.maximum(w, 1e-9)
+        if saturated:
+            shift = _clipped_edge_shift(g, prof >= _SATURATED, mid, shift)
         p = base + shift[..., None] * n[:, None, :]
         W = w / np.maximum(w.sum(axis=1), 1e-9)[:, None]
         m = (p * W[..., None]).sum(axis=1)
