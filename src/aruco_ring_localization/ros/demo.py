@@ -146,7 +146,18 @@ def simulator_configs(args: argparse.Namespace, scene) -> Tuple[SimulatorConfig,
                           {"mode": args.mode, "rate": args.rate, "seed": args.seed, "clock.publish": True})
     if base.cameras.trigger == "free":
         base = with_overrides(base, {"cameras.phase_spread": min(1.0, HARSH_PHASE_SPAN * args.rate)})
-    mapping = with_overrides(base, {"robot.waypoints": "none", "clock.speed": MAPPING_SPEED})
+    turn_rate = float(getattr(args, "mapping_turn", 0.0))
+    if not turn_rate > 0:
+        mapping = with_overrides(base, {"robot.waypoints": "none", "clock.speed": MAPPING_SPEED})
+    else:
+        # A full turn on the spot at the mapping pose at ``turn_rate`` deg/s (docs/real_robot.md's
+        # mapping drive: slowly, so that the turning ring's images are not smeared), through
+        # MAPPING_TURN_HEADINGS waypoints, each held one frame (sim/at_waypoint tells when the turn is done).
+        x0, y0, yaw0 = scene.mapping_pose
+        turn = [[float(x0), float(y0), float(np.degrees(yaw0) + 360.0 * k / MAPPING_TURN_HEADINGS)]
+                for k in range(MAPPING_TURN_HEADINGS + 1)]
+        mapping = with_overrides(base, {"robot.plan": turn, "clock.speed": MAPPING_SPEED, "robot.hold_time": 1.0 / args.rate,
+                                        "robot.limits.max_yaw_rate": float(np.radians(turn_rate))})
     route = [tuple(scene.mapping_pose)] + [s.pose for s in plan_stops(scene.test_positions, scene.test_orientations)]
     localization = with_overrides(base, {
         "robot.plan": [[float(x), float(y), float(np.degrees(yaw))] for x, y, yaw in route],
@@ -288,6 +299,7 @@ class Recorder:
 # --------------------------------------------------------------------------------------------
 MAPPING_SPEED = 2.0            # simulated s per wall s while mapping (no per-frame answer to wait for)
 MAPPING_EXTRA_FRAMES = 3
+MAPPING_TURN_HEADINGS = 8      # --mapping-turn: the full turn's waypoints (45 deg apart, held one frame)
 LOCALIZATION_SPEED = 50.0      # as fast as the lockstep lets it
 LOCALIZATION_START = 1000.0    # simulated clock of the localization phase, s
 DRIVE_SPEED = 0.5              # m/s between stops
@@ -315,6 +327,9 @@ def _parse(argv: Optional[Sequence[str]]) -> argparse.Namespace:
                    help="also open rviz (needs DISPLAY); GUI=1 in the environment does the same")
     p.add_argument("--rate", type=float, default=5.0, help="simulated frames per simulated second")
     p.add_argument("--mapping-frames", type=int, default=30, help="frames at the mapping pose")
+    p.add_argument("--mapping-turn", type=float, default=0.0,
+                   help="0: map standing still at the mapping pose (--mapping-frames frames); > 0: turn once on "
+                        "the spot there at this rate instead (deg/s)")
     p.add_argument("--hold-frames", type=int, default=10, help="frames held at each stop")
     p.add_argument("--use-last", type=int, default=5, help="last frames of each stop averaged (median)")
     p.add_argument("--seed", type=int, default=0, help="seed of the rig error, noise and rendering")
@@ -353,11 +368,21 @@ def _map(ros: RosSession, rec: Recorder, args: argparse.Namespace, config: Simul
     with rec.lock:
         first = rec.frames
     pose = scene.mapping_pose
-    progress(f"mapping from the plate centre ({pose[0]:.2f}, {pose[1]:.2f}) m: {args.mapping_frames} frames")
+    headings = len(config.robot.plan) if config.robot.plan else 1
+    progress(f"mapping from the plate centre ({pose[0]:.2f}, {pose[1]:.2f}) m: "
+             + (f"a full turn on the spot at {args.mapping_turn:g} deg/s" if headings > 1
+                else f"{args.mapping_frames} frames standing still"))
+    if headings > 1:
+        done = [headings - 1, -1]   # sim/at_waypoint: the last heading reached, then the plan is done
+        if not rec.wait(lambda: rec.held[-2:] == done, 1800, alive=lambda: mapping.poll() is None):
+            raise RuntimeError(f"the mapping turn stopped after {rec.frames - first} frames "
+                               f"(logs: {out / 'logs'}/mapping.log)")
+        first = rec.frames
+        # (then a few frames more, as below: the last held ones through the mapper)
     # A few frames more than needed, so that the last ones are through the mapper too (it keeps
     # the first max_frames_per_station frames of a station, so extra ones change nothing).
-    if not rec.wait(lambda: rec.frames >= first + args.mapping_frames + MAPPING_EXTRA_FRAMES, 600,
-                    alive=lambda: mapping.poll() is None):
+    need = (0 if headings > 1 else args.mapping_frames) + MAPPING_EXTRA_FRAMES
+    if not rec.wait(lambda: rec.frames >= first + need, 600, alive=lambda: mapping.poll() is None):
         raise RuntimeError(f"the simulator gave {rec.frames - first} of {args.mapping_frames} mapping frames "
                            f"(logs: {out / 'logs'}/mapping.log)")
     progress("mapping: /mapper/save_map" + (" (bundle adjustment)" if args.method == "refined" else ""))

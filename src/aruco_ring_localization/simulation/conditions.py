@@ -153,6 +153,19 @@ class Photometry:
         return out
 
 
+def lit(img: np.ndarray, photometry: Tuple[float, float, float]) -> np.ndarray:
+    """``img`` (float32 grey levels) times the gain and the gradient, not clipped (the light the
+    sensor receives: :func:`apply_photometry` then clips it)."""
+    gain, amp, angle = photometry
+    if amp > 0:
+        h, w = img.shape
+        u, v = _unit_grids(h, w)
+        k = gain * amp / np.sqrt(2.0)
+        ramp = cv2.addWeighted(u, float(k * np.cos(angle)), v, float(k * np.sin(angle)), float(gain))
+        return cv2.multiply(img, ramp)
+    return img * np.float32(gain)
+
+
 def apply_photometry(img: np.ndarray, photometry: Optional[Tuple[float, float, float]]) -> np.ndarray:
     """``img`` (grey levels, float32 or uint8) times the gain and the gradient, rounded and clipped
     to a mono8 image (values past 255 saturate, as a sensor does)."""

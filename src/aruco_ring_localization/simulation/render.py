@@ -166,23 +166,33 @@ class RingRenderer:
         """One camera's mono8 image averaged over the robot poses ``views`` (4x4 each: the exposure's
         motion blur), times ``photometry`` (gain, gradient, direction: :class:`conditions.Photometry`),
         then optical blur and sensor noise. One view without photometry is :meth:`render_camera`."""
-        from .conditions import apply_photometry
-
         img = self._scene_image(views[0], name)
+        if len(views) == 1 and photometry is None:
+            # (the still, unlit image: blurred and noised as mono8, as before)
+            H, W = img.shape
+            if self.blur_sigma > 0:
+                img = cv2.GaussianBlur(img, (0, 0), self.blur_sigma)
+            if self.noise_std > 0:
+                oy, ox = (int(v) for v in rng.integers(0, self._noise_pad, 2))
+                img = cv2.addWeighted(img, 1.0, self._noise[oy:oy + H, ox:ox + W], 1.0, -128.0)
+            return img
+        # As a camera forms it: the exposure's views, the lens blur, the light on the sensor (gain,
+        # gradient), the sensor's noise, and only then its full scale (clipped) and the rounding.
+        acc = img.astype(np.float32)
+        for T in views[1:]:
+            acc += self._scene_image(T, name)
         if len(views) > 1:
-            acc = img.astype(np.float32)
-            for T in views[1:]:
-                acc += self._scene_image(T, name)
-            img = acc * np.float32(1.0 / len(views))
-        if len(views) > 1 or photometry is not None:
-            img = apply_photometry(img, photometry)
-        H, W = img.shape
+            acc *= np.float32(1.0 / len(views))
+        H, W = acc.shape
         if self.blur_sigma > 0:
-            img = cv2.GaussianBlur(img, (0, 0), self.blur_sigma)
+            acc = cv2.GaussianBlur(acc, (0, 0), self.blur_sigma)
+        if photometry is not None:
+            from .conditions import lit
+            acc = lit(acc, photometry)
         if self.noise_std > 0:
             oy, ox = (int(v) for v in rng.integers(0, self._noise_pad, 2))
-            img = cv2.addWeighted(img, 1.0, self._noise[oy:oy + H, ox:ox + W], 1.0, -128.0)
-        return img
+            acc = acc + (self._noise[oy:oy + H, ox:ox + W].astype(np.float32) - 128.0)
+        return cv2.convertScaleAbs(acc)   # saturate_cast: rounds, clips to 0..255
 
     def _scene_image(self, T_world_base: np.ndarray, name: str) -> np.ndarray:
         """The background, the markers and the occluding posts (far to near), before blur and noise."""
