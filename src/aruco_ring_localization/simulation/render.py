@@ -16,9 +16,12 @@ Per camera image (mono8, the camera's size):
 3. the scene's occluding posts (``posts[].occludes``), painted with the markers in distance order
    where each pixel's ray hits the column;
 4. with :meth:`RingRenderer.render_views`: the mean of several such images along the exposure
-   (motion blur) and a gain and brightness gradient (:mod:`.conditions`, clipped at 255);
-5. optical blur (Gaussian, ``blur_sigma`` px) and sensor noise (Gaussian, ``noise_std`` grey
-   levels, drawn from a seeded bank at a random offset per image).
+   (motion blur);
+5. optical blur (Gaussian, ``blur_sigma`` px), then with :meth:`RingRenderer.render_views` a gain
+   and brightness gradient (:mod:`.conditions`), then sensor noise (Gaussian, ``noise_std`` grey
+   levels, drawn from a seeded bank at a random offset per image), and only then the clip at 255
+   and the rounding: a camera saturates after its lens and with its noise (a bright frame's white
+   reads 255). An unlit still image (no gain, one view) is blurred and noised as mono8.
 
 Each marker gets its own seeded print contrast (black 15..45, white 200..235), like real prints
 under uneven light. Pixel centres are at integer coordinates, as in OpenCV and
