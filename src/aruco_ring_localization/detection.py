@@ -452,8 +452,8 @@ def refine_corners_lines(gray: np.ndarray, corners, iterations: int = 2) -> np.n
     Where the white margin saturates (grey level 255: a bright exposure), the profile is cut on its
     light side, and the centroid of what is left lies on the dark side of the edge: the marker comes
     out smaller, and so farther away (0.04-0.07 px per edge on the harsh lab's bright frames, about
-    0.3 % of a 30 px marker). There the centroid is taken over the part of the gradient symmetric
-    fitted to the gradient's unclipped steps (:func:`_clipped_edge_shift`).
+    0.3 % of a 30 px marker). There the edge is the peak of a Gaussian fitted to the gradient's
+    unclipped steps instead (:func:`_clipped_edge_shift`).
 
     Args:
         gray: (H, W) uint8 image.

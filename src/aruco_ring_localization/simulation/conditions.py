@@ -167,19 +167,11 @@ def lit(img: np.ndarray, photometry: Tuple[float, float, float]) -> np.ndarray:
 
 
 def apply_photometry(img: np.ndarray, photometry: Optional[Tuple[float, float, float]]) -> np.ndarray:
-    """``img`` (grey levels, float32 or uint8) times the gain and the gradient, rounded and clipped
-    to a mono8 image (values past 255 saturate, as a sensor does)."""
+    """``img`` (grey levels, float32 or uint8) times the gain and the gradient (:func:`lit`), rounded
+    and clipped to a mono8 image (values past 255 saturate, as a sensor does)."""
     out = img if img.dtype == np.float32 else img.astype(np.float32)
     if photometry is not None:
-        gain, amp, angle = photometry
-        h, w = out.shape
-        if amp > 0:
-            u, v = _unit_grids(h, w)
-            k = gain * amp / np.sqrt(2.0)
-            ramp = cv2.addWeighted(u, float(k * np.cos(angle)), v, float(k * np.sin(angle)), float(gain))
-            out = cv2.multiply(out, ramp)
-        else:
-            out = out * np.float32(gain)
+        out = lit(out, photometry)
     return cv2.convertScaleAbs(out)   # saturate_cast: rounds, clips to 0..255
 
 

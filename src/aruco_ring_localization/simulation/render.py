@@ -167,8 +167,9 @@ class RingRenderer:
     def render_views(self, views: Sequence[np.ndarray], name: str, rng: np.random.Generator,
                      photometry: Optional[Tuple[float, float, float]] = None) -> np.ndarray:
         """One camera's mono8 image averaged over the robot poses ``views`` (4x4 each: the exposure's
-        motion blur), times ``photometry`` (gain, gradient, direction: :class:`conditions.Photometry`),
-        then optical blur and sensor noise. One view without photometry is :meth:`render_camera`."""
+        motion blur), blurred by the lens, times ``photometry`` (gain, gradient, direction:
+        :class:`conditions.Photometry`), with the sensor's noise, then clipped at 255 and rounded.
+        One view without photometry is :meth:`render_camera`."""
         img = self._scene_image(views[0], name)
         if len(views) == 1 and photometry is None:
             # (the still, unlit image: blurred and noised as mono8, as before)
