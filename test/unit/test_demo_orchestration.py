@@ -45,6 +45,23 @@ def test_simulator_configs_of_the_two_phases(tmp_path):
     assert load_config(SimulatorConfig, load_yaml_file(str(path)), warn=said.append) == localization and not said
 
 
+def test_the_mapping_turn_is_one_full_turn_on_the_spot_at_the_given_rate():
+    """--mapping-turn: the mapping phase turns once on the spot at the mapping pose (9 waypoints 45 deg
+    apart, the last the start's heading, each held one frame) at the given yaw rate; 0 (the default)
+    stands still there."""
+    scene = Scene.default()
+    still, _ = demo.simulator_configs(_args(mapping_turn=0.0), scene)
+    assert still.robot.waypoints == "none" and not still.robot.plan
+    assert demo._parse([]).mapping_turn == 0.0 and demo._parse(["--mapping-turn", "10"]).mapping_turn == 10.0
+    turn, _ = demo.simulator_configs(_args(mapping_turn=10.0), scene)
+    plan = np.array(turn.robot.plan)
+    x0, y0, yaw0 = scene.mapping_pose
+    assert plan.shape == (9, 3) and np.allclose(plan[:, :2], [x0, y0])
+    assert np.allclose(np.diff(plan[:, 2]), 45.0) and plan[-1, 2] - plan[0, 2] == pytest.approx(360.0)
+    assert turn.robot.limits.max_yaw_rate == pytest.approx(np.radians(10.0))
+    assert turn.robot.hold_time == pytest.approx(0.2)                  # one frame at 5 Hz
+
+
 def test_the_demo_runs_the_harsh_lab_by_default():
     from aruco_ring_localization.simulation.params import lab_config
 
