@@ -111,19 +111,19 @@ def _map_harsh_still(ring: CameraRing, seed: int, frames: int = HARSH_FRAMES) ->
     saturation, pillars), every image detected by the package's detector, the mapper's defaults with
     the demo's survey of 3 markers (1 mm); map error against the truth in the surveyed frame (nothing
     fitted) and after a best fit."""
+    import argparse
     from pathlib import Path
     import tempfile
 
-    from aruco_ring_localization.ros.demo import HARSH_PHASE_SPAN, write_survey
+    from aruco_ring_localization.ros.demo import simulator_configs, write_survey
     from aruco_ring_localization.simulation.params import lab_config
     from aruco_ring_localization.simulation.scene import resolve_scene_file
     from aruco_ring_localization.simulation.simulator import SimulatorCore
 
     rate = 5.0
-    cfg = with_overrides(lab_config("harsh"), {"mode": "images", "rate": rate, "seed": seed,
-                                               "robot.waypoints": "none"})
-    cfg = with_overrides(cfg, {"cameras.phase_spread": min(1.0, HARSH_PHASE_SPAN * rate)})
-    scene = Scene.load(resolve_scene_file(cfg.scene.file))
+    scene = Scene.load(resolve_scene_file(lab_config("harsh").scene.file))
+    demo_args = argparse.Namespace(lab="harsh", mode="images", rate=rate, seed=seed, hold_frames=10, mapping_turn=0.0)
+    cfg = simulator_configs(demo_args, scene)[0]   # the demo's mapping phase
     core = SimulatorCore(cfg, scene, ring)
     detector = Detector(DetectorParams(dictionary=scene.dictionary))
     with tempfile.TemporaryDirectory() as tmp:

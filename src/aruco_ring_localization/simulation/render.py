@@ -177,8 +177,7 @@ class RingRenderer:
             if self.blur_sigma > 0:
                 img = cv2.GaussianBlur(img, (0, 0), self.blur_sigma)
             if self.noise_std > 0:
-                oy, ox = (int(v) for v in rng.integers(0, self._noise_pad, 2))
-                img = cv2.addWeighted(img, 1.0, self._noise[oy:oy + H, ox:ox + W], 1.0, -128.0)
+                img = cv2.addWeighted(img, 1.0, self._noise_tile(rng, H, W), 1.0, -128.0)
             return img
         # As a camera forms it: the exposure's views, the lens blur, the light on the sensor (gain,
         # gradient), the sensor's noise, and only then its full scale (clipped) and the rounding.
@@ -194,9 +193,13 @@ class RingRenderer:
             from .conditions import lit
             acc = lit(acc, photometry)
         if self.noise_std > 0:
-            oy, ox = (int(v) for v in rng.integers(0, self._noise_pad, 2))
-            acc = acc + (self._noise[oy:oy + H, ox:ox + W].astype(np.float32) - 128.0)
+            acc = acc + (self._noise_tile(rng, H, W).astype(np.float32) - 128.0)
         return cv2.convertScaleAbs(acc)   # saturate_cast: rounds, clips to 0..255
+
+    def _noise_tile(self, rng: np.random.Generator, H: int, W: int) -> np.ndarray:
+        """An (H, W) tile of the seeded noise bank (mono8, 128 = no noise) at a random offset."""
+        oy, ox = (int(v) for v in rng.integers(0, self._noise_pad, 2))
+        return self._noise[oy:oy + H, ox:ox + W]
 
     def _scene_image(self, T_world_base: np.ndarray, name: str) -> np.ndarray:
         """The background, the markers and the occluding posts (far to near), before blur and noise."""
