@@ -158,6 +158,8 @@ class Detector:
     def __init__(self, params: Optional[DetectorParams] = None):
         self.params = params if params is not None else DetectorParams()
         dictionary = cv2.aruco.getPredefinedDictionary(int(self.params.dictionary))
+        self._dictionary = dictionary
+        self._bits: Dict[int, np.ndarray] = {}   # id -> its inner bits (marker_bits), as met
         self._detector = cv2.aruco.ArucoDetector(dictionary, self.params.opencv())
         self._roi_params = self.params.opencv()  # perimeter limits rescaled per region (detect_in)
         self._roi_detector = cv2.aruco.ArucoDetector(dictionary, self._roi_params)
@@ -236,11 +238,23 @@ class Detector:
             return []
         return [(int(i), np.asarray(c, dtype=np.float64).reshape(4, 2)) for c, i in zip(corners, np.asarray(ids).ravel())]
 
+    def _marker_bits(self, marker_id: int) -> Optional[np.ndarray]:
+        """(n, n) bool: the marker's inner bits (True: white), row 0 along its side from corner 0 to
+        corner 1; None for an id the dictionary does not have."""
+        bits = self._bits.get(marker_id)
+        if bits is None:
+            d = self._dictionary
+            if not 0 <= marker_id < d.bytesList.shape[0]:
+                return None
+            bits = self._bits[marker_id] = cv2.aruco.Dictionary.getBitsFromByteList(
+                d.bytesList[marker_id:marker_id + 1], d.markerSize).astype(bool)
+        return bits
+
     def _refined(self, img: np.ndarray, quads: Sequence[Tuple[int, np.ndarray]]) -> List[MarkerObservation]:
         out = []
         for marker_id, pts in quads:
             if self.params.corner_refinement == "lines":
-                pts = refine_corners_lines(img, pts)
+                pts = refine_corners_lines(img, pts, bits=self._marker_bits(marker_id))
             out.append(MarkerObservation(marker_id, pts))
         return out
 
@@ -437,7 +451,107 @@ def _clipped_edge_shift(g: np.ndarray, cut: np.ndarray, mid: np.ndarray, shift: 
     return np.where(ok, x0, shift)
 
 
-def refine_corners_lines(gray: np.ndarray, corners, iterations: int = 2) -> np.ndarray:
+#: The black border's sides in the marker's own frame (u right, v down, in modules; corner 0 at the
+#: top left, OpenCV's order): each side's outward normal and the direction along it (corner i -> i + 1).
+_SIDE_NORMAL = np.array([[0.0, -1.0], [1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]])
+_SIDE_ALONG = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
+#: Across the border (modules from its centre line, outward positive): the profile's samples. +-1.1
+#: reaches 0.6 module into the white margin and into a white bit, and stays 0.4 module from the
+#: next row of bits (a black one there would darken the inner end).
+_STRIPE_OFFS = np.linspace(-1.1, 1.1, 23)
+#: Along the border (modules from a bit's centre): three profiles per white bit, away from the
+#: neighbouring bits (a black neighbour's blur would darken one flank).
+_STRIPE_ALONG = np.array([-0.1, 0.0, 0.1])
+#: Passes of :func:`_stripe_corners` (each from the last one's corners: the profiles' places in the
+#: marker's frame are the previous quad's, off by its error; three leave it below 0.01 px).
+_STRIPE_PASSES = 3
+
+
+def _stripe_corners(roi: np.ndarray, c: np.ndarray, bits: np.ndarray) -> Optional[np.ndarray]:
+    """The corners (4, 2) from the centre lines of the marker's black border, or None.
+
+    Where a white bit lies inside the border, a profile across the border runs white (the margin),
+    black (the border, 1 module), white (the bit): a dark stripe between two sides of the same
+    paper under the same light, blurred and clipped alike, so its darkness-weighted centroid is its
+    centre whatever the blur and however far the white is above full scale. Each side's centre
+    line is found so, in the marker's frame through the homography of the current corners ``c``:
+    its offset from where that quad puts it and, with two or more white bits along the side, its
+    turn; a side with no white bit next to it takes the others' mean offset (the same paper and
+    blur). The border's outer lines lie half a module outside the centre lines, and the corners
+    where they meet. Three passes, each from the last one's corners. None (the caller keeps its
+    own) when no side has a white bit, a profile has no dark stripe (12 grey levels), or the result
+    moves a corner by more than half a module or is not finite.
+
+    Args:
+        roi: float image region; ``c`` in its pixels.
+        c: (4, 2) corners, OpenCV's order, within a fraction of a module.
+        bits: (n, n) the inner bits, True where white, row 0 along side 0 (corner 0 -> 1).
+    """
+    n = bits.shape[0]
+    half = 0.5 * n + 1.0                     # the black square's half side, modules
+    centre_line = half - 0.5
+    cells = np.arange(n) - 0.5 * (n - 1)    # the bits' centres along a side, modules
+    # per side, its bits next to the border in the side's own direction
+    white = (bits[0, :], bits[:, n - 1], bits[n - 1, ::-1], bits[::-1, 0])
+    side_of, pos = [], []
+    for k in range(4):
+        at = cells[white[k]]
+        side_of.append(np.full(at.size * _STRIPE_ALONG.size, k))
+        pos.append((at[:, None] + _STRIPE_ALONG).ravel())
+    side_of = np.concatenate(side_of)
+    if not side_of.size:
+        return None
+    pos = np.concatenate(pos)
+    nrm, along = _SIDE_NORMAL[side_of], _SIDE_ALONG[side_of]
+    # (profiles, samples, 2): the profiles' points in the marker's frame
+    pts = (pos[:, None] * along + centre_line * nrm)[:, None, :] + _STRIPE_OFFS[None, :, None] * nrm[:, None, :]
+    counts = np.bincount(side_of, minlength=4)
+    measured = counts > 0
+    square = np.array([[-half, -half], [half, -half], [half, half], [-half, half]], dtype=np.float32)
+    module = float(np.sqrt(((c - c[_NEXT]) ** 2).sum(axis=1)).mean()) / (2.0 * half)   # px
+    out = c
+    for _ in range(_STRIPE_PASSES):
+        Hm = cv2.getPerspectiveTransform(square, out.astype(np.float32)).astype(np.float64)
+        q = pts.reshape(-1, 2) @ Hm[:, :2].T + Hm[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xy = (q[:, :2] / q[:, 2:3]).astype(np.float32)
+        if not np.isfinite(xy).all():
+            return None
+        prof = cv2.remap(roi, xy[None, :, 0], xy[None, :, 1], cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REPLICATE).reshape(pts.shape[:2]).astype(np.float64)
+        dark = prof.max(axis=1, keepdims=True) - prof
+        depth = dark.max(axis=1)
+        if depth.min() < _MIN_EDGE_CONTRAST:
+            return None
+        dark = np.maximum(dark - 0.1 * depth[:, None], 0.0)   # the plateaus' noise out
+        shift = (dark * _STRIPE_OFFS).sum(axis=1) / dark.sum(axis=1)   # the stripe's centre, modules outward
+        # Per side, the shift as a + b * (position along it): least squares over its profiles
+        # (b = 0 with fewer than two white bits there), the mean of the others' a where it has none.
+        sw = np.bincount(side_of, pos, 4)
+        s_mean = np.where(measured, sw / np.maximum(counts, 1), 0.0)
+        d_pos = pos - s_mean[side_of]
+        sxx = np.bincount(side_of, d_pos * d_pos, 4)
+        sxy = np.bincount(side_of, d_pos * shift, 4)
+        b = np.where(sxx > 0.1 * counts, sxy / np.maximum(sxx, 1e-12), 0.0)   # (one bit: var 0.007; two: >= 0.25)
+        a = np.where(measured, np.bincount(side_of, shift, 4) / np.maximum(counts, 1) - b * s_mean, 0.0)
+        a[~measured] = a[measured].mean()
+        # Side k's outer line in the marker's frame: p . nrm_k = half + a_k + b_k (p . along_k);
+        # corner i is where sides i - 1 and i meet.
+        k1, k2 = np.array([3, 0, 1, 2]), np.arange(4)
+        r1 = _SIDE_NORMAL[k1] - b[k1, None] * _SIDE_ALONG[k1]
+        r2 = _SIDE_NORMAL[k2] - b[k2, None] * _SIDE_ALONG[k2]
+        e1, e2 = half + a[k1], half + a[k2]
+        det = r1[:, 0] * r2[:, 1] - r1[:, 1] * r2[:, 0]
+        uv = np.stack([(e1 * r2[:, 1] - e2 * r1[:, 1]) / det, (r1[:, 0] * e2 - r2[:, 0] * e1) / det], axis=1)
+        q = uv @ Hm[:, :2].T + Hm[:, 2]
+        out = q[:, :2] / q[:, 2:3]
+        if not np.isfinite(out).all() or float(np.abs(out - c).max()) > 0.5 * module:
+            return None
+    return out
+
+
+def refine_corners_lines(gray: np.ndarray, corners, iterations: int = 2, bits: Optional[np.ndarray] = None
+                         ) -> np.ndarray:
     """Re-place each corner at the intersection of its two edge lines.
 
     For each side, points along the half next to each corner are sampled; at each, the intensity
@@ -451,13 +565,18 @@ def refine_corners_lines(gray: np.ndarray, corners, iterations: int = 2) -> np.n
 
     Where the white margin saturates (grey level 255: a bright exposure), the profile is cut on its
     light side, and the centroid of what is left lies on the dark side of the edge: the marker comes
-    out smaller, and so farther away (0.04-0.07 px per edge on the harsh lab's bright frames, about
-    0.3 % of a 30 px marker). There the edge is the peak of a Gaussian fitted to the gradient's
-    unclipped steps instead (:func:`_clipped_edge_shift`).
+    out smaller, and so farther away (0.2-0.8 px per edge on the harsh lab's bright frames). There,
+    given the marker's ``bits``, the corners are placed from the centre lines of the black border
+    instead (:func:`_stripe_corners`): where a white bit lies inside the border, the border is a
+    dark stripe between two equally white, equally clipped sides, whose centre neither the blur nor
+    the clip moves. Without ``bits``, or where that fails, each cut edge is the peak of a Gaussian
+    fitted to the gradient's unclipped steps (:func:`_clipped_edge_shift`).
 
     Args:
         gray: (H, W) uint8 image.
         corners: (4, 2) initial corners (raw pixels, aruco_detect order), within about 1 px.
+        bits: (n, n) the marker's inner bits, True where white (:meth:`Detector._marker_bits`;
+            row 0 runs along the side from corner 0 to corner 1), or None.
 
     Returns:
         (4, 2) refined corners, raw pixels.
@@ -480,64 +599,73 @@ def refine_corners_lines(gray: np.ndarray, corners, iterations: int = 2) -> np.n
     if x1 - x0 < 4 or y1 - y0 < 4:
         return c
     roi = gray[y0:y1, x0:x1].astype(np.float32)  # float: remap on uint8 would round the profiles
-    # A white margin at the sensor's full scale cuts the light side of its edges' profiles
-    # (:func:`_clipped_edge_shift`); only then is the edge fitted (one max per marker otherwise).
+    # A white margin at the sensor's full scale cuts the light side of its edges' profiles; only
+    # then are the corners placed otherwise (one max per marker otherwise).
     saturated = bool(roi.max() >= _SATURATED)
     origin = np.array([x0, y0], dtype=np.float64)
     c -= origin
     k = offs.size
     tu = np.concatenate([u, 1.0 - u])  # 8 half-sides: side i near corner i (0..3), near corner i+1 (4..7)
-    for _ in range(iterations):
-        a = c[_HALF]                                          # (8, 2) start of the half-side's side
-        b = c[_NEXT][_HALF]                                   # its end
-        d = b - a
-        length = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
-        if length.min() < 1.0:
-            break
-        d /= length[:, None]
-        n = d[:, ::-1] * _ROT                                 # (d_y, -d_x)
-        centre = c.mean(axis=0)
-        n *= np.sign(((0.5 * (a + b) - centre) * n).sum(axis=1))[:, None]  # outward
-        t = tu.reshape(2, 1, ns) * length.reshape(2, 4, 1)    # (2, 4, ns) -> (8, ns) below
-        base = a[:, None, :] + t.reshape(8, ns, 1) * d[:, None, :]                       # (8, ns, 2)
-        mx = (base[:, :, 0, None] + offs * n[:, 0, None, None]).astype(np.float32).reshape(8 * ns, k)
-        my = (base[:, :, 1, None] + offs * n[:, 1, None, None]).astype(np.float32).reshape(8 * ns, k)
-        prof = cv2.remap(roi, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-                         ).astype(np.float64).reshape(8, ns, k)
-        g = np.maximum(prof[:, :, 1:] - prof[:, :, :-1], 0.0)                          # dark -> light
-        w = g.sum(axis=2)
-        shift = (g * mid).sum(axis=2) / np.maximum(w, 1e-9)
-        if saturated:
-            shift = _clipped_edge_shift(g, prof >= _SATURATED, mid, shift)
-        p = base + shift[..., None] * n[:, None, :]
-        W = w / np.maximum(w.sum(axis=1), 1e-9)[:, None]
-        m = (p * W[..., None]).sum(axis=1)
-        q = p - m[:, None, :]
-        qx, qy = q[..., 0], q[..., 1]
-        wx = W * qx
-        sxx = (wx * qx).sum(axis=1)
-        syy = (W * qy * qy).sum(axis=1)
-        sxy = (wx * qy).sum(axis=1)
-        ang = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)        # principal direction of each half-side
-        nx, ny = -np.sin(ang), np.cos(ang)                   # n . x + c = 0 for each half-side's line
-        cl = -(nx * m[:, 0] + ny * m[:, 1])
-        ax, ay, ac = nx[_I_PREV], ny[_I_PREV], cl[_I_PREV]   # the two lines that meet at corner i
-        bx, by, bc = nx[_I_NEXT], ny[_I_NEXT], cl[_I_NEXT]
-        det = ax * by - ay * bx
-        # an edge needs a real dark -> light step along most of it (a marker printed without a
-        # white margin, or cut by an occluder, has none): otherwise keep OpenCV's corner
-        ws = np.sort(w, axis=1)
-        contrast = 0.5 * (ws[:, (ns - 1) // 2] + ws[:, ns // 2])  # the median
-        edged = contrast >= _MIN_EDGE_CONTRAST
-        good = (np.abs(det) > 1e-3) & edged[_I_PREV] & edged[_I_NEXT]
-        if not good.any():
-            continue
-        with np.errstate(divide="ignore", invalid="ignore"):
-            sol = np.stack([(ay * bc - by * ac) / det, (bx * ac - ax * bc) / det], axis=1)
-        step = sol - c
-        ok = good & np.isfinite(sol).all(axis=1) & (np.sqrt((step * step).sum(axis=1)) < 2.0 * h)
-        c = np.where(ok[:, None], sol, c)
-    return c + origin
+
+    def passes(c: np.ndarray, clipped_fit: bool) -> np.ndarray:
+        for _ in range(iterations):
+            a = c[_HALF]                                          # (8, 2) start of the half-side's side
+            b = c[_NEXT][_HALF]                                   # its end
+            d = b - a
+            length = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
+            if length.min() < 1.0:
+                break
+            d /= length[:, None]
+            n = d[:, ::-1] * _ROT                                 # (d_y, -d_x)
+            centre = c.mean(axis=0)
+            n *= np.sign(((0.5 * (a + b) - centre) * n).sum(axis=1))[:, None]  # outward
+            t = tu.reshape(2, 1, ns) * length.reshape(2, 4, 1)    # (2, 4, ns) -> (8, ns) below
+            base = a[:, None, :] + t.reshape(8, ns, 1) * d[:, None, :]                       # (8, ns, 2)
+            mx = (base[:, :, 0, None] + offs * n[:, 0, None, None]).astype(np.float32).reshape(8 * ns, k)
+            my = (base[:, :, 1, None] + offs * n[:, 1, None, None]).astype(np.float32).reshape(8 * ns, k)
+            prof = cv2.remap(roi, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+                             ).astype(np.float64).reshape(8, ns, k)
+            g = np.maximum(prof[:, :, 1:] - prof[:, :, :-1], 0.0)                          # dark -> light
+            w = g.sum(axis=2)
+            shift = (g * mid).sum(axis=2) / np.maximum(w, 1e-9)
+            if clipped_fit:
+                shift = _clipped_edge_shift(g, prof >= _SATURATED, mid, shift)
+            p = base + shift[..., None] * n[:, None, :]
+            W = w / np.maximum(w.sum(axis=1), 1e-9)[:, None]
+            m = (p * W[..., None]).sum(axis=1)
+            q = p - m[:, None, :]
+            qx, qy = q[..., 0], q[..., 1]
+            wx = W * qx
+            sxx = (wx * qx).sum(axis=1)
+            syy = (W * qy * qy).sum(axis=1)
+            sxy = (wx * qy).sum(axis=1)
+            ang = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)        # principal direction of each half-side
+            nx, ny = -np.sin(ang), np.cos(ang)                   # n . x + c = 0 for each half-side's line
+            cl = -(nx * m[:, 0] + ny * m[:, 1])
+            ax, ay, ac = nx[_I_PREV], ny[_I_PREV], cl[_I_PREV]   # the two lines that meet at corner i
+            bx, by, bc = nx[_I_NEXT], ny[_I_NEXT], cl[_I_NEXT]
+            det = ax * by - ay * bx
+            # an edge needs a real dark -> light step along most of it (a marker printed without a
+            # white margin, or cut by an occluder, has none): otherwise keep OpenCV's corner
+            ws = np.sort(w, axis=1)
+            contrast = 0.5 * (ws[:, (ns - 1) // 2] + ws[:, ns // 2])  # the median
+            edged = contrast >= _MIN_EDGE_CONTRAST
+            good = (np.abs(det) > 1e-3) & edged[_I_PREV] & edged[_I_NEXT]
+            if not good.any():
+                continue
+            with np.errstate(divide="ignore", invalid="ignore"):
+                sol = np.stack([(ay * bc - by * ac) / det, (bx * ac - ax * bc) / det], axis=1)
+            step = sol - c
+            ok = good & np.isfinite(sol).all(axis=1) & (np.sqrt((step * step).sum(axis=1)) < 2.0 * h)
+            c = np.where(ok[:, None], sol, c)
+        return c
+
+    if saturated and bits is not None:
+        # The profiles' lines (their centroids: cut, but close) start the border's centre lines.
+        placed = _stripe_corners(roi, passes(c, False), bits)
+        if placed is not None:
+            return placed + origin
+    return passes(c, saturated) + origin
 
 
 @dataclass(frozen=True)
