@@ -98,3 +98,21 @@ def test_the_renderer_saturates_after_the_blur_and_the_noise():
     white_dark = np.array([dark[y, x] for x, y in ring_px])
     assert side > 10 and (white_dark < 200).all(), (side, white_dark)
     assert (white_bright == 255).all(), white_bright
+
+
+def test_the_region_search_places_saturated_corners_as_the_whole_image_search_does():
+    """The nodes detect through TrackingDetector (regions around the last markers between
+    whole-image searches): a saturated marker found in a region gets the same border-stripe corners
+    as in a whole-image search, so the node's path takes the marker's bits too."""
+    from aruco_ring_localization.detection import TrackingDetector
+
+    rng = np.random.default_rng(3)
+    img, true = saturation_bias.render(rng, 1.3, 40.0, 0.8, 1.0)
+    whole = Detector().detect(img)
+    tracker = TrackingDetector(Detector(), full_every=5, edge_px=0)
+    first = tracker.detect(img)                 # a whole-image search (nothing tracked yet)
+    second = tracker.detect(img)                # a region search around the marker
+    assert [o.marker_id for o in whole] == [o.marker_id for o in first] == [o.marker_id for o in second] == [7]
+    for obs in (first, second):
+        assert np.allclose(obs[0].corners, whole[0].corners, rtol=0.0, atol=1e-3)   # (the gradient fit: 0.24 px off)
+    assert abs(_outward(np.asarray(whole[0].corners), true)) < 0.05   # (the gradient fit: about -0.18 at 1.3)
