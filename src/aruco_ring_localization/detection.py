@@ -159,7 +159,7 @@ class Detector:
         self.params = params if params is not None else DetectorParams()
         dictionary = cv2.aruco.getPredefinedDictionary(int(self.params.dictionary))
         self._dictionary = dictionary
-        self._bits: Dict[int, np.ndarray] = {}   # id -> its inner bits (marker_bits), as met
+        self._bits: Dict[int, np.ndarray] = {}   # id -> its inner bits (:meth:`_marker_bits`), as met
         self._detector = cv2.aruco.ArucoDetector(dictionary, self.params.opencv())
         self._roi_params = self.params.opencv()  # perimeter limits rescaled per region (detect_in)
         self._roi_detector = cv2.aruco.ArucoDetector(dictionary, self._roi_params)
